@@ -1,0 +1,3 @@
+from fetchsync.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""The long-running local agent: watcher, coalescer, sync loop, control socket."""
