@@ -1,0 +1,58 @@
+"""Shared fixtures: the real-sshd robot and a laptop-side HOME that points at it.
+
+- ``sshd`` (session): a running OpenSSH server on 127.0.0.1, see ``sshd.SSHD``.
+- ``ssh_home`` (function): a fresh HOME whose ``~/.ssh`` reaches the robot as
+  ``robot``; ``HOME`` is set to it and ``SSH_AUTH_SOCK`` unset.
+- ``remote_dir`` (function): an empty absolute directory to use as the remote
+  workspace on the robot (the robot is this machine).
+
+Tests that use them are marked ``@pytest.mark.ssh`` by convention.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+# Helper modules beside this file (sshd, faultproxy) import as top-level
+# modules whatever pytest's import mode.
+_TESTS_DIR = str(Path(__file__).resolve().parent)
+if _TESTS_DIR not in sys.path:
+    sys.path.insert(0, _TESTS_DIR)
+
+from sshd import SSHD, SSHDStartError, SSHHome, find_sshd, make_ssh_home, running_sshd
+
+
+@pytest.fixture(scope="session")
+def sshd(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SSHD]:
+    """The robot: a real sshd on 127.0.0.1 for the whole session."""
+    if find_sshd() is None and not os.environ.get("CI"):
+        # On CI a missing sshd is an install bug and must fail, not skip.
+        pytest.skip("sshd not installed (apt-get install openssh-server)")
+    try:
+        with running_sshd(tmp_path_factory.mktemp("sshd")) as server:
+            yield server
+    except SSHDStartError as exc:
+        pytest.fail(str(exc), pytrace=False)
+
+
+@pytest.fixture
+def ssh_home(sshd: SSHD, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
+    """A fresh HOME for the laptop side, reaching the robot as ``robot``."""
+    home = make_ssh_home(tmp_path / "home", sshd=sshd)
+    monkeypatch.setenv("HOME", str(home.home))
+    # A developer's agent would offer their own keys to the robot.
+    monkeypatch.delenv("SSH_AUTH_SOCK", raising=False)
+    return home
+
+
+@pytest.fixture
+def remote_dir(tmp_path: Path) -> Path:
+    """An empty directory on the robot to use as the remote workspace."""
+    path = (tmp_path / "robot-ws").resolve()
+    path.mkdir()
+    return path
