@@ -1,0 +1,241 @@
+"""Protocol messages: operations on a tree, their results, and tree listings.
+
+Each is a small frozen dataclass with ``validate()`` (raises ProtocolError),
+``to_wire()`` (a JSON-able value) and ``from_wire()`` (validates).
+
+An *expectation* is what the receiver should hold at a path before an
+operation applies, written as a string:
+
+    "-"            nothing
+    "d"            a directory
+    "l:TARGET"     a symlink to TARGET
+    "f:HEXHASH"    a regular file with that content hash
+
+A mismatch is a conflict: the receiver's version is preserved, never lost.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Tuple
+
+from fetchsync.protocol import paths
+from fetchsync.protocol.errors import ProtocolError
+
+MKDIR = "mkdir"
+WRITE = "write"
+SYMLINK = "symlink"
+CHMOD = "chmod"
+DELETE = "delete"
+UPLOAD = "upload"
+OP_KINDS = (MKDIR, WRITE, SYMLINK, CHMOD, DELETE, UPLOAD)
+
+# sources of a write
+SRC_DATA = "data"       # the blob holds the whole content
+SRC_DELTA = "delta"     # the blob holds a delta against the current file (hash ``base``)
+SRC_COPY = "copy"       # content the receiver holds at another path (hash ``base``)
+SRC_UPLOAD = "upload"   # content sent before in UPLOAD ops with id ``upload``
+SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD)
+
+ABSENT = "-"
+IS_DIR = "d"
+
+# result codes
+OK = "ok"
+CONFLICT = "conflict"            # precondition failed and the conflict policy refused
+BASE_MISMATCH = "base_mismatch"  # delta/copy base is not what we expected: resend whole
+IO_ERROR = "io"
+PATH_ERROR = "path"
+NO_SPACE = "no_space"
+
+
+def expect_file(hexhash: str) -> str:
+    return "f:" + hexhash
+
+
+def expect_link(target: str) -> str:
+    return "l:" + target
+
+
+def _check_expect(value: Optional[str]) -> None:
+    if value is None:
+        return
+    if not isinstance(value, str) or not (value in (ABSENT, IS_DIR) or value[:2] in ("f:", "l:")):
+        raise ProtocolError("bad expectation %r" % (value,))
+
+
+def _check_int(name: str, value: Any, lo: int = 0, hi: int = 1 << 62) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+        raise ProtocolError("%s out of range: %r" % (name, value))
+
+
+@dataclass(frozen=True)
+class Op:
+    kind: str
+    path: str
+    expect: Optional[str] = None   # None: no check (only for UPLOAD)
+    mode: int = 0
+    target: str = ""               # SYMLINK
+    hash: str = ""                 # WRITE: content hash of the result (hex)
+    size: int = 0                  # WRITE: size of the result; UPLOAD: offset
+    source: str = ""               # WRITE: one of SOURCES
+    base: str = ""                 # WRITE from delta: hash of the base; from copy: its hash
+    from_path: str = ""            # WRITE from copy
+    blob: Tuple[int, int] = (0, 0)  # (offset, length) in the request's blob
+    upload: str = ""               # WRITE from upload / UPLOAD: the upload id
+
+    def validate(self) -> "Op":
+        if self.kind not in OP_KINDS:
+            raise ProtocolError("unknown operation %r" % (self.kind,))
+        if self.kind == UPLOAD:
+            if not self.upload.isalnum() or len(self.upload) > 64:
+                raise ProtocolError("bad upload id %r" % (self.upload,))
+            _check_int("upload offset", self.size)
+        else:
+            paths.validate(self.path)
+            _check_expect(self.expect)
+            if self.expect is None:
+                raise ProtocolError("%s of %r has no expectation" % (self.kind, self.path))
+        _check_int("mode", self.mode, 0, 0o7777)
+        off, length = self.blob
+        _check_int("blob offset", off)
+        _check_int("blob length", length)
+        if self.kind == SYMLINK and (not self.target or "\x00" in self.target):
+            raise ProtocolError("bad symlink target for %r" % self.path)
+        if self.kind == WRITE:
+            if self.source not in SOURCES:
+                raise ProtocolError("unknown write source %r" % (self.source,))
+            _check_int("size", self.size)
+            if not self.hash or len(self.hash) > 128:
+                raise ProtocolError("write of %r has no content hash" % self.path)
+            if self.source == SRC_COPY:
+                paths.validate(self.from_path)
+                if not self.base:
+                    raise ProtocolError("copy to %r has no source hash" % self.path)
+            if self.source == SRC_DELTA and not self.base:
+                raise ProtocolError("delta to %r has no base hash" % self.path)
+            if self.source == SRC_UPLOAD and not self.upload.isalnum():
+                raise ProtocolError("bad upload id %r" % (self.upload,))
+        return self
+
+    def to_wire(self) -> Dict[str, Any]:
+        out = {"k": self.kind, "p": self.path}  # type: Dict[str, Any]
+        if self.expect is not None:
+            out["e"] = self.expect
+        if self.mode:
+            out["m"] = self.mode
+        if self.target:
+            out["t"] = self.target
+        if self.hash:
+            out["h"] = self.hash
+        if self.size:
+            out["s"] = self.size
+        if self.source:
+            out["src"] = self.source
+        if self.base:
+            out["b"] = self.base
+        if self.from_path:
+            out["fp"] = self.from_path
+        if self.blob != (0, 0):
+            out["bl"] = list(self.blob)
+        if self.upload:
+            out["u"] = self.upload
+        return out
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> "Op":
+        if not isinstance(obj, dict):
+            raise ProtocolError("operation is not an object")
+        try:
+            blob = obj.get("bl", (0, 0))
+            if not isinstance(blob, (list, tuple)) or len(blob) != 2:
+                raise ProtocolError("bad blob reference")
+            op = cls(kind=obj["k"], path=obj.get("p", ""), expect=obj.get("e"), mode=obj.get("m", 0),
+                     target=obj.get("t", ""), hash=obj.get("h", ""), size=obj.get("s", 0),
+                     source=obj.get("src", ""), base=obj.get("b", ""), from_path=obj.get("fp", ""),
+                     blob=(blob[0], blob[1]), upload=obj.get("u", ""))
+        except KeyError as exc:
+            raise ProtocolError("operation lacks %s" % exc)
+        for name in ("path", "target", "hash", "source", "base", "from_path", "upload"):
+            if not isinstance(getattr(op, name), str):
+                raise ProtocolError("operation field %s is not a string" % name)
+        return op.validate()
+
+
+@dataclass(frozen=True)
+class Result:
+    code: str = OK
+    message: str = ""
+    preserved: str = ""      # where the receiver's conflicting version was moved
+    written: Optional[List[Any]] = None   # the listing entry of what now stands there
+
+    @property
+    def ok(self) -> bool:
+        return self.code == OK
+
+    def to_wire(self) -> Dict[str, Any]:
+        out = {"c": self.code}  # type: Dict[str, Any]
+        if self.message:
+            out["msg"] = self.message
+        if self.preserved:
+            out["pv"] = self.preserved
+        if self.written is not None:
+            out["w"] = self.written
+        return out
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> "Result":
+        if not isinstance(obj, dict) or not isinstance(obj.get("c"), str):
+            raise ProtocolError("bad result")
+        return cls(code=obj["c"], message=str(obj.get("msg", "")), preserved=str(obj.get("pv", "")),
+                   written=obj.get("w"))
+
+
+@dataclass(frozen=True)
+class Listed:
+    """One entry of a receiver's listing: what stands at a path, with its content hash."""
+
+    path: str
+    kind: str
+    mode: int = 0
+    size: int = 0
+    hash: str = ""      # files
+    target: str = ""    # links
+
+    def expectation(self) -> str:
+        if self.kind == "d":
+            return IS_DIR
+        if self.kind == "l":
+            return expect_link(self.target)
+        return expect_file(self.hash)
+
+    def to_wire(self) -> List[Any]:
+        return [self.path, self.kind, self.mode, self.size, self.hash or self.target]
+
+    @classmethod
+    def from_wire(cls, obj: Any) -> "Listed":
+        if not isinstance(obj, (list, tuple)) or len(obj) != 5:
+            raise ProtocolError("bad listing entry")
+        path, kind, mode, size, extra = obj
+        if kind not in ("f", "d", "l") or not isinstance(extra, str):
+            raise ProtocolError("bad listing entry kind %r" % (kind,))
+        _check_int("mode", mode, 0, 0o7777)
+        _check_int("size", size)
+        paths.validate(path)
+        if kind == "f":
+            return cls(path, kind, mode, size, hash=extra)
+        if kind == "l":
+            if not extra or "\x00" in extra:
+                raise ProtocolError("bad symlink target at %r" % path)
+            return cls(path, kind, 0, 0, target=extra)
+        return cls(path, kind, mode)
+
+
+@dataclass(frozen=True)
+class Stats:
+    files: int = 0
+    dirs: int = 0
+    deleted: int = 0
+    bytes_literal: int = 0
+    bytes_reused: int = 0
+    extra: Dict[str, Any] = field(default_factory=dict)

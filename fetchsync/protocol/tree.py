@@ -1,0 +1,125 @@
+"""The tree model: what a synced root holds, as a flat map of wire paths to entries.
+
+Entries carry what change detection needs without reading content: kind, mode,
+size, mtime_ns, ctime_ns, inode (whole-second mtimes are never trusted).
+Content hashes are added by callers that keep a cache (the laptop's state, the
+robot's index), so a scan itself only stats.
+"""
+
+from __future__ import annotations
+
+import os
+import stat as stat_mod
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
+
+FILE = "f"
+DIR = "d"
+LINK = "l"
+
+IGNORE_FILE = ".fetchsyncignore"
+
+
+class Entry(NamedTuple):
+    kind: str           # FILE, DIR or LINK
+    mode: int           # permission bits (0o7777); 0 for links
+    size: int           # bytes for files, 0 otherwise
+    mtime_ns: int
+    ctime_ns: int
+    ino: int
+    target: str = ""    # symlink target
+
+    def same_stat(self, other: "Entry") -> bool:
+        return (self.kind == other.kind and self.mode == other.mode and self.size == other.size
+                and self.mtime_ns == other.mtime_ns and self.ctime_ns == other.ctime_ns
+                and self.ino == other.ino and self.target == other.target)
+
+
+def entry_from_stat(st: os.stat_result, target: str = "") -> Optional[Entry]:
+    mode = st.st_mode
+    if stat_mod.S_ISREG(mode):
+        return Entry(FILE, stat_mod.S_IMODE(mode), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    if stat_mod.S_ISDIR(mode):
+        return Entry(DIR, stat_mod.S_IMODE(mode), 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    if stat_mod.S_ISLNK(mode):
+        return Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
+    return None
+
+
+def stat_path(full: str) -> Optional[Entry]:
+    """The entry at ``full`` (not following symlinks), or None if absent or special."""
+    try:
+        st = os.lstat(full)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    target = ""
+    if stat_mod.S_ISLNK(st.st_mode):
+        try:
+            target = os.fsdecode(os.readlink(full))
+        except OSError:
+            return None
+    return entry_from_stat(st, target)
+
+
+class ScanResult(NamedTuple):
+    entries: Dict[str, Entry]
+    skipped: List[Tuple[str, str]]   # (path, reason): sockets, FIFOs, unreadable dirs
+
+
+def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None) -> ScanResult:
+    """Stat every entry under ``root`` (not following symlinks), honouring ``rules``.
+
+    ``rules`` is an ``IgnoreRules`` (or None); ``.fetchsyncignore`` files met on
+    the way extend it for their subtree. Returns a flat map of wire paths.
+    """
+    entries = {}  # type: Dict[str, Entry]
+    skipped = []  # type: List[Tuple[str, str]]
+    stack = [("", rules)]
+    while stack:
+        rel, dir_rules = stack.pop()
+        full = os.path.join(root, rel) if rel else root
+        try:
+            it = os.scandir(full)
+        except OSError as exc:
+            if rel:
+                skipped.append((rel, "cannot list: %s" % (exc.strerror or exc)))
+            else:
+                raise
+            continue
+        with it:
+            items = list(it)
+        if dir_rules is not None:
+            for de in items:
+                if de.name == IGNORE_FILE and de.is_file(follow_symlinks=False):
+                    try:
+                        with open(de.path, "r", encoding="utf-8", errors="surrogateescape") as fh:
+                            dir_rules = dir_rules.with_file(rel, fh.read())
+                    except OSError as exc:
+                        skipped.append((rel + "/" + IGNORE_FILE if rel else IGNORE_FILE,
+                                        "cannot read: %s" % exc.strerror))
+                    break
+        for de in items:
+            name = de.name
+            path = rel + "/" + name if rel else name
+            if is_temp is not None and is_temp(name):
+                continue
+            try:
+                st = de.stat(follow_symlinks=False)
+            except OSError:
+                continue  # vanished while we looked
+            is_dir = stat_mod.S_ISDIR(st.st_mode)
+            if dir_rules is not None and dir_rules.ignored(path, is_dir):
+                continue
+            target = ""
+            if stat_mod.S_ISLNK(st.st_mode):
+                try:
+                    target = os.fsdecode(os.readlink(de.path))
+                except OSError:
+                    continue
+            entry = entry_from_stat(st, target)
+            if entry is None:
+                skipped.append((path, "not a regular file, directory or symlink"))
+                continue
+            entries[path] = entry
+            if is_dir:
+                stack.append((path, dir_rules))
+    return ScanResult(entries, skipped)

@@ -1,0 +1,164 @@
+"""Wire format: a handshake, then length-prefixed, typed frames with request ids.
+
+Handshake (each side sends one, the endpoint first, unprompted)::
+
+    MAGIC (8 bytes) | u16 version | u32 n | n bytes of JSON capabilities
+
+The client scans the endpoint's stdout for MAGIC, skipping at most
+``MAX_NOISE`` bytes, because a login shell may print a banner first.
+
+Frame::
+
+    u32 body_len | u8 type | u8 flags | u32 request_id | body
+
+``body`` is ``u32 json_len | JSON header | blob``; with ``FLAG_ZLIB`` the whole
+body is zlib-compressed and ``body_len`` is its compressed size. Every length
+is checked against a hard cap *before* anything is allocated or read.
+Requests and responses are paired by id, so a client may pipeline requests.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from typing import Any, Callable, Dict, NamedTuple, Optional
+
+from fetchsync.protocol.errors import ProtocolError
+
+MAGIC = b"\x89FSYNC\r\n"
+VERSION = 1
+MAX_NOISE = 64 * 1024
+MAX_HELLO = 64 * 1024
+MAX_FRAME = 64 * 1024 * 1024       # compressed or not, on the wire
+MAX_BODY = 96 * 1024 * 1024        # after decompression
+MAX_HEADER = 32 * 1024 * 1024
+
+FLAG_ZLIB = 0x01
+
+# frame types
+T_REQUEST = 1
+T_RESPONSE = 2
+T_ERROR = 3        # the request failed as a whole; header {"error": str, "kind": str}
+
+_FRAME = struct.Struct(">IBBI")
+_U32 = struct.Struct(">I")
+_HELLO = struct.Struct(">HI")
+
+COMPRESS_MIN = 512
+
+
+class Frame(NamedTuple):
+    type: int
+    req_id: int
+    header: Dict[str, Any]
+    blob: bytes = b""
+
+
+def _json_default(obj: Any) -> Any:
+    raise TypeError("not JSON-serialisable: %r" % type(obj))
+
+
+def encode_frame(frame: Frame, *, compress: bool = False, level: int = 1) -> bytes:
+    head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
+    body = b"".join((_U32.pack(len(head)), head, frame.blob))
+    flags = 0
+    if compress and len(body) >= COMPRESS_MIN:
+        packed = zlib.compress(body, level)
+        if len(packed) < len(body):
+            body = packed
+            flags |= FLAG_ZLIB
+    if len(body) > MAX_FRAME:
+        raise ProtocolError("frame of %d bytes is over the cap of %d" % (len(body), MAX_FRAME))
+    return _FRAME.pack(len(body), frame.type, flags, frame.req_id) + body
+
+
+def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
+    if flags & ~FLAG_ZLIB:
+        raise ProtocolError("unknown frame flags 0x%02x" % flags)
+    if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
+        raise ProtocolError("unknown frame type %d" % ftype)
+    if flags & FLAG_ZLIB:
+        try:
+            d = zlib.decompressobj()
+            body = d.decompress(body, MAX_BODY)
+            if d.unconsumed_tail or not d.eof:
+                raise ProtocolError("compressed frame is truncated or over %d bytes" % MAX_BODY)
+        except zlib.error as exc:
+            raise ProtocolError("corrupt compressed frame: %s" % exc)
+    if len(body) < 4:
+        raise ProtocolError("frame body too short")
+    (hlen,) = _U32.unpack_from(body)
+    if hlen > MAX_HEADER or 4 + hlen > len(body):
+        raise ProtocolError("frame header length %d is out of range" % hlen)
+    try:
+        header = json.loads(body[4:4 + hlen].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ProtocolError("frame header is not JSON: %s" % exc)
+    if not isinstance(header, dict):
+        raise ProtocolError("frame header is not an object")
+    return Frame(ftype, req_id, header, body[4 + hlen:])
+
+
+class Reader:
+    """Reads frames from a ``recv(n) -> bytes`` function (``b""`` at EOF)."""
+
+    def __init__(self, recv: Callable[[int], bytes]) -> None:
+        self._recv = recv
+        self._buf = bytearray()
+        self.bytes_in = 0
+
+    def _fill(self, n: int) -> bool:
+        while len(self._buf) < n:
+            chunk = self._recv(max(n - len(self._buf), 1 << 16))
+            if not chunk:
+                return False
+            self.bytes_in += len(chunk)
+            self._buf += chunk
+        return True
+
+    def _take(self, n: int) -> bytes:
+        if not self._fill(n):
+            raise EOFError("stream ended after %d of %d bytes" % (len(self._buf), n))
+        out = bytes(self._buf[:n])
+        del self._buf[:n]
+        return out
+
+    def read_hello(self) -> Dict[str, Any]:
+        """Skip noise up to MAGIC, then read the peer's hello."""
+        while True:
+            idx = self._buf.find(MAGIC)
+            if idx >= 0:
+                del self._buf[:idx + len(MAGIC)]
+                break
+            if len(self._buf) > MAX_NOISE + len(MAGIC):
+                raise ProtocolError("no fetchsync endpoint answered (got %r...)"
+                                    % bytes(self._buf[:80]))
+            if not self._fill(len(self._buf) + 1):
+                noise = bytes(self._buf[:200]).decode("utf-8", "replace").strip()
+                raise EOFError("endpoint ended before its hello" + (": " + noise if noise else ""))
+        version, n = _HELLO.unpack(self._take(_HELLO.size))
+        if n > MAX_HELLO:
+            raise ProtocolError("hello of %d bytes is over the cap" % n)
+        try:
+            hello = json.loads(self._take(n).decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise ProtocolError("hello is not JSON: %s" % exc)
+        if not isinstance(hello, dict):
+            raise ProtocolError("hello is not an object")
+        hello["version"] = version
+        return hello
+
+    def read_frame(self) -> Optional[Frame]:
+        """The next frame, or None at a clean end of stream (between frames)."""
+        if not self._buf and not self._fill(1):
+            return None
+        blen, ftype, flags, req_id = _FRAME.unpack(self._take(_FRAME.size))
+        if blen > MAX_FRAME:
+            raise ProtocolError("frame of %d bytes announced, over the cap of %d" % (blen, MAX_FRAME))
+        return decode_body(ftype, flags, req_id, self._take(blen))
+
+
+def encode_hello(caps: Dict[str, Any]) -> bytes:
+    body = json.dumps(caps, separators=(",", ":")).encode("utf-8")
+    return MAGIC + _HELLO.pack(VERSION, len(body)) + body
