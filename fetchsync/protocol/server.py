@@ -1,0 +1,220 @@
+"""The robot-side endpoint: serves one client's requests over stdin/stdout.
+
+Started by the loader (``fetchsync.protocol.loader``) as ``python3`` over the
+SSH exec channel (or as a local subprocess for the ``local`` robot). It says
+hello first, waits for the client's hello, then answers request frames in
+order until end of input. A failure on one file is data in a response; a
+request that cannot be served at all gets an error frame; only a broken
+stream ends the endpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import traceback
+from typing import Any, BinaryIO, Dict, List, Optional, Tuple
+
+from fetchsync.protocol import hashing
+from fetchsync.protocol import messages as M
+from fetchsync.protocol import wire
+from fetchsync.protocol.errors import ProtocolError
+from fetchsync.protocol.store import Store, StoreError
+
+MAX_WORKSPACE = 4096
+
+
+def expand_workspace(spec: str) -> str:
+    """A remote workspace as the user wrote it (``~/ws``, ``/abs``) → an absolute path."""
+    if not isinstance(spec, str) or not spec or "\x00" in spec:
+        raise ProtocolError("bad workspace path")
+    path = os.path.expanduser(spec)
+    if not os.path.isabs(path):
+        path = os.path.join(os.path.expanduser("~"), path)
+    path = os.path.normpath(path)
+    home = os.path.normpath(os.path.expanduser("~"))
+    if path in ("/", home):
+        raise StoreError("refusing to use %s itself as the workspace" % path)
+    return path
+
+
+class Server:
+    def __init__(self, inp: BinaryIO, out: BinaryIO) -> None:
+        self.inp = inp
+        self.out = out
+        self.reader = wire.Reader(self._recv)
+        self.store = None  # type: Optional[Store]
+        self.compress = False
+        self.algorithm = ""
+
+    def _recv(self, n: int) -> bytes:
+        read1 = getattr(self.inp, "read1", None)
+        return read1(n) if read1 is not None else self.inp.read(n)
+
+    def _send(self, frame: wire.Frame) -> None:
+        self.out.write(wire.encode_frame(frame, compress=self.compress))
+        self.out.flush()
+
+    def hello(self) -> Dict[str, Any]:
+        return {
+            "algorithms": hashing.available(),
+            "compression": ["zlib"],
+            "python": "%d.%d.%d" % sys.version_info[:3],
+            "host": socket.gethostname(),
+            "home": os.path.expanduser("~"),
+        }
+
+    def serve(self) -> None:
+        self.out.write(wire.encode_hello(self.hello()))
+        self.out.flush()
+        client = self.reader.read_hello()
+        self.algorithm = client.get("algorithm", "")
+        if self.algorithm not in hashing.available():
+            raise ProtocolError("client asked for unknown hash algorithm %r" % (self.algorithm,))
+        self.compress = client.get("compression") == "zlib"
+        while True:
+            frame = self.reader.read_frame()
+            if frame is None:
+                return
+            if frame.type != wire.T_REQUEST:
+                raise ProtocolError("expected a request frame")
+            self._send(self.dispatch(frame))
+            if frame.header.get("op") == "bye":
+                return
+
+    def dispatch(self, frame: wire.Frame) -> wire.Frame:
+        op = frame.header.get("op")
+        handler = getattr(self, "do_" + str(op), None)
+        if handler is None:
+            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": "unknown request %r" % (op,),
+                                                           "kind": "protocol"})
+        try:
+            header, blob = handler(frame.header, frame.blob)
+        except StoreError as exc:
+            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": str(exc), "kind": "store"})
+        except ProtocolError as exc:
+            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": str(exc), "kind": "protocol"})
+        except OSError as exc:
+            return wire.Frame(wire.T_ERROR, frame.req_id, {
+                "error": "%s%s" % (exc.strerror or exc, ": " + exc.filename if exc.filename else ""),
+                "kind": "os", "errno": exc.errno or 0})
+        finally:
+            if self.store is not None:
+                self.store.unlock()
+        return wire.Frame(wire.T_RESPONSE, frame.req_id, header, blob)
+
+    # ------------------------------------------------------------------ requests
+    def _store(self) -> Store:
+        if self.store is None:
+            raise ProtocolError("no workspace open")
+        self.store.lock()
+        return self.store
+
+    def do_open(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        from fetchsync.protocol.ignore import IgnoreRules
+        workspace = expand_workspace(h.get("workspace", ""))
+        rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
+        self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
+                           create=bool(h.get("create", True)))
+        store = self._store()
+        store.save_index()
+        return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen}, b""
+
+    def _fresh(self, store: Store, h: Dict[str, Any]) -> bool:
+        return h.get("epoch") == store.epoch and h.get("gen") == store.gen
+
+    def do_list(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        store = self._store()
+        out = {"epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
+        if h.get("mode") == "drift" and self._fresh(store, h):
+            changed, gone = store.drift()
+            out.update(full=False, entries=[e.to_wire() for e in changed], gone=gone)
+        else:
+            items, skipped = store.listing()
+            out.update(full=True, entries=[e.to_wire() for e in items], skipped=skipped)
+        store.save_index()
+        return out, b""
+
+    def do_sync(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        store = self._store()
+        if h.get("require_fresh") and not self._fresh(store, h):
+            return {"stale": True, "epoch": store.epoch, "gen": store.gen}, b""
+        raw = h.get("ops")
+        if not isinstance(raw, list):
+            raise ProtocolError("sync without an operation list")
+        ops = [M.Op.from_wire(o) for o in raw]
+        policy = h.get("policy", "preserve")
+        if policy not in ("preserve", "refuse"):
+            raise ProtocolError("unknown conflict policy %r" % (policy,))
+        results = store.apply(ops, blob, policy=policy)
+        out = {"results": [r.to_wire() for r in results], "epoch": store.epoch,
+               "gen": store.gen}  # type: Dict[str, Any]
+        if h.get("verify"):
+            changed, gone = store.drift()
+            out.update(drift=[e.to_wire() for e in changed], gone=gone)
+        store.save_index()
+        return out, b""
+
+    def do_read(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        store = self._store()
+        items = h.get("items")
+        if not isinstance(items, list):
+            raise ProtocolError("read without items")
+        parts = []  # type: List[bytes]
+        pos = 0
+        answers = []
+        for item in items:
+            if not isinstance(item, dict) or not isinstance(item.get("p"), str):
+                raise ProtocolError("bad read item")
+            sig = None
+            if "sig" in item:
+                off, length = item["sig"]
+                if not (isinstance(off, int) and isinstance(length, int)
+                        and 0 <= off and 0 <= length and off + length <= len(blob)):
+                    raise ProtocolError("bad signature reference")
+                sig = blob[off:off + length]
+            try:
+                listed, src, data = store.read(item["p"], sig=sig, offset=int(item.get("off", 0)),
+                                               length=int(item.get("len", -1)))
+            except (OSError, ProtocolError) as exc:
+                answers.append({"c": M.IO_ERROR, "msg": "%s: %s" % (item["p"], getattr(exc, "strerror", None) or exc)})
+                continue
+            answers.append({"c": M.OK, "l": listed.to_wire(), "src": src, "bl": [pos, len(data)]})
+            parts.append(data)
+            pos += len(data)
+        store.save_index()
+        return {"items": answers}, b"".join(parts)
+
+    def do_adopt(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        store = self._store()
+        items = [M.Listed.from_wire(e) for e in h.get("entries", [])]
+        n = store.adopt(items)
+        store.save_index()
+        return {"adopted": n, "epoch": store.epoch, "gen": store.gen}, b""
+
+    def do_ping(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        return {"pong": True}, b""
+
+    def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        return {}, b""
+
+
+def main() -> None:
+    # stdout carries frames only: anything else printed would corrupt the stream
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    try:
+        Server(sys.stdin.buffer, out).serve()
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):
+        pass
+    except ProtocolError as exc:
+        sys.stderr.write("fetchsync endpoint: %s\n" % exc)
+        sys.exit(3)
+    except Exception:
+        traceback.print_exc()
+        sys.exit(4)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,580 @@
+"""The filesystem endpoint: one synced tree on disk, changed only through operations.
+
+A :class:`Store` owns ``<workspace>/src`` (the synced root) and
+``<workspace>/.fetchsync`` (its metadata). It runs on the robot behind the
+wire server, and on the laptop for ``pull``: one implementation, both ends.
+
+Rules it keeps:
+
+- Writes go to a temporary beside the target; every temporary of a batch is
+  made durable with one ``syncfs`` before any is renamed into place, and the
+  renames are made durable with another: a reader never sees a torn file, and
+  what was reported written survives a power cut.
+- Before a path is replaced or deleted, what stands there is compared with the
+  operation's expectation (what the sender last synced). A mismatch means
+  someone edited it here: that version is moved to ``.fetchsync/conflicts/``
+  (policy ``preserve``) or the operation is refused (policy ``refuse``).
+  Deleted paths go to a bounded ``.fetchsync/trash/``. Nothing is lost.
+- Nothing is written outside the root, nor through a symlink.
+- The index (``.fetchsync/index.json``) records what was last synced at each
+  path, a stat cache for content hashes, an epoch and a generation, so the
+  sender can learn in one round trip what changed here since its last sync.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import fcntl
+import json
+import os
+import shutil
+import stat as stat_mod
+import time
+import uuid
+from typing import Any, Dict, List, Optional, Tuple
+
+from fetchsync.protocol import delta as delta_mod
+from fetchsync.protocol import hashing
+from fetchsync.protocol import messages as M
+from fetchsync.protocol import paths
+from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
+from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, scan, stat_path
+
+META = ".fetchsync"
+TEMP_MARK = ".fetchsync-tmp-"
+TRASH_KEEP_BATCHES = 50
+TRASH_KEEP_BYTES = 512 * 1024 * 1024
+INDEX_VERSION = 1
+READ_BLOCK = 1 << 20
+
+
+class StoreError(ProtocolError):
+    """The store cannot be opened or used at all (not a per-file failure)."""
+
+
+def is_temp(name: str) -> bool:
+    return TEMP_MARK in name and name.startswith(".")
+
+
+def _temp_name(final_name: str) -> str:
+    return ".%s%s%s" % (final_name[:100], TEMP_MARK, uuid.uuid4().hex[:12])
+
+
+_libc = None
+
+
+def syncfs(fd: int) -> None:
+    """Flush the filesystem holding ``fd`` (one call per batch, not one per file)."""
+    global _libc
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(None, use_errno=True)
+        if _libc.syncfs(fd) == 0:
+            return
+    except (OSError, AttributeError):
+        pass
+    os.sync()
+
+
+def _fsize(path: str) -> int:
+    total = 0
+    for dirpath, _dirs, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(dirpath, name)).st_size
+            except OSError:
+                pass
+    return total
+
+
+class Store:
+    def __init__(self, workspace: str, *, algorithm: str, rules: Any = None, create: bool = True,
+                 meta_dir: Optional[str] = None) -> None:
+        self.workspace = workspace
+        self.root = os.path.join(workspace, "src")
+        self.meta = meta_dir or os.path.join(workspace, META)
+        self.algorithm = algorithm
+        self.rules = rules
+        self._resolver = paths.Resolver(self.root)
+        try:
+            if create:
+                os.makedirs(self.root, exist_ok=True)
+            elif not os.path.isdir(self.root):
+                raise StoreError("%s does not exist" % self.root)
+            st = os.lstat(self.root)
+            if not stat_mod.S_ISDIR(st.st_mode):
+                raise StoreError("%s is not a directory (a symlink?)" % self.root)
+            os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
+        except OSError as exc:
+            raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc))
+        self._lock_fd = -1
+        self._load_index()
+
+    # ------------------------------------------------------------------ index
+    def _load_index(self) -> None:
+        path = os.path.join(self.meta, "index.json")
+        data = None  # type: Any
+        try:
+            with open(path, "rb") as fh:
+                data = json.loads(fh.read().decode("utf-8", "surrogateescape"))
+        except FileNotFoundError:
+            pass
+        except (OSError, ValueError):
+            data = None  # a damaged index only costs a full listing
+        if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
+                or data.get("algorithm") != self.algorithm):
+            data = {"v": INDEX_VERSION, "epoch": uuid.uuid4().hex, "gen": 0,
+                    "algorithm": self.algorithm, "synced": {}, "cache": {}, "trash": []}
+            self._dirty = True
+        else:
+            self._dirty = False
+        self.epoch = data["epoch"]  # type: str
+        self.gen = int(data["gen"])
+        self.synced = data["synced"]  # type: Dict[str, List[Any]]   path -> [kind, mode, hash|target]
+        self.cache = data["cache"]    # type: Dict[str, List[Any]]   path -> [size, mtime, ctime, ino, hash]
+        self.trash_log = data.get("trash", [])  # type: List[List[Any]]
+        if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
+            self._clean_temps()
+
+    def save_index(self) -> None:
+        if not self._dirty:
+            return
+        data = {"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen, "algorithm": self.algorithm,
+                "synced": self.synced, "cache": self.cache, "trash": self.trash_log}
+        path = os.path.join(self.meta, "index.json")
+        tmp = path + ".tmp"
+        with open(tmp, "wb") as fh:
+            fh.write(json.dumps(data, separators=(",", ":")).encode("utf-8", "surrogateescape"))
+        os.replace(tmp, path)
+        self._dirty = False
+
+    def _clean_temps(self) -> None:
+        for dirpath, dirs, files in os.walk(self.root):
+            for name in files + dirs:
+                if is_temp(name):
+                    full = os.path.join(dirpath, name)
+                    try:
+                        if os.path.isdir(full) and not os.path.islink(full):
+                            shutil.rmtree(full)
+                        else:
+                            os.unlink(full)
+                    except OSError:
+                        pass
+        shutil.rmtree(os.path.join(self.meta, "tmp"), ignore_errors=True)
+        os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
+        try:
+            os.unlink(os.path.join(self.meta, "batch-in-progress"))
+        except FileNotFoundError:
+            pass
+
+    # ------------------------------------------------------------------ locking
+    def lock(self, timeout: float = 30.0) -> None:
+        if self._lock_fd >= 0:
+            return
+        fd = os.open(os.path.join(self.meta, "lock"), os.O_RDWR | os.O_CREAT, 0o600)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError as exc:
+                if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                    os.close(fd)
+                    raise
+                if time.monotonic() > deadline:
+                    os.close(fd)
+                    raise StoreError("another fetchsync is writing to %s" % self.workspace)
+                time.sleep(0.05)
+        self._lock_fd = fd
+        # someone else may have written since we loaded
+        self._load_index()
+
+    def unlock(self) -> None:
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)
+            self._lock_fd = -1
+
+    # ------------------------------------------------------------------ reading
+    def hash_file(self, path: str, entry: Entry) -> str:
+        """Content hash of the file at ``path`` (stat-cached)."""
+        cached = self.cache.get(path)
+        if (cached is not None and cached[0] == entry.size and cached[1] == entry.mtime_ns
+                and cached[2] == entry.ctime_ns and cached[3] == entry.ino
+                and not self._racy(entry)):
+            return cached[4]
+        with open(self._resolver.full(path), "rb") as fh:
+            digest = hashing.file_digest(self.algorithm, fh).hex()
+        self.cache[path] = [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest]
+        self._dirty = True
+        return digest
+
+    @staticmethod
+    def _racy(entry: Entry) -> bool:
+        # a file modified within the last 2 s may change again without its
+        # mtime moving on coarse-timestamp filesystems: do not trust the cache
+        return time.time_ns() - entry.mtime_ns < 2_000_000_000
+
+    def listed(self, path: str, entry: Optional[Entry]) -> Optional[M.Listed]:
+        if entry is None:
+            return None
+        if entry.kind == FILE:
+            return M.Listed(path, FILE, entry.mode, entry.size, hash=self.hash_file(path, entry))
+        if entry.kind == LINK:
+            return M.Listed(path, LINK, target=entry.target)
+        return M.Listed(path, DIR, entry.mode)
+
+    def current(self, path: str) -> Optional[M.Listed]:
+        return self.listed(path, stat_path(self._resolver.full(path)))
+
+    def listing(self) -> Tuple[List[M.Listed], List[Tuple[str, str]]]:
+        """Everything under the root, with content hashes."""
+        result = scan(self.root, self.rules, is_temp=is_temp)
+        out = []
+        live = set()
+        for path, entry in result.entries.items():
+            try:
+                item = self.listed(path, entry)
+            except OSError:
+                continue  # vanished or unreadable: it is reported as skipped
+            if item is not None:
+                out.append(item)
+                live.add(path)
+        for path in [p for p in self.cache if p not in live]:
+            del self.cache[path]
+            self._dirty = True
+        out.sort(key=lambda x: x.path)
+        return out, result.skipped
+
+    def drift(self) -> Tuple[List[M.Listed], List[str]]:
+        """What differs on disk from what was last synced: (changed or new, gone)."""
+        items, _skipped = self.listing()
+        changed = []
+        seen = set()
+        for item in items:
+            seen.add(item.path)
+            rec = self.synced.get(item.path)
+            if rec is None or not self._matches(item, rec):
+                changed.append(item)
+        gone = [p for p in self.synced if p not in seen]
+        return changed, gone
+
+    @staticmethod
+    def _matches(item: M.Listed, rec: List[Any]) -> bool:
+        kind, mode, extra = rec
+        if item.kind != kind:
+            return False
+        if kind == FILE:
+            return item.hash == extra and item.mode == mode
+        if kind == LINK:
+            return item.target == extra
+        return item.mode == mode
+
+    def _record(self, path: str, item: Optional[M.Listed]) -> None:
+        if item is None:
+            if self.synced.pop(path, None) is not None:
+                self._dirty = True
+            return
+        extra = item.hash if item.kind == FILE else item.target
+        self.synced[path] = [item.kind, item.mode, extra]
+        self._dirty = True
+
+    def _forget_below(self, path: str) -> None:
+        prefix = path + "/"
+        for table in (self.synced, self.cache):
+            for key in [k for k in table if k == path or k.startswith(prefix)]:
+                del table[key]
+        self._dirty = True
+
+    def adopt(self, items: List[M.Listed]) -> int:
+        """Record ``items`` as synced where the disk still holds exactly them."""
+        n = 0
+        for item in items:
+            cur = self.current(item.path)
+            if cur is not None and self._matches(cur, [item.kind, item.mode, item.hash or item.target]):
+                self._record(item.path, cur)
+                n += 1
+        self.gen += 1
+        self._dirty = True
+        return n
+
+    def read(self, path: str, *, sig: Optional[bytes] = None, offset: int = 0,
+             length: int = -1) -> Tuple[M.Listed, str, bytes]:
+        """Content of a file: (what it is, "data" or "delta", payload)."""
+        full = self._resolver.full(path)
+        entry = stat_path(full)
+        if entry is None or entry.kind != FILE:
+            raise PathError("%r is not a regular file" % path)
+        item = self.listed(path, entry)
+        assert item is not None
+        with open(full, "rb") as fh:
+            if sig is not None:
+                base_sig = delta_mod.Signature.from_bytes(sig)
+                return item, M.SRC_DELTA, delta_mod.encode_delta(delta_mod.delta(fh.read(), base_sig))
+            fh.seek(offset)
+            return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
+
+    # ------------------------------------------------------------------ writing
+    def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve") -> List[M.Result]:
+        """Apply ``ops`` in order; one result each. Per-file failures are results."""
+        batch = _Batch(self, blob, policy)
+        marker = os.path.join(self.meta, "batch-in-progress")
+        with open(marker, "wb"):
+            pass
+        try:
+            results = [batch.run(op) for op in ops]
+            batch.commit(results)
+        finally:
+            batch.cleanup()
+            try:
+                os.unlink(marker)
+            except FileNotFoundError:
+                pass
+        self.gen += 1
+        self._dirty = True
+        self._prune_trash()
+        return results
+
+    def stamp(self) -> str:
+        return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
+
+    def _set_aside(self, path: str, where: str) -> str:
+        """Move what stands at ``path`` to ``.fetchsync/<where>/<stamp>/path``."""
+        rel = os.path.join(where, self.stamp(), path)
+        dest = os.path.join(self.meta, rel)
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        src = self._resolver.full(path)
+        try:
+            os.rename(src, dest)
+        except OSError as exc:
+            if exc.errno != errno.EXDEV:
+                raise
+            if os.path.isdir(src) and not os.path.islink(src):
+                shutil.copytree(src, dest, symlinks=True)
+                shutil.rmtree(src)
+            else:
+                shutil.copy2(src, dest, follow_symlinks=False)
+                os.unlink(src)
+        self._resolver.forget(path)
+        if where == "trash":
+            top = os.path.join(where, self.stamp())
+            if not self.trash_log or self.trash_log[-1][0] != top:
+                self.trash_log.append([top, 0])
+            self.trash_log[-1][1] += _fsize(dest) if os.path.isdir(dest) else os.lstat(dest).st_size
+        return os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
+
+    def _prune_trash(self) -> None:
+        total = sum(n for _d, n in self.trash_log)
+        while self.trash_log and (len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES):
+            top, n = self.trash_log.pop(0)
+            shutil.rmtree(os.path.join(self.meta, top), ignore_errors=True)
+            total -= n
+            self._dirty = True
+
+    def unsynced_below(self, path: str) -> List[str]:
+        """Files under directory ``path`` that differ from what was last synced."""
+        out = []
+        top = self._resolver.full(path)
+        for dirpath, dirs, files in os.walk(top):
+            for name in files + [d for d in dirs if os.path.islink(os.path.join(dirpath, d))]:
+                full = os.path.join(dirpath, name)
+                rel = os.path.relpath(full, self.root).replace(os.sep, "/")
+                try:
+                    cur = self.current(rel)
+                except OSError:
+                    continue
+                rec = self.synced.get(rel)
+                if cur is not None and (rec is None or not self._matches(cur, rec)):
+                    out.append(rel)
+        return out
+
+
+class _Batch:
+    """One apply() call: temporaries first, one syncfs, renames, one syncfs."""
+
+    def __init__(self, store: Store, blob: bytes, policy: str) -> None:
+        self.s = store
+        self.blob = blob
+        self.policy = policy
+        self.renames = []  # type: List[Tuple[str, str, str, int]]   (tmp, final, path, result index)
+        self.n = 0
+
+    def _blob(self, op: M.Op) -> bytes:
+        off, length = op.blob
+        if off + length > len(self.blob):
+            raise ProtocolError("operation on %r points past the request's data" % op.path)
+        return self.blob[off:off + length]
+
+    def run(self, op: M.Op) -> M.Result:
+        idx = self.n
+        self.n += 1
+        try:
+            return self._run(op, idx)
+        except PathError as exc:
+            return M.Result(M.PATH_ERROR, str(exc))
+        except DeltaError as exc:
+            return M.Result(M.BASE_MISMATCH, "delta does not apply: %s" % exc)
+        except OSError as exc:
+            code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
+            return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))
+
+    def _check(self, op: M.Op) -> Tuple[Optional[M.Listed], str]:
+        """Compare what stands at op.path with op.expect; preserve or refuse on mismatch.
+
+        Returns what now stands there and where a conflicting version went.
+        """
+        cur = self.s.current(op.path)
+        if cur is None:
+            return None, ""  # nothing here: nothing to lose
+        if cur.kind == DIR:
+            if op.kind in (M.MKDIR, M.CHMOD):
+                return cur, ""  # the directory stays
+            # it will be replaced or deleted: its files edited here are kept
+            # apart from the bounded trash, one by one
+            unsynced = self.s.unsynced_below(op.path)
+            if not unsynced:
+                return cur, ""
+            if self.policy == "refuse":
+                raise _Refused("%s was changed here since the last sync" % unsynced[0])
+            where = ""
+            for path in unsynced:
+                where = self.s._set_aside(path, "conflicts")
+            return cur, where[: len(where) - len(unsynced[-1])] + op.path
+        if op.kind == M.CHMOD or cur.expectation() == op.expect:
+            return cur, ""
+        if self.policy == "refuse":
+            raise _Refused("%s was changed here since the last sync" % op.path)
+        where = self.s._set_aside(op.path, "conflicts")
+        self.s._forget_below(op.path)
+        return None, where
+
+    def _run(self, op: M.Op, idx: int) -> M.Result:
+        s = self.s
+        if op.kind == M.UPLOAD:
+            part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
+            fd = os.open(part, os.O_WRONLY | os.O_CREAT, 0o600)
+            try:
+                os.lseek(fd, op.size, os.SEEK_SET)
+                _write_all(fd, self._blob(op))
+            finally:
+                os.close(fd)
+            return M.Result()
+        s._resolver.check_parents(op.path)
+        try:
+            cur, preserved = self._check(op)
+        except _Refused as exc:
+            return M.Result(M.CONFLICT, str(exc))
+        full = s._resolver.full(op.path)
+        if op.kind == M.DELETE:
+            if cur is not None:
+                s._set_aside(op.path, "trash")
+                s._forget_below(op.path)
+            s._record(op.path, None)
+            return M.Result(preserved=preserved)
+        if op.kind == M.MKDIR:
+            if cur is not None and cur.kind != DIR:
+                s._set_aside(op.path, "trash")
+                cur = None
+            if cur is None:
+                os.mkdir(full, op.mode or 0o755)
+            os.chmod(full, op.mode or 0o755)
+            item = s.current(op.path)
+            s._record(op.path, item)
+            return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+        if op.kind == M.CHMOD:
+            if cur is None or cur.kind == LINK:
+                return M.Result(M.IO_ERROR, "%s: nothing to chmod" % op.path)
+            os.chmod(full, op.mode)
+            item = s.current(op.path)
+            s._record(op.path, item)
+            return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+        if cur is not None and cur.kind == DIR:
+            # a directory becomes a file or link: the old tree goes to the trash
+            s._set_aside(op.path, "trash")
+            s._forget_below(op.path)
+            cur = None
+        parent_dir = os.path.dirname(full)
+        tmp = os.path.join(parent_dir, _temp_name(os.path.basename(full)))
+        if op.kind == M.SYMLINK:
+            os.symlink(op.target, tmp)
+        else:
+            self._write_file(op, cur, tmp)
+        self.renames.append((tmp, full, op.path, idx))
+        return M.Result(preserved=preserved)
+
+    def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str) -> None:
+        s = self.s
+        if op.source == M.SRC_UPLOAD:
+            part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
+            os.chmod(part, op.mode or 0o644)
+            with open(part, "rb") as fh:
+                got = hashing.file_digest(s.algorithm, fh).hex()
+            if got != op.hash:
+                os.unlink(part)
+                raise OSError(errno.EIO, "uploaded content does not match its hash")
+            os.rename(part, tmp)
+            return
+        if op.source == M.SRC_DATA:
+            data = self._blob(op)
+        elif op.source == M.SRC_DELTA:
+            if cur is None or cur.kind != FILE or cur.hash != op.base:
+                raise DeltaError("the file here is not the delta's base")
+            with open(s._resolver.full(op.path), "rb") as fh:
+                base = fh.read()
+            data = delta_mod.patch(base, delta_mod.decode_delta(self._blob(op), max_size=op.size))
+        else:  # copy
+            src = s.current(op.from_path)
+            if src is None or src.kind != FILE or src.hash != op.base:
+                raise DeltaError("the copy's source %r is not what was expected" % op.from_path)
+            with open(s._resolver.full(op.from_path), "rb") as fh:
+                data = fh.read()
+        if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
+            raise DeltaError("reconstructed content does not match its hash")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, op.mode or 0o644)
+        try:
+            _write_all(fd, data)
+            os.fchmod(fd, op.mode or 0o644)
+        except BaseException:
+            os.close(fd)
+            os.unlink(tmp)
+            raise
+        os.close(fd)
+
+    def commit(self, results: List[M.Result]) -> None:
+        if not self.renames:
+            return
+        rootfd = os.open(self.s.root, os.O_RDONLY)
+        try:
+            syncfs(rootfd)
+            for tmp, full, path, idx in self.renames:
+                try:
+                    os.rename(tmp, full)
+                except OSError as exc:
+                    results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (path, exc.strerror))
+                    continue
+                item = self.s.current(path)
+                self.s._record(path, item)
+                results[idx] = M.Result(results[idx].code, results[idx].message, results[idx].preserved,
+                                        item.to_wire() if item else None)
+            self.renames = []
+            syncfs(rootfd)
+        finally:
+            os.close(rootfd)
+
+    def cleanup(self) -> None:
+        for tmp, _full, _path, _idx in self.renames:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+
+
+class _Refused(Exception):
+    pass
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
