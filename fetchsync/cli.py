@@ -1,0 +1,244 @@
+"""The command line: parse, call the library, print. Nothing else lives here.
+
+Every :class:`~fetchsync.errors.FetchsyncError` becomes a one-line message on
+stderr and its exit code; heavy modules are imported inside the commands so
+that ``fetchsync --help`` and a no-op push start fast.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from typing import Any, Callable
+
+import click
+
+from fetchsync import __version__
+from fetchsync.errors import FetchsyncError
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def target_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """The fetch_tools options every robot verb takes."""
+    opts = [
+        click.option("--robot", help="Robot host name (or 'local'). "
+                     "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI."),
+        click.option("--user", help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
+                     "the ssh config's User, $USER."),
+        click.option("--workspace", type=click.Path(file_okay=False),
+                     help="Local workspace. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, ~/$ROS_DISTRO."),
+        click.option("--remote-workspace", help="Workspace on the robot. Default: "
+                     "$FETCHSYNC_REMOTE_WORKSPACE, $FETCH_REMOTE_WORKSPACE, the local path under ~."),
+        click.option("--accept-host-key", metavar="SHA256:...",
+                     help="Accept the robot's host key with this fingerprint (shown when it is unknown)."),
+    ]
+    for opt in reversed(opts):
+        func = opt(func)
+    return func
+
+
+def sync_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    opts = [
+        click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
+                     help="Exclude paths matching PATTERN (gitignore syntax); repeatable."),
+        click.option("--json", "as_json", is_flag=True, help="Print a JSON report instead of text."),
+        click.option("--dry-run", "-n", is_flag=True, help="Show what would change; change nothing."),
+    ]
+    for opt in reversed(opts):
+        func = opt(func)
+    return func
+
+
+def _resolve(robot: str | None, user: str | None, workspace: str | None,
+             remote_workspace: str | None) -> Any:
+    from fetchsync.config import resolve_target
+    return resolve_target(robot=robot, user=user, workspace=workspace,
+                          remote_workspace=remote_workspace)
+
+
+class _Progress:
+    """A progress line on stderr for transfers longer than a second (terminal only)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled and sys.stderr.isatty()
+        self.start = time.monotonic()
+        self.shown = False
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or time.monotonic() - self.start < 1.0 or total <= 0:
+            return
+        frac = min(done / total, 1.0)
+        bar = "#" * int(frac * 30)
+        sys.stderr.write(f"\r[{bar:<30}] {frac * 100:5.1f}% {_human(done)} of {_human(total)}")
+        sys.stderr.flush()
+        self.shown = True
+
+    def close(self) -> None:
+        if self.shown:
+            sys.stderr.write("\r" + " " * 70 + "\r")
+            sys.stderr.flush()
+
+
+def _print_report(report: Any, as_json: bool) -> None:
+    if as_json:
+        click.echo(json.dumps(report.to_json(), indent=None, sort_keys=True))
+        return
+    verb = "would change" if report.dry_run else ("pushed" if report.verb == "push" else "pulled")
+    if report.dry_run:
+        for p in report.planned:
+            click.echo(f"  {p['op']:<7} {p['path']}" + (f"  ({p['how']})" if p.get("how") else ""))
+    parts = [f"{report.files} files", f"{report.dirs} dirs"]
+    if report.links:
+        parts.append(f"{report.links} links")
+    parts.append(f"{report.deleted} deleted")
+    if report.reused:
+        parts.append(f"{report.reused} reused")
+    if report.deltas:
+        parts.append(f"{report.deltas} by delta")
+    line = (f"{report.verb}: {verb} {', '.join(parts)}; sent {_human(report.bytes_sent)}, "
+            f"received {_human(report.bytes_received)}; {len(report.conflicts)} conflicts; "
+            f"{report.seconds:.2f}s")
+    click.echo(line)
+    for c in report.conflicts:
+        if c.get("refused"):
+            click.echo(f"  conflict: {c['path']} changed on the robot; left as it is", err=True)
+        else:
+            click.echo(f"  conflict: {c['path']} was changed on the other side; "
+                       f"its version is kept in {c['kept']}", err=True)
+    for s in report.skipped:
+        click.echo(f"  skipped: {s['path']}: {s['reason']}", err=True)
+    for e in report.errors:
+        click.echo(f"  error: {e['path']}: {e['error']}", err=True)
+
+
+class _Group(click.Group):
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except FetchsyncError as exc:
+            click.echo(f"fetchsync: error: {exc}", err=True)
+            sys.exit(exc.exit_code)
+        except KeyboardInterrupt:
+            click.echo("fetchsync: interrupted", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="fetchsync")
+@click.option("-v", "--verbose", count=True, help="More log output (repeat for debug).")
+def cli(verbose: int) -> None:
+    """Mirror a ROS workspace's src/ to a robot over SSH, safely."""
+    if verbose:
+        import logging
+        logging.basicConfig(level=logging.DEBUG if verbose > 1 else logging.INFO,
+                            format="%(name)s: %(message)s")
+
+
+@cli.command()
+@target_options
+@sync_options
+@click.option("--strict", is_flag=True,
+              help="Refuse to replace files changed on the robot since the last sync.")
+@click.option("--force", is_flag=True, help="Push even a missing or empty src/ (empties the robot's).")
+def push(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
+         accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
+         strict: bool, force: bool) -> None:
+    """Make the robot's <remote workspace>/src identical to the local src/.
+
+    Files changed on the robot since the last sync are kept under
+    <remote workspace>/.fetchsync/conflicts/ before being replaced (--strict
+    refuses instead); deleted files go to a bounded .fetchsync/trash/.
+    """
+    from fetchsync.errors import SyncError
+    from fetchsync.session import connect, open_state
+    from fetchsync.sync import Syncer, build_rules, raise_for
+
+    target = _resolve(robot, user, workspace, remote_workspace)
+    src = target.workspace / "src"
+    if not force:
+        if not src.is_dir():
+            raise SyncError(f"{src} does not exist; nothing to push",
+                            hint="check --workspace, or pass --force to empty the robot's src/")
+        if not any(os.scandir(src)):
+            raise SyncError(f"{src} is empty; pushing it would empty the robot's src/",
+                            hint="pass --force if that is what you want")
+    else:
+        src.mkdir(parents=True, exist_ok=True)
+    rules = build_rules(excludes)
+    progress = _Progress(not as_json)
+    state = open_state(target)
+    try:
+        with connect(target, accept_fingerprint=accept_host_key) as conn:
+            syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
+                            rules=rules, policy="refuse" if strict else "preserve")
+            report = syncer.push(dry_run=dry_run, progress=progress)
+    finally:
+        progress.close()
+        state.close()
+    report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
+    _print_report(report, as_json)
+    raise_for(report, strict=strict)
+
+
+@cli.command()
+@target_options
+@sync_options
+@click.option("--yes", "-y", "yes", is_flag=True, help="Do not ask for confirmation.")
+@click.option("--no-safety", "yes", is_flag=True, help="fetch_tools' name for --yes.")
+def pull(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
+         accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
+         yes: bool) -> None:
+    """Make the local src/ identical to the robot's.
+
+    Asks first (unless --yes). Local files it replaces or deletes are kept in
+    <workspace>/.fetchsync/trash/ and .fetchsync/conflicts/.
+    """
+    from fetchsync.errors import UsageError
+    from fetchsync.session import connect, open_state
+    from fetchsync.sync import build_rules, pull as do_pull, raise_for
+
+    target = _resolve(robot, user, workspace, remote_workspace)
+
+    def confirm(preview: Any) -> bool:
+        if yes:
+            return True
+        if not sys.stdin.isatty():
+            raise UsageError("pull would change local files and there is no terminal to ask",
+                             hint="pass --yes (or --no-safety)")
+        return click.confirm(
+            f"pull will write {preview.files + preview.links} and delete {preview.deleted} local "
+            f"paths under {target.workspace / 'src'} (replaced files are kept in .fetchsync/). Continue?",
+            default=False)
+
+    rules = build_rules(excludes)
+    progress = _Progress(not as_json)
+    state = open_state(target)
+    try:
+        with connect(target, accept_fingerprint=accept_host_key) as conn:
+            report = do_pull(conn, state, local_workspace=str(target.workspace),
+                             remote_workspace=target.remote_workspace, rules=rules,
+                             confirm=confirm, dry_run=dry_run, progress=progress)
+    finally:
+        progress.close()
+        state.close()
+    report.robot, report.local, report.remote = target.robot, str(target.workspace / "src"), \
+        target.remote_workspace + "/src"
+    _print_report(report, as_json)
+    raise_for(report, strict=False)
+
+
+def main() -> None:
+    cli(prog_name="fetchsync")
+
+
+if __name__ == "__main__":
+    main()

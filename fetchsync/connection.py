@@ -1,0 +1,166 @@
+"""The one connection object through which everything talks to a robot.
+
+A :class:`Connection` starts the robot-side endpoint over a transport (SSH, or
+the ``local`` robot), delivers it when the robot's cache lacks it, does the
+handshake and then carries request/response frames. Requests may be pipelined:
+``send()`` returns an id, ``wait()`` collects its response.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from typing import Any
+
+from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
+from fetchsync.protocol import hashing, wire
+from fetchsync.protocol.loader import NEED, loader_command
+from fetchsync.transport import Channel, Transport
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PYTHON = "python3"
+
+
+class Connection:
+    def __init__(self, transport: Transport, channel: Channel, reader: wire.Reader,
+                 hello: dict[str, Any], algorithm: str, compress: bool) -> None:
+        self.transport = transport
+        self.channel = channel
+        self.reader = reader
+        self.hello = hello
+        self.algorithm = algorithm
+        self.compress = compress
+        self.bytes_out = 0
+        self._next_id = 1
+        self._pending: dict[int, wire.Frame] = {}
+        self._lock = threading.Lock()
+
+    @property
+    def bytes_in(self) -> int:
+        return self.reader.bytes_in
+
+    # ------------------------------------------------------------------ setup
+    @classmethod
+    def open(cls, transport: Transport, *, python: str | None = None) -> Connection:
+        python = python or os.environ.get("FETCHSYNC_REMOTE_PYTHON") or DEFAULT_PYTHON
+        command, archive = loader_command(python)
+        channel = transport.exec(command)
+        reader = wire.Reader(channel.recv)
+        sent = 0
+        try:
+            sent += cls._deliver(channel, reader, archive)
+            hello = reader.read_hello()
+        except EOFError as exc:
+            raise cls._startup_error(transport, channel, exc) from exc
+        except ProtocolError:
+            channel.close()
+            raise
+        if hello.get("version") != wire.VERSION:
+            channel.close()
+            raise ProtocolError(f"the robot's endpoint speaks protocol {hello.get('version')}, "
+                                f"we speak {wire.VERSION}")
+        theirs = hello.get("algorithms") or []
+        try:
+            algorithm = hashing.negotiate(hashing.available(), theirs)
+        except ProtocolError:
+            channel.close()
+            raise
+        compress = "zlib" in (hello.get("compression") or [])
+        ours = {"algorithm": algorithm, "compression": "zlib" if compress else "none"}
+        data = wire.encode_hello(ours)
+        channel.send_all(data)
+        conn = cls(transport, channel, reader, hello, algorithm, compress)
+        conn.bytes_out = sent + len(data)
+        log.debug("endpoint up: %s", hello)
+        return conn
+
+    @staticmethod
+    def _deliver(channel: Channel, reader: wire.Reader, archive: bytes) -> int:
+        """Send the endpoint if the loader says NEED; stop at the hello's magic."""
+        buf = reader._buf
+        while True:
+            need_at = buf.find(NEED)
+            magic_at = buf.find(wire.MAGIC)
+            if magic_at >= 0 and (need_at < 0 or magic_at < need_at):
+                return 0
+            if need_at >= 0:
+                del buf[:need_at + len(NEED)]
+                channel.send_all(archive)
+                return len(archive)
+            if len(buf) > wire.MAX_NOISE:
+                raise ProtocolError("the robot printed too much before the endpoint started")
+            if not reader._fill(len(buf) + 1):
+                raise EOFError("endpoint ended before its hello")
+
+    @staticmethod
+    def _startup_error(transport: Transport, channel: Channel, exc: Exception) -> Exception:
+        status = channel.exit_status(timeout=5)
+        err = b""
+        while True:
+            chunk = channel.recv_stderr(65536)
+            if not chunk:
+                break
+            err += chunk
+            if len(err) > 65536:
+                break
+        channel.close()
+        text = err.decode("utf-8", "replace").strip()
+        last = text.splitlines()[-1] if text else ""
+        if status == 127:
+            return ConnectError(f"python3 was not found on {transport.name}",
+                                hint="the robot needs python3 >= 3.8; set FETCHSYNC_REMOTE_PYTHON "
+                                     "if it lives elsewhere")
+        if "SyntaxError" in text or "ModuleNotFoundError" in text:
+            return ConnectError(f"the robot's python3 is too old for fetchsync: {last}",
+                                hint="python3 >= 3.8 is needed")
+        return ConnectError(f"the fetchsync endpoint did not start on {transport.name}"
+                            + (f": {last}" if last else f" (exit status {status})"))
+
+    # ------------------------------------------------------------------ requests
+    def send(self, header: dict[str, Any], blob: bytes = b"") -> int:
+        with self._lock:
+            req_id = self._next_id
+            self._next_id += 1
+        data = wire.encode_frame(wire.Frame(wire.T_REQUEST, req_id, header, blob),
+                                 compress=self.compress)
+        self.channel.send_all(data)
+        self.bytes_out += len(data)
+        return req_id
+
+    def wait(self, req_id: int) -> wire.Frame:
+        while req_id not in self._pending:
+            try:
+                frame = self.reader.read_frame()
+            except EOFError as exc:
+                raise LinkLostError(f"the connection to {self.transport.name} ended mid-request") from exc
+            if frame is None:
+                raise LinkLostError(f"the fetchsync endpoint on {self.transport.name} went away")
+            self._pending[frame.req_id] = frame
+        frame = self._pending.pop(req_id)
+        if frame.type == wire.T_ERROR:
+            kind = frame.header.get("kind", "")
+            message = str(frame.header.get("error", "unknown error"))
+            if kind == "protocol":
+                raise ProtocolError(f"the robot refused a request: {message}")
+            raise RemoteError(f"{self.transport.name}: {message}")
+        return frame
+
+    def request(self, header: dict[str, Any], blob: bytes = b"") -> wire.Frame:
+        return self.wait(self.send(header, blob))
+
+    def close(self) -> None:
+        try:
+            self.send({"op": "bye"})
+            self.channel.shutdown_write()
+            self.channel.exit_status(timeout=2)
+        except Exception:  # closing a dead link is not an error worth reporting
+            pass
+        self.channel.close()
+
+    def __enter__(self) -> Connection:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,97 @@
+"""Planning: from two trees and the last-synced state to a list of operations.
+
+Pure functions over in-memory trees (``dict[path, Listed]``): no I/O, no
+transport. ``plan()`` makes ``dest`` identical to ``source``; every operation
+carries the expectation of what ``dest`` holds (what was last synced), and
+chooses the cheapest way to get content there: reuse content ``dest``
+already holds by hash, a delta against the last-synced version when its
+signature is known, else the whole content.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+from fetchsync.protocol import messages as M
+from fetchsync.protocol.paths import ancestors
+
+WHOLE = "whole"
+DELTA = "delta"
+COPY = "copy"
+
+
+@dataclass(frozen=True)
+class Planned:
+    """An operation and, for writes, how its content will be produced."""
+
+    op: M.Op
+    how: str = ""            # WHOLE, DELTA or COPY for writes
+    item: M.Listed | None = None   # the source entry this op makes dest hold
+
+
+def _same(a: M.Listed, b: M.Listed) -> bool:
+    if a.kind != b.kind:
+        return False
+    if a.kind == "f":
+        return a.hash == b.hash and a.mode == b.mode
+    if a.kind == "l":
+        return a.target == b.target
+    return a.mode == b.mode
+
+
+def plan(source: Mapping[str, M.Listed], dest: Mapping[str, M.Listed],
+         expect: Callable[[str], str], *,
+         has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
+         reuse: bool = True) -> list[Planned]:
+    """Operations that make ``dest`` hold what ``source`` holds.
+
+    ``expect(path)`` is what dest should hold at ``path`` (the last-synced
+    expectation, ``"-"`` when unknown). ``has_signature(path, dest_item)``
+    says whether a delta against dest's current file is possible.
+    """
+    by_hash: dict[str, str] = {}
+    if reuse:
+        for path, item in dest.items():
+            if item.kind == "f" and item.size > 0:
+                by_hash.setdefault(item.hash, path)
+    mkdirs: list[Planned] = []
+    writes: list[Planned] = []
+    deletes: list[Planned] = []
+    for path in sorted(set(source) | set(dest)):
+        src = source.get(path)
+        dst = dest.get(path)
+        if src is not None and dst is not None and _same(src, dst):
+            continue
+        if src is None:
+            assert dst is not None
+            # a parent that is not a directory in source takes this path with it
+            if any((a not in source) or source[a].kind != "d" for a in ancestors(path)):
+                continue
+            deletes.append(Planned(M.Op(M.DELETE, path, expect=expect(path))))
+            continue
+        exp = expect(path)
+        if src.kind == "d":
+            if dst is not None and dst.kind == "d":
+                mkdirs.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
+            else:
+                mkdirs.append(Planned(M.Op(M.MKDIR, path, expect=exp, mode=src.mode), item=src))
+            continue
+        if src.kind == "l":
+            writes.append(Planned(M.Op(M.SYMLINK, path, expect=exp, target=src.target), item=src))
+            continue
+        if dst is not None and dst.kind == "f" and dst.hash == src.hash:
+            writes.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
+            continue
+        base = dict(kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size)
+        reuse_from = by_hash.get(src.hash) if src.size > 0 else None
+        if reuse_from is not None:
+            writes.append(Planned(M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base),
+                                  COPY, src))
+        elif dst is not None and dst.kind == "f" and dst.size > 0 and has_signature(path, dst):
+            writes.append(Planned(M.Op(source=M.SRC_DELTA, base=dst.hash, **base), DELTA, src))
+        else:
+            writes.append(Planned(M.Op(source=M.SRC_DATA, **base), WHOLE, src))
+    # parents before children; content before deletes, so a renamed file's
+    # old copy is still there to be reused
+    return mkdirs + writes + deletes

@@ -1,0 +1,55 @@
+"""Opening a session with a robot: resolve the target, connect, load the state.
+
+Shared by every verb that talks to a robot, so they all resolve robot, user
+and workspaces the same way and go through the same connection object.
+"""
+
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+from fetchsync.config import Target
+from fetchsync.connection import Connection
+from fetchsync.errors import ConfigError
+from fetchsync.state import State, state_path
+from fetchsync.transport import LocalTransport, Transport, local_robot_home
+
+
+def robot_id(target: Target) -> str:
+    if target.is_local:
+        return f"local:{local_robot_home()}"
+    return f"{target.user or ''}@{target.host}"
+
+
+def open_transport(target: Target, *, accept_fingerprint: str | None = None) -> Transport:
+    if target.is_local:
+        home = local_robot_home()
+        remote = target.remote_workspace
+        resolved = Path(os.path.normpath(os.path.join(home, remote[2:]) if remote.startswith("~/")
+                                         else remote))
+        if resolved.resolve() == target.workspace.resolve():
+            raise ConfigError(f"the local robot's workspace {resolved} is the local workspace itself",
+                              hint="pass --remote-workspace with another path")
+        return LocalTransport(home)
+    from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
+    return SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint)
+
+
+@contextmanager
+def connect(target: Target, *, accept_fingerprint: str | None = None) -> Iterator[Connection]:
+    transport = open_transport(target, accept_fingerprint=accept_fingerprint)
+    try:
+        conn = Connection.open(transport)
+        try:
+            yield conn
+        finally:
+            conn.close()
+    finally:
+        transport.close()
+
+
+def open_state(target: Target) -> State:
+    return State(state_path(robot_id(target), target.remote_workspace))

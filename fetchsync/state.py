@@ -1,0 +1,152 @@
+"""The laptop's memory of the last sync, per (robot, remote workspace).
+
+For every path it holds what the robot was left holding (kind, mode, content
+hash or link target), the local stat at that moment (so an unchanged file is
+recognised without reading it) and, for larger files, the content's delta
+signature (so an edit is sent as a delta without asking the robot). It also
+holds the robot index's epoch and generation: when they still match, the robot
+has not been written by anyone else since, and one round trip suffices.
+
+Stored in SQLite under ``$XDG_STATE_HOME/fetchsync/`` (one file per target),
+updated in one transaction per batch, so a killed push leaves it consistent.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import sqlite3
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+from fetchsync.protocol import messages as M
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS entries (
+    path BLOB PRIMARY KEY,
+    kind TEXT NOT NULL, mode INTEGER NOT NULL, hash TEXT NOT NULL, target TEXT NOT NULL,
+    size INTEGER NOT NULL, mtime_ns INTEGER NOT NULL, ctime_ns INTEGER NOT NULL, ino INTEGER NOT NULL,
+    sig BLOB
+);
+"""
+
+
+@dataclass(frozen=True)
+class Synced:
+    """What was last synced at a path, and the local stat when it was."""
+
+    kind: str
+    mode: int
+    hash: str
+    target: str
+    size: int = -1
+    mtime_ns: int = -1
+    ctime_ns: int = -1
+    ino: int = -1
+
+    def listed(self, path: str) -> M.Listed:
+        return M.Listed(path, self.kind, self.mode, self.size if self.kind == "f" else 0,
+                        hash=self.hash, target=self.target)
+
+    def expectation(self) -> str:
+        if self.kind == "d":
+            return M.IS_DIR
+        if self.kind == "l":
+            return M.expect_link(self.target)
+        return M.expect_file(self.hash)
+
+
+def state_dir() -> Path:
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "fetchsync"
+
+
+def state_path(robot_id: str, remote_workspace: str) -> Path:
+    key = hashlib.sha256(f"{robot_id}\0{remote_workspace}".encode("utf-8", "surrogateescape")).hexdigest()
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{robot_id}_{remote_workspace}")[:60].strip("_")
+    return state_dir() / f"{slug}-{key[:12]}.sqlite"
+
+
+class State:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self.db = sqlite3.connect(str(path), isolation_level=None)
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute("PRAGMA synchronous=NORMAL")
+        self.db.executescript(SCHEMA)
+
+    def close(self) -> None:
+        self.db.close()
+
+    # meta
+    def get(self, key: str, default: str = "") -> str:
+        row = self.db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return row[0] if row else default
+
+    @property
+    def epoch(self) -> str:
+        return self.get("epoch")
+
+    @property
+    def gen(self) -> int:
+        return int(self.get("gen", "-1"))
+
+    def entries(self) -> dict[str, Synced]:
+        out = {}
+        for row in self.db.execute(
+                "SELECT path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino FROM entries"):
+            out[_decode(row[0])] = Synced(*row[1:])
+        return out
+
+    def signature(self, path: str) -> bytes | None:
+        row = self.db.execute("SELECT sig FROM entries WHERE path=?", (_encode(path),)).fetchone()
+        return bytes(row[0]) if row and row[0] is not None else None
+
+    def commit(self, *, upserts: Iterable[tuple[str, Synced, bytes | None]] = (),
+               deletes: Iterable[str] = (), meta: dict[str, str] | None = None,
+               replace_all: bool = False) -> None:
+        """Apply one batch of changes atomically. A ``None`` signature keeps the stored one
+        only when the content hash is unchanged."""
+        cur = self.db.cursor()
+        cur.execute("BEGIN IMMEDIATE")
+        try:
+            if replace_all:
+                cur.execute("DELETE FROM entries")
+            rows = []
+            keep_sig = []
+            for path, s, sig in upserts:
+                key = _encode(path)
+                if sig is None:
+                    keep_sig.append((key, s.hash))
+                rows.append((key, s.kind, s.mode, s.hash, s.target, s.size, s.mtime_ns,
+                             s.ctime_ns, s.ino, sig))
+            old_sigs = {}
+            for key, h in keep_sig:
+                row = cur.execute("SELECT hash, sig FROM entries WHERE path=?", (key,)).fetchone()
+                if row and row[0] == h and row[1] is not None:
+                    old_sigs[key] = row[1]
+            rows = [r[:-1] + (old_sigs.get(r[0]),) if r[-1] is None else r for r in rows]
+            cur.executemany("INSERT OR REPLACE INTO entries VALUES (?,?,?,?,?,?,?,?,?,?)", rows)
+            cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
+            for key, value in (meta or {}).items():
+                cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (key, value))
+            cur.execute("COMMIT")
+        except BaseException:
+            cur.execute("ROLLBACK")
+            raise
+
+    def reset(self) -> None:
+        self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
+
+
+def _encode(path: str) -> bytes:
+    # raw bytes: names that are not UTF-8 (surrogate escapes) round-trip exactly
+    return path.encode("utf-8", "surrogateescape")
+
+
+def _decode(raw: bytes) -> str:
+    return bytes(raw).decode("utf-8", "surrogateescape")

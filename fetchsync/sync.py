@@ -1,0 +1,647 @@
+"""push and pull: the sync engine's verbs over a :class:`~fetchsync.connection.Connection`.
+
+``push`` makes ``<remote workspace>/src`` identical to the local ``src/``;
+``pull`` the reverse. Both scan the local tree (stat only, hashing what the
+last-synced state cannot vouch for), plan with :func:`fetchsync.plan.plan`,
+send operations in pipelined batches, and advance the state with what the
+other end reports it now holds. The watch agent uses the same :class:`Syncer`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Iterable
+
+from fetchsync.connection import Connection
+from fetchsync.errors import ConflictError, RemoteError, SyncError
+from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
+from fetchsync.protocol import delta as delta_mod
+from fetchsync.protocol import hashing
+from fetchsync.protocol import messages as M
+from fetchsync.protocol.ignore import IgnoreRules
+from fetchsync.protocol.store import Store, is_temp
+from fetchsync.protocol.tree import Entry, entry_from_stat, scan
+from fetchsync.state import State, Synced
+
+log = logging.getLogger(__name__)
+
+SIG_MIN = 16 * 1024            # smaller files are sent whole: a delta saves too little
+BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
+PIECE = 8 * 1024 * 1024
+BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
+BATCH_OPS = 4000
+RACY_NS = 2_000_000_000
+MAX_ROUNDS = 4
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class Report:
+    verb: str
+    robot: str = ""
+    local: str = ""
+    remote: str = ""
+    files: int = 0
+    dirs: int = 0
+    links: int = 0
+    deleted: int = 0
+    chmods: int = 0
+    reused: int = 0
+    deltas: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    seconds: float = 0.0
+    rounds: int = 0
+    dry_run: bool = False
+    conflicts: list[dict[str, str]] = field(default_factory=list)
+    errors: list[dict[str, str]] = field(default_factory=list)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    planned: list[dict[str, str]] = field(default_factory=list)
+
+    @property
+    def changed(self) -> int:
+        return self.files + self.dirs + self.links + self.deleted + self.chmods
+
+    def to_json(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["ok"] = not self.errors
+        return out
+
+    def count(self, p: Planned) -> None:
+        kind = p.op.kind
+        if kind == M.WRITE:
+            self.files += 1
+            self.reused += p.how == COPY
+            self.deltas += p.how == DELTA
+        elif kind == M.MKDIR:
+            self.dirs += 1
+        elif kind == M.SYMLINK:
+            self.links += 1
+        elif kind == M.DELETE:
+            self.deleted += 1
+        elif kind == M.CHMOD:
+            self.chmods += 1
+
+
+def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
+    return IgnoreRules.build(defaults=True, extra=tuple(excludes))
+
+
+# --------------------------------------------------------------------------- local side
+@dataclass
+class LocalTree:
+    items: dict[str, M.Listed]
+    stats: dict[str, Entry]
+    skipped: list[tuple[str, str]]
+
+
+def _racy(entry: Entry, now_ns: int) -> bool:
+    return now_ns - entry.mtime_ns < RACY_NS
+
+
+def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str) -> LocalTree:
+    """The local tree with content hashes; the state vouches for files whose stat is unchanged."""
+    result = scan(root, rules, is_temp=is_temp)
+    items: dict[str, M.Listed] = {}
+    stats: dict[str, Entry] = {}
+    skipped = list(result.skipped)
+    for path, e in result.entries.items():
+        if e.kind == "f":
+            s = synced.get(path)
+            if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
+                    and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
+                digest = s.hash
+            else:
+                try:
+                    with open(os.path.join(root, path), "rb") as fh:
+                        digest = hashing.file_digest(algorithm, fh).hex()
+                except OSError as exc:
+                    skipped.append((path, f"cannot read: {exc.strerror}"))
+                    continue
+            items[path] = M.Listed(path, "f", e.mode, e.size, hash=digest)
+        elif e.kind == "l":
+            items[path] = M.Listed(path, "l", target=e.target)
+        else:
+            items[path] = M.Listed(path, "d", e.mode)
+        stats[path] = e
+    return LocalTree(items, stats, skipped)
+
+
+def read_stable(full: str, *, tries: int = 3) -> tuple[bytes, Entry]:
+    """Read a whole file, making sure it did not change while read."""
+    for _ in range(tries):
+        fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        try:
+            before = os.fstat(fd)
+            chunks = []
+            while True:
+                chunk = os.read(fd, 1 << 20)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+            after = os.fstat(fd)
+        finally:
+            os.close(fd)
+        data = b"".join(chunks)
+        if (before.st_size == after.st_size == len(data) and before.st_mtime_ns == after.st_mtime_ns
+                and before.st_ctime_ns == after.st_ctime_ns):
+            entry = entry_from_stat(after)
+            assert entry is not None
+            return data, entry
+        time.sleep(0.05)
+    raise OSError(16, "the file kept changing while it was read", full)
+
+
+def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
+    if entry is None or item.kind != "f" or entry.size != item.size or _racy(entry, now_ns):
+        # unknown or too fresh to trust its stat: the next scan hashes it again
+        return Synced(item.kind, item.mode, item.hash, item.target)
+    return Synced(item.kind, item.mode, item.hash, item.target, entry.size, entry.mtime_ns,
+                  entry.ctime_ns, entry.ino)
+
+
+# --------------------------------------------------------------------------- batching
+class _Batcher:
+    """Packs operations into pipelined requests; collects results in order."""
+
+    def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
+                 total: int) -> None:
+        self.conn = conn
+        self.header = header
+        self.ops: list[dict[str, Any]] = []
+        self.tags: list[Any] = []
+        self.blob: list[bytes] = []
+        self.blob_len = 0
+        self.sent: list[tuple[int, list[Any]]] = []
+        self.progress = progress
+        self.total = total
+        self.done = 0
+
+    def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
+        if data:
+            op = M.Op(**{**op.__dict__, "blob": (self.blob_len, len(data))})
+            self.blob.append(data)
+            self.blob_len += len(data)
+        self.ops.append(op.to_wire())
+        self.tags.append(tag)
+        if self.blob_len >= BATCH_BYTES or len(self.ops) >= BATCH_OPS:
+            self.flush()
+
+    def flush(self, **extra: Any) -> None:
+        if not self.ops and not extra:
+            return
+        header = dict(self.header, op="sync", ops=self.ops, **extra)
+        req = self.conn.send(header, b"".join(self.blob))
+        self.sent.append((req, self.tags))
+        self.done += self.blob_len
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+        self.ops, self.tags, self.blob, self.blob_len = [], [], [], 0
+
+    def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any]]:
+        out: list[tuple[Any, M.Result]] = []
+        last: dict[str, Any] = {}
+        for req, tags in self.sent:
+            frame = self.conn.wait(req)
+            last = frame.header
+            if last.get("stale"):
+                return [], last
+            results = last.get("results", [])
+            if len(results) != len(tags):
+                raise SyncError("the robot answered a different number of operations")
+            out.extend((t, M.Result.from_wire(r)) for t, r in zip(tags, results))
+        return out, last
+
+
+# --------------------------------------------------------------------------- push
+class Syncer:
+    """Pushes a local tree to one remote workspace over a connection, keeping state."""
+
+    def __init__(self, conn: Connection, state: State, *, local_root: str, remote_workspace: str,
+                 rules: IgnoreRules, policy: str = "preserve") -> None:
+        self.conn = conn
+        self.state = state
+        self.local_root = local_root
+        self.remote_workspace = remote_workspace
+        self.rules = rules
+        self.policy = policy
+        self.algorithm = conn.algorithm
+        self.opened: dict[str, Any] | None = None
+
+    def _open_header(self, create: bool = True) -> dict[str, Any]:
+        return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
+                "create": create}
+
+    def push(self, *, dry_run: bool = False, progress: Progress | None = None) -> Report:
+        t0 = time.monotonic()
+        report = Report("push", dry_run=dry_run)
+        b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
+        synced = self.state.entries()
+        if self.state.get("algorithm") not in ("", self.algorithm):
+            synced = {}
+        fresh = bool(synced) and self.state.epoch != ""
+        open_req = self.conn.send(self._open_header()) if self.opened is None else None
+        local = scan_local(self.local_root, self.rules, synced, self.algorithm)
+        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
+        if open_req is not None:
+            self.opened = self.conn.wait(open_req).header
+        epoch, gen = self.state.epoch, self.state.gen
+        remote: dict[str, M.Listed]
+        if fresh and not dry_run and self.opened.get("epoch") == epoch and self.opened.get("gen") == gen:
+            remote = {p: s.listed(p) for p, s in synced.items()}
+        else:
+            mode = "drift" if fresh else "full"
+            listing = self.conn.request({"op": "list", "mode": mode, "epoch": epoch, "gen": gen}).header
+            remote = self._apply_listing(listing, synced)
+            epoch, gen = listing["epoch"], listing["gen"]
+        sigs_known: set[str] = set()
+        whole_only: set[str] = set()
+        new_synced = dict(synced)
+        upserts: dict[str, tuple[Synced, bytes | None]] = {}
+        deletes: set[str] = set()
+        now_ns = time.time_ns()
+
+        def expect(path: str) -> str:
+            s = new_synced.get(path)
+            return s.expectation() if s is not None else M.ABSENT
+
+        def has_sig(path: str, dst: M.Listed) -> bool:
+            s = new_synced.get(path)
+            return (path not in whole_only and s is not None and s.kind == "f"
+                    and s.hash == dst.hash and dst.size >= SIG_MIN)
+
+        for _round in range(MAX_ROUNDS):
+            planned = plan(local.items, remote, expect, has_signature=has_sig)
+            if dry_run:
+                for p in planned:
+                    report.count(p)
+                    report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
+                break
+            if not planned and report.rounds > 0:
+                break
+            report.rounds += 1
+            batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
+                                           "require_fresh": True}, progress,
+                               sum(p.op.size for p in planned if p.how == WHOLE))
+            for p in planned:
+                self._send_op(batcher, p, local, report)
+            batcher.flush(verify=True)
+            results, last = batcher.results()
+            if last.get("stale"):
+                listing = self.conn.request({"op": "list", "mode": "full"}).header
+                remote = self._apply_listing(listing, synced)
+                epoch, gen = listing["epoch"], listing["gen"]
+                report.rounds -= 1
+                continue
+            epoch, gen = last["epoch"], last["gen"]
+            for tag, res in results:
+                self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local, report,
+                             now_ns)
+            for entry in last.get("drift", []):
+                item = M.Listed.from_wire(entry)
+                remote[item.path] = item
+            for path in last.get("gone", []):
+                remote.pop(path, None)
+            if not last.get("drift") and not last.get("gone") and not any(
+                    not r.ok for _t, r in results):
+                break
+        # paths already identical need no operation, but the state must know them
+        for path, item in local.items.items():
+            r = remote.get(path)
+            if r is not None and r == item and path not in upserts:
+                s = _synced_from(item, local.stats.get(path), now_ns)
+                if new_synced.get(path) != s:
+                    upserts[path] = (s, None)
+                    new_synced[path] = s
+        for path in list(new_synced):
+            if path not in remote and path not in upserts:
+                deletes.add(path)
+        if not dry_run:
+            self.state.commit(upserts=[(p, s, sig) for p, (s, sig) in upserts.items()],
+                              deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
+                                                     "algorithm": self.algorithm})
+            self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+        report.bytes_sent = self.conn.bytes_out - b_out
+        report.bytes_received = self.conn.bytes_in - b_in
+        report.seconds = time.monotonic() - t0
+        return report
+
+    def _apply_listing(self, listing: dict[str, Any], synced: dict[str, Synced]) -> dict[str, M.Listed]:
+        if listing.get("full"):
+            return {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
+        remote = {p: s.listed(p) for p, s in synced.items()}
+        for x in listing.get("entries", []):
+            item = M.Listed.from_wire(x)
+            remote[item.path] = item
+        for path in listing.get("gone", []):
+            remote.pop(path, None)
+        return remote
+
+    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report) -> None:
+        op = p.op
+        if op.kind != M.WRITE or p.how == COPY:
+            batcher.add(op, tag=(p, None))
+            return
+        full = os.path.join(self.local_root, op.path)
+        if op.size > BIG:
+            self._send_big(batcher, p, full, report)
+            return
+        try:
+            data, entry = read_stable(full)
+        except OSError as exc:
+            report.errors.append({"path": op.path, "error": f"cannot read: {exc.strerror or exc}"})
+            return
+        digest = hashing.digest(self.algorithm, data).hex()
+        if digest != op.hash or len(data) != op.size:
+            # changed since the scan: send what is there now, whole
+            op = M.Op(**{**op.__dict__, "hash": digest, "size": len(data), "source": M.SRC_DATA,
+                         "base": ""})
+            p = Planned(op, WHOLE, M.Listed(op.path, "f", entry.mode, len(data), hash=digest))
+        local.stats[op.path] = entry
+        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if len(data) >= SIG_MIN else None
+        if p.how == DELTA:
+            stored = self.state.signature(op.path)
+            if stored is not None:
+                d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
+                if len(d) < len(data):
+                    batcher.add(op, d, tag=(p, sig))
+                    return
+            op = M.Op(**{**op.__dict__, "source": M.SRC_DATA, "base": ""})
+            p = Planned(op, WHOLE, p.item)
+        batcher.add(op, data, tag=(p, sig))
+
+    def _send_big(self, batcher: _Batcher, p: Planned, full: str, report: Report) -> None:
+        """A large file travels in pieces to the robot's upload area, then is renamed into place."""
+        upload = os.urandom(8).hex()
+        h = hashing.new(self.algorithm)
+        try:
+            fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        except OSError as exc:
+            report.errors.append({"path": p.op.path, "error": f"cannot read: {exc.strerror}"})
+            return
+        try:
+            before = os.fstat(fd)
+            offset = 0
+            while True:
+                piece = os.read(fd, PIECE)
+                if not piece:
+                    break
+                h.update(piece)
+                batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
+                offset += len(piece)
+            after = os.fstat(fd)
+        finally:
+            os.close(fd)
+        if (before.st_mtime_ns, before.st_size) != (after.st_mtime_ns, after.st_size) or offset != after.st_size:
+            report.errors.append({"path": p.op.path, "error": "changed while it was read; run again"})
+            return
+        op = M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": "",
+                     "hash": h.digest().hex(), "size": offset})
+        entry = entry_from_stat(after)
+        item = M.Listed(op.path, "f", p.op.mode, offset, hash=op.hash)
+        batcher.add(op, tag=(Planned(op, WHOLE, item), None))
+
+    def _settle(self, tag: Any, res: M.Result, remote: dict[str, M.Listed], new_synced: dict[str, Synced],
+                upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str], whole_only: set[str],
+                local: LocalTree, report: Report, now_ns: int) -> None:
+        if tag is None:  # an upload piece
+            if not res.ok:
+                report.errors.append({"path": "(upload)", "error": res.message})
+            return
+        p, sig = tag
+        path = p.op.path
+        if res.preserved:
+            report.conflicts.append({"path": path, "kept": res.preserved})
+        if res.code == M.BASE_MISMATCH:
+            whole_only.add(path)
+            remote.pop(path, None)  # unknown: the next round sends it whole
+            return
+        if not res.ok:
+            if res.code == M.CONFLICT:
+                report.conflicts.append({"path": path, "kept": "", "refused": res.message})
+            else:
+                report.errors.append({"path": path, "error": res.message or res.code})
+            return
+        report.count(p)
+        if p.op.kind == M.DELETE:
+            prefix = path + "/"
+            for key in [k for k in remote if k == path or k.startswith(prefix)]:
+                del remote[key]
+            for key in [k for k in new_synced if k == path or k.startswith(prefix)]:
+                del new_synced[key]
+                upserts.pop(key, None)
+                deletes.add(key)
+            return
+        written = M.Listed.from_wire(res.written) if res.written else p.item
+        if written is None:
+            return
+        if p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK) and path in remote and remote[path].kind == "d" \
+                and written.kind != "d":
+            prefix = path + "/"
+            for key in [k for k in remote if k.startswith(prefix)]:
+                del remote[key]
+            for key in [k for k in new_synced if k.startswith(prefix)]:
+                del new_synced[key]
+                deletes.add(key)
+        remote[path] = written
+        item = local.items.get(path)
+        s = _synced_from(written, local.stats.get(path) if item is not None and item.hash == written.hash
+                         else None, now_ns)
+        new_synced[path] = s
+        upserts[path] = (s, sig)
+        deletes.discard(path)
+
+
+def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
+         rules: IgnoreRules, confirm: Callable[[Report], bool] | None = None,
+         dry_run: bool = False, progress: Progress | None = None) -> Report:
+    """Mirror the robot's ``src/`` into the local one; replaced local files go to a local trash."""
+    t0 = time.monotonic()
+    report = Report("pull", dry_run=dry_run)
+    algorithm = conn.algorithm
+    conn.request({"op": "open", "workspace": remote_workspace, "rules": rules.to_wire(), "create": False})
+    listing = conn.request({"op": "list", "mode": "full"}).header
+    remote = {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
+    synced = state.entries() if state.get("algorithm") in ("", algorithm) else {}
+    local_root = os.path.join(local_workspace, "src")
+    os.makedirs(local_root, exist_ok=True)
+    local = scan_local(local_root, rules, synced, algorithm)
+    report.skipped = [{"path": p, "reason": r} for p, r in local.skipped + [tuple(x) for x in listing.get("skipped", [])]]
+
+    def expect(path: str) -> str:
+        s = synced.get(path)
+        return s.expectation() if s is not None else M.ABSENT
+
+    planned = plan(remote, local.items, expect,
+                   has_signature=lambda path, dst: dst.size >= SIG_MIN)
+    for p in planned:
+        report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
+    if dry_run or not planned:
+        for p in planned:
+            report.count(p)
+    if dry_run:
+        report.seconds = time.monotonic() - t0
+        return report
+    if planned and confirm is not None:
+        preview = Report("pull")
+        for p in planned:
+            preview.count(p)
+        if not confirm(preview):
+            from fetchsync.errors import AbortedError
+            raise AbortedError("pull cancelled; nothing was changed")
+    store = Store(local_workspace, algorithm=algorithm, create=True)
+    store.lock()
+    try:
+        ops, blobs, tags = _fetch(conn, planned, local_root, report)
+        results = store.apply(ops, b"".join(blobs))
+        store.save_index()
+    finally:
+        store.unlock()
+    now_ns = time.time_ns()
+    upserts: list[tuple[str, Synced, bytes | None]] = []
+    adopted: list[list[Any]] = []
+    failed: set[str] = set()
+    for p, res in zip(tags, results):
+        if p is None:
+            continue
+        if res.preserved:
+            report.conflicts.append({"path": p.op.path, "kept": os.path.join(local_workspace, res.preserved)
+                                     if not os.path.isabs(res.preserved) else res.preserved})
+        if not res.ok:
+            failed.add(p.op.path)
+            report.errors.append({"path": p.op.path, "error": res.message or res.code})
+            continue
+        report.count(p)
+    final = scan_local(local_root, rules, {}, algorithm) if planned else local
+    for path, item in final.items.items():
+        r = remote.get(path)
+        if r is not None and r == item and path not in failed:
+            upserts.append((path, _synced_from(item, final.stats.get(path), now_ns), None))
+            adopted.append(item.to_wire())
+    ad = conn.request({"op": "adopt", "entries": adopted}).header
+    state.commit(upserts=upserts, replace_all=True,
+                 meta={"epoch": ad["epoch"], "gen": str(ad["gen"]), "algorithm": algorithm})
+    report.bytes_sent = conn.bytes_out
+    report.bytes_received = conn.bytes_in
+    report.seconds = time.monotonic() - t0
+    return report
+
+
+def _fetch(conn: Connection, planned: list[Planned], local_root: str,
+           report: Report) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
+    """Read what the plan needs from the robot; return local operations with their blob."""
+    ops: list[M.Op] = []
+    blobs: list[bytes] = []
+    tags: list[Planned | None] = []
+    pos = 0
+    pending: list[tuple[int, list[Planned]]] = []
+    items: list[dict[str, Any]] = []
+    sig_blob: list[bytes] = []
+    sig_pos = 0
+    group: list[Planned] = []
+    queued = 0
+
+    def flush() -> None:
+        nonlocal items, sig_blob, sig_pos, group, queued
+        if items:
+            pending.append((conn.send({"op": "read", "items": items}, b"".join(sig_blob)), group))
+        items, sig_blob, sig_pos, group, queued = [], [], 0, [], 0
+
+    for p in planned:
+        if p.op.kind != M.WRITE or p.how == COPY:
+            continue
+        if p.op.size > BIG:
+            continue  # fetched piece by piece below
+        item: dict[str, Any] = {"p": p.op.path}
+        if p.how == DELTA:
+            try:
+                with open(os.path.join(local_root, p.op.path), "rb") as fh:
+                    sig = delta_mod.signature(fh.read(), algorithm=conn.algorithm).to_bytes()
+                item["sig"] = [sig_pos, len(sig)]
+                sig_blob.append(sig)
+                sig_pos += len(sig)
+            except OSError:
+                pass
+        items.append(item)
+        group.append(p)
+        queued += p.op.size
+        if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
+            flush()
+    flush()
+    fetched: dict[str, tuple[dict[str, Any], bytes]] = {}
+    for req, group in pending:
+        frame = conn.wait(req)
+        for p, ans in zip(group, frame.header.get("items", [])):
+            if ans.get("c") != M.OK:
+                report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
+                continue
+            off, length = ans["bl"]
+            fetched[p.op.path] = (ans, frame.blob[off:off + length])
+    for p in planned:
+        op = p.op
+        if op.kind == M.WRITE and p.how != COPY:
+            if op.size > BIG:
+                up = _fetch_big(conn, p, report)
+                if up is None:
+                    continue
+                for piece_op, piece in up[0]:
+                    ops.append(M.Op(**{**piece_op.__dict__, "blob": (pos, len(piece))}))
+                    blobs.append(piece)
+                    tags.append(None)
+                    pos += len(piece)
+                op = up[1]
+            else:
+                got = fetched.get(op.path)
+                if got is None:
+                    continue
+                ans, data = got
+                listed = M.Listed.from_wire(ans["l"])
+                src = M.SRC_DELTA if ans["src"] == M.SRC_DELTA else M.SRC_DATA
+                op = M.Op(**{**op.__dict__, "hash": listed.hash, "size": listed.size, "mode": listed.mode,
+                             "source": src, "base": op.base if src == M.SRC_DELTA else "",
+                             "blob": (pos, len(data))})
+                blobs.append(data)
+                pos += len(data)
+        ops.append(op)
+        tags.append(p)
+    return ops, blobs, tags
+
+
+def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:
+    upload = os.urandom(8).hex()
+    pieces: list[tuple[M.Op, bytes]] = []
+    offset = 0
+    listed = None
+    while offset < p.op.size:
+        frame = conn.request({"op": "read", "items": [{"p": p.op.path, "off": offset, "len": PIECE}]})
+        ans = frame.header["items"][0]
+        if ans.get("c") != M.OK:
+            report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
+            return None
+        listed = M.Listed.from_wire(ans["l"])
+        off, length = ans["bl"]
+        if length == 0:
+            break
+        pieces.append((M.Op(M.UPLOAD, "", upload=upload, size=offset), frame.blob[off:off + length]))
+        offset += length
+    if listed is None or listed.hash != p.op.hash or offset != listed.size:
+        report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
+        return None
+    return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
+
+
+def raise_for(report: Report, *, strict: bool) -> None:
+    """Turn a report's failures into the exception the CLI maps to an exit code."""
+    refused = [c for c in report.conflicts if c.get("refused")]
+    if refused:
+        raise ConflictError(f"{len(refused)} path(s) were changed on the robot since the last sync; "
+                            f"nothing was overwritten there (first: {refused[0]['path']})",
+                            hint="pull them first, or push without --strict to keep them aside")
+    if report.errors:
+        first = report.errors[0]
+        raise SyncError(f"{len(report.errors)} path(s) failed; first: {first['path']}: {first['error']}")
+    _ = RemoteError, strict
