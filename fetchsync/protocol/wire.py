@@ -128,6 +128,9 @@ class Reader:
         """Skip noise up to MAGIC, then read the peer's hello."""
         while True:
             idx = self._buf.find(MAGIC)
+            if idx > MAX_NOISE:
+                raise ProtocolError("no fetchsync endpoint answered (got %r...)"
+                                    % bytes(self._buf[:80]))
             if idx >= 0:
                 del self._buf[:idx + len(MAGIC)]
                 break

@@ -1,0 +1,89 @@
+"""Wire framing: each invariant of the format has its own test."""
+
+import io
+import os
+import struct
+import zlib
+
+import pytest
+
+from fetchsync.protocol import wire
+from fetchsync.protocol.errors import ProtocolError
+
+
+def reader_for(data: bytes) -> wire.Reader:
+    return wire.Reader(io.BytesIO(data).read)
+
+
+def test_frame_round_trip_with_and_without_compression():
+    for compress in (False, True):
+        frame = wire.Frame(wire.T_REQUEST, 42, {"op": "sync", "n": [1, 2]}, b"x" * 5000)
+        got = reader_for(wire.encode_frame(frame, compress=compress)).read_frame()
+        assert got == frame
+
+
+def test_compression_is_used_only_when_it_helps():
+    compressible = wire.encode_frame(wire.Frame(1, 1, {}, b"a" * 10000), compress=True)
+    random = wire.encode_frame(wire.Frame(1, 1, {}, os.urandom(10000)), compress=True)
+    assert compressible[5] & wire.FLAG_ZLIB and len(compressible) < 1000
+    assert not random[5] & wire.FLAG_ZLIB
+
+
+def test_hello_skips_login_noise():
+    data = b"Welcome to the robot!\nLast login: yesterday\n" + wire.encode_hello({"a": 1})
+    assert reader_for(data).read_hello()["a"] == 1
+
+
+def test_hello_gives_up_after_too_much_noise():
+    with pytest.raises(ProtocolError):
+        reader_for(b"x" * (wire.MAX_NOISE + 100) + wire.encode_hello({})).read_hello()
+
+
+def test_announced_oversize_frame_is_refused_before_reading():
+    header = struct.pack(">IBBI", wire.MAX_FRAME + 1, wire.T_REQUEST, 0, 1)
+    calls = []
+
+    def recv(n):
+        calls.append(n)
+        return header if len(calls) == 1 else b""
+
+    with pytest.raises(ProtocolError, match="over the cap"):
+        wire.Reader(recv).read_frame()
+    assert len(calls) == 1
+
+
+def test_zip_bomb_is_refused():
+    body = zlib.compress(b"\0" * (wire.MAX_BODY + 10))
+    data = struct.pack(">IBBI", len(body), wire.T_REQUEST, wire.FLAG_ZLIB, 1) + body
+    with pytest.raises(ProtocolError):
+        reader_for(data).read_frame()
+
+
+def test_truncated_frame_is_eof_not_garbage():
+    data = wire.encode_frame(wire.Frame(1, 1, {"x": 1}, b"abc"))
+    with pytest.raises(EOFError):
+        reader_for(data[:-2]).read_frame()
+
+
+def test_clean_end_between_frames_is_none():
+    assert reader_for(b"").read_frame() is None
+
+
+@pytest.mark.parametrize("mutate", [
+    lambda b: b[:9] + b"\xff\xff\xff\xff" + b[13:],     # header length out of range
+    lambda b: b[:4] + b"\x09" + b[5:],                  # unknown type
+    lambda b: b[:5] + b"\x80" + b[6:],                  # unknown flag
+    lambda b: b[:13] + b"{not json" + b[22:],           # header not JSON
+])
+def test_corrupt_frames_are_protocol_errors(mutate):
+    data = wire.encode_frame(wire.Frame(1, 1, {"k": "vvvvvvvvvv"}, b"blob"))
+    with pytest.raises(ProtocolError):
+        reader_for(mutate(data)).read_frame()
+
+
+def test_header_must_be_an_object():
+    data = wire.encode_frame(wire.Frame(1, 1, {}, b""))
+    body = struct.pack(">I", 2) + b"[]"
+    data = struct.pack(">IBBI", len(body), 1, 0, 1) + body
+    with pytest.raises(ProtocolError, match="object"):
+        reader_for(data).read_frame()
