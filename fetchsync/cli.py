@@ -112,8 +112,9 @@ def _print_report(report: Any, as_json: bool) -> None:
         if c.get("refused"):
             click.echo(f"  conflict: {c['path']} changed on the robot; left as it is", err=True)
         else:
-            click.echo(f"  conflict: {c['path']} was changed on the other side; "
-                       f"its version is kept in {c['kept']}", err=True)
+            side = "on the robot" if report.verb == "push" else "locally"
+            click.echo(f"  conflict: {c['path']} was changed {side} since the last sync; "
+                       f"that version is kept in {c['kept']}", err=True)
     for s in report.skipped:
         click.echo(f"  skipped: {s['path']}: {s['reason']}", err=True)
     for e in report.errors:

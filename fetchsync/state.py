@@ -106,6 +106,10 @@ class State:
         row = self.db.execute("SELECT sig FROM entries WHERE path=?", (_encode(path),)).fetchone()
         return bytes(row[0]) if row and row[0] is not None else None
 
+    def signed_paths(self) -> set[str]:
+        """Paths whose stored entry has a delta signature."""
+        return {_decode(r[0]) for r in self.db.execute("SELECT path FROM entries WHERE sig IS NOT NULL")}
+
     def commit(self, *, upserts: Iterable[tuple[str, Synced, bytes | None]] = (),
                deletes: Iterable[str] = (), meta: dict[str, str] | None = None,
                replace_all: bool = False) -> None:

@@ -157,9 +157,13 @@ def read_stable(full: str, *, tries: int = 3) -> tuple[bytes, Entry]:
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
-    if entry is None or item.kind != "f" or entry.size != item.size or _racy(entry, now_ns):
-        # unknown or too fresh to trust its stat: the next scan hashes it again
-        return Synced(item.kind, item.mode, item.hash, item.target)
+    size = item.size if item.kind == "f" else 0
+    if entry is None or item.kind != "f" or entry.size != item.size:
+        return Synced(item.kind, item.mode, item.hash, item.target, size)
+    if _racy(entry, now_ns):
+        # too fresh to trust its stat (a same-size rewrite within the
+        # timestamp granularity would not show): the next scan hashes it
+        return Synced(item.kind, item.mode, item.hash, item.target, size)
     return Synced(item.kind, item.mode, item.hash, item.target, entry.size, entry.mtime_ns,
                   entry.ctime_ns, entry.ino)
 
@@ -258,7 +262,7 @@ class Syncer:
             listing = self.conn.request({"op": "list", "mode": mode, "epoch": epoch, "gen": gen}).header
             remote = self._apply_listing(listing, synced)
             epoch, gen = listing["epoch"], listing["gen"]
-        sigs_known: set[str] = set()
+        signed = self.state.signed_paths()
         whole_only: set[str] = set()
         new_synced = dict(synced)
         upserts: dict[str, tuple[Synced, bytes | None]] = {}
@@ -271,7 +275,7 @@ class Syncer:
 
         def has_sig(path: str, dst: M.Listed) -> bool:
             s = new_synced.get(path)
-            return (path not in whole_only and s is not None and s.kind == "f"
+            return (path in signed and path not in whole_only and s is not None and s.kind == "f"
                     and s.hash == dst.hash and dst.size >= SIG_MIN)
 
         for _round in range(MAX_ROUNDS):
@@ -344,7 +348,8 @@ class Syncer:
     def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report) -> None:
         op = p.op
         if op.kind != M.WRITE or p.how == COPY:
-            batcher.add(op, tag=(p, None))
+            sig = self.state.signature(op.from_path) if p.how == COPY and op.size >= SIG_MIN else None
+            batcher.add(op, tag=(p, sig))
             return
         full = os.path.join(self.local_root, op.path)
         if op.size > BIG:
