@@ -1,0 +1,62 @@
+"""Small helpers shared by the end-to-end tests."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+
+def make_workspace(root: Path) -> Path:
+    """A small ROS-like workspace with the shapes a push must handle."""
+    src = root / "src"
+    pkg = src / "my_pkg"
+    (pkg / "scripts").mkdir(parents=True)
+    (pkg / "src").mkdir()
+    (pkg / "package.xml").write_text("<package format='2'><name>my_pkg</name></package>\n")
+    (pkg / "CMakeLists.txt").write_text("cmake_minimum_required(VERSION 3.0.2)\nproject(my_pkg)\n")
+    (pkg / "src" / "node.cpp").write_text("int main() { return 0; }\n")
+    script = pkg / "scripts" / "run.py"
+    script.write_text("#!/usr/bin/env python3\nprint('hi')\n")
+    script.chmod(0o755)
+    (pkg / "launch").mkdir()  # empty directory
+    big = "\n".join(f"line {i}: the quick brown fox jumps over the lazy dog {i * 7919 % 10007}"
+                    for i in range(40000)) + "\n"
+    (pkg / "data.txt").write_text(big)
+    # catkin's absolute toplevel link, which rsync -phErtz silently skips
+    (src / "CMakeLists.txt").symlink_to("/opt/ros/noetic/share/catkin/cmake/toplevel.cmake")
+    (pkg / "rel_link").symlink_to("package.xml")
+    return root
+
+
+def tree_of(root: Path) -> dict[str, tuple]:
+    """Everything under root as {relpath: (kind, mode, content or target)}."""
+    out = {}
+    for dirpath, dirs, files in os.walk(root):
+        for name in dirs + files:
+            full = Path(dirpath) / name
+            rel = str(full.relative_to(root))
+            if full.is_symlink():
+                out[rel] = ("l", os.readlink(full))
+            elif full.is_dir():
+                out[rel] = ("d", full.stat().st_mode & 0o7777)
+            else:
+                out[rel] = ("f", full.stat().st_mode & 0o7777, full.read_bytes())
+    return out
+
+
+def fetchsync(*args: str, env: dict | None = None, check: bool = True,
+              input: bytes | None = None) -> subprocess.CompletedProcess:
+    """Run the real CLI in a subprocess."""
+    proc = subprocess.run([sys.executable, "-m", "fetchsync", *args], capture_output=True,
+                          env=env, input=input, timeout=120)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"fetchsync {' '.join(args)} failed ({proc.returncode}):\n"
+                             f"{proc.stdout.decode()}\n{proc.stderr.decode()}")
+    return proc
+
+
+def report(proc: subprocess.CompletedProcess) -> dict:
+    return json.loads(proc.stdout.decode().strip().splitlines()[-1])

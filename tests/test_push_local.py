@@ -1,0 +1,199 @@
+"""push and pull end to end against the built-in ``local`` robot (no SSH)."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from helpers import fetchsync, make_workspace, report, tree_of
+
+
+@pytest.fixture
+def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
+    robot_home = tmp_path / "robot-home"
+    e = dict(os.environ)
+    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home), XDG_STATE_HOME=str(tmp_path / "state"),
+             FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    make_workspace(tmp_path / "ws")
+    return e
+
+
+def local_src(env: dict) -> Path:
+    return Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+
+
+def robot_ws(env: dict) -> Path:
+    return Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws"
+
+
+def push(env: dict, *args: str, check: bool = True):
+    return fetchsync("push", "--json", *args, env=env, check=check)
+
+
+def test_push_mirrors_everything_and_a_second_push_is_a_noop(env):
+    r = report(push(env))
+    assert r["ok"] and r["files"] == 5 and r["links"] == 2 and r["dirs"] == 4
+    assert tree_of(local_src(env)) == tree_of(robot_ws(env) / "src")
+    assert os.readlink(robot_ws(env) / "src" / "CMakeLists.txt").startswith("/opt/ros")
+    assert (robot_ws(env) / "src/my_pkg/scripts/run.py").stat().st_mode & 0o111
+    r2 = report(push(env))
+    assert r2["files"] == r2["dirs"] == r2["deleted"] == 0
+    assert r2["bytes_sent"] < 2048
+
+
+def test_same_size_edit_within_the_same_second_is_sent(env):
+    push(env)
+    f = local_src(env) / "my_pkg/src/node.cpp"
+    st = f.stat()
+    f.write_text("int main() { return 1; }\n")   # same size
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the very same mtime
+    push(env)
+    assert (robot_ws(env) / "src/my_pkg/src/node.cpp").read_text() == "int main() { return 1; }\n"
+
+
+def test_insert_at_top_of_big_file_goes_by_delta(env):
+    push(env)
+    time.sleep(0.01)
+    f = local_src(env) / "my_pkg/data.txt"
+    f.write_text("// a new first line\n" + f.read_text())
+    noop = report(push(env))
+    assert noop["deltas"] == 1
+    assert noop["bytes_sent"] < 4096
+    assert (robot_ws(env) / "src/my_pkg/data.txt").read_bytes() == f.read_bytes()
+
+
+def test_rename_reuses_content_on_the_robot(env):
+    push(env)
+    src = local_src(env)
+    (src / "my_pkg/data.txt").rename(src / "my_pkg/moved.txt")
+    r = report(push(env))
+    assert r["reused"] == 1 and r["deleted"] == 1
+    assert r["bytes_sent"] < 4096
+    assert tree_of(src) == tree_of(robot_ws(env) / "src")
+
+
+def test_file_becomes_directory_and_back(env):
+    push(env)
+    src = local_src(env)
+    (src / "my_pkg/package.xml").unlink()
+    (src / "my_pkg/package.xml").mkdir()
+    (src / "my_pkg/package.xml/inner").write_text("x")
+    push(env)
+    assert tree_of(src) == tree_of(robot_ws(env) / "src")
+    (src / "my_pkg/package.xml/inner").unlink()
+    (src / "my_pkg/package.xml").rmdir()
+    (src / "my_pkg/package.xml").write_text("back")
+    push(env)
+    assert tree_of(src) == tree_of(robot_ws(env) / "src")
+
+
+def test_robot_side_edits_are_kept_not_lost(env):
+    push(env)
+    robot_src = robot_ws(env) / "src"
+    (robot_src / "my_pkg/src/node.cpp").write_text("edited on the robot\n")
+    (robot_src / "my_pkg/robot_only.txt").write_text("made on the robot\n")
+    r = report(push(env))
+    assert {c["path"] for c in r["conflicts"]} == {"my_pkg/src/node.cpp", "my_pkg/robot_only.txt"}
+    assert tree_of(local_src(env)) == tree_of(robot_src)
+    kept = sorted((robot_ws(env) / ".fetchsync/conflicts").rglob("*.*"))
+    contents = {p.name: p.read_text() for p in kept if p.is_file()}
+    assert contents["node.cpp"] == "edited on the robot\n"
+    assert contents["robot_only.txt"] == "made on the robot\n"
+
+
+def test_strict_refuses_to_replace_robot_side_edits(env):
+    push(env)
+    robot_file = robot_ws(env) / "src/my_pkg/src/node.cpp"
+    robot_file.write_text("edited on the robot\n")
+    (local_src(env) / "my_pkg/src/node.cpp").write_text("edited on the laptop\n")
+    proc = push(env, "--strict", check=False)
+    assert proc.returncode == 6
+    assert robot_file.read_text() == "edited on the robot\n"
+    assert b"changed on the robot" in proc.stderr
+
+
+def test_deleted_files_go_to_the_trash(env):
+    push(env)
+    (local_src(env) / "my_pkg/src/node.cpp").unlink()
+    push(env)
+    assert not (robot_ws(env) / "src/my_pkg/src/node.cpp").exists()
+    trashed = list((robot_ws(env) / ".fetchsync/trash").rglob("node.cpp"))
+    assert len(trashed) == 1 and trashed[0].read_text() == "int main() { return 0; }\n"
+
+
+def test_empty_or_missing_src_is_refused_without_force(env, tmp_path):
+    push(env)
+    for p in sorted(local_src(env).rglob("*"), reverse=True):
+        p.unlink() if p.is_file() or p.is_symlink() else p.rmdir()
+    proc = push(env, check=False)
+    assert proc.returncode != 0 and b"empty" in proc.stderr
+    assert (robot_ws(env) / "src/my_pkg/package.xml").exists()
+    push(env, "--force")
+    assert list((robot_ws(env) / "src").iterdir()) == []
+
+
+def test_excludes_apply_and_excluded_robot_files_are_left_alone(env):
+    src = local_src(env)
+    (src / ".fetchsyncignore").write_text("*.log\n")
+    (src / "my_pkg/run.log").write_text("log")
+    (src / "my_pkg/.node.cpp.swp").write_text("swap")
+    (src / "my_pkg/__pycache__").mkdir()
+    (src / "my_pkg/__pycache__/x.pyc").write_text("pyc")
+    (src / "my_pkg/secret.key").write_text("k")
+    push(env, "--exclude", "*.key")
+    robot_src = robot_ws(env) / "src"
+    assert (robot_src / ".fetchsyncignore").exists()
+    for name in ("run.log", ".node.cpp.swp", "__pycache__", "secret.key"):
+        assert not (robot_src / "my_pkg" / name).exists(), name
+    (robot_src / "my_pkg/robot.log").write_text("robot log")
+    push(env, "--exclude", "*.key")
+    assert (robot_src / "my_pkg/robot.log").read_text() == "robot log"
+
+
+def test_dry_run_changes_nothing(env):
+    r = report(push(env, "--dry-run"))
+    assert r["dry_run"] and r["files"] == 5
+    assert not (robot_ws(env) / "src/my_pkg").exists()
+
+
+def test_interrupted_batch_leaves_no_torn_files_and_next_push_converges(env):
+    push(env)
+    robot_src = robot_ws(env) / "src"
+    # what a push killed between writing temporaries and renaming leaves behind
+    (robot_src / "my_pkg/.node.cpp.fetchsync-tmp-0123456789ab").write_text("half")
+    (robot_ws(env) / ".fetchsync/batch-in-progress").write_text("")
+    (local_src(env) / "my_pkg/src/node.cpp").write_text("new\n")
+    push(env)
+    assert not list(robot_src.rglob("*fetchsync-tmp*"))
+    assert tree_of(local_src(env)) == tree_of(robot_src)
+
+
+def test_pull_mirrors_the_robot_and_keeps_local_edits(env):
+    push(env)
+    robot_src = robot_ws(env) / "src"
+    (robot_src / "my_pkg/new_on_robot.txt").write_text("hello from the robot\n")
+    (robot_src / "my_pkg/CMakeLists.txt").write_text("changed on the robot\n")
+    (local_src(env) / "my_pkg/src/node.cpp").write_text("local edit never pushed\n")
+    proc = fetchsync("pull", "--json", env=env, check=False, input=b"")
+    assert proc.returncode != 0 and b"--yes" in proc.stderr   # no terminal: refuse, change nothing
+    assert not (local_src(env) / "my_pkg/new_on_robot.txt").exists()
+    r = report(fetchsync("pull", "--json", "--no-safety", env=env))
+    assert r["ok"]
+    assert tree_of(local_src(env)) == tree_of(robot_src)
+    kept = list((Path(env["FETCHSYNC_WORKSPACE"]) / ".fetchsync/conflicts").rglob("node.cpp"))
+    assert kept and kept[0].read_text() == "local edit never pushed\n"
+    # after a pull both sides agree: the next push has nothing to do
+    assert report(push(env))["files"] == 0
+
+
+def test_local_robot_refuses_its_own_workspace(env):
+    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=env["FETCHSYNC_WORKSPACE"],
+               FETCHSYNC_LOCAL_ROBOT_HOME="/")
+    proc = push(env, check=False)
+    assert proc.returncode == 2 and b"local workspace itself" in proc.stderr
