@@ -5,6 +5,9 @@
   ``robot``; ``HOME`` is set to it and ``SSH_AUTH_SOCK`` unset.
 - ``remote_dir`` (function): an empty absolute directory to use as the remote
   workspace on the robot (the robot is this machine).
+- ``fault_proxy`` (function): a started ``faultproxy.FaultProxy`` in front of
+  the robot; ``proxied_home`` is ``ssh_home`` with ``robot`` going through it.
+  Use either ``ssh_home`` or ``proxied_home`` in a test: both set ``HOME``.
 
 Tests that use them are marked ``@pytest.mark.ssh`` by convention.
 """
@@ -24,6 +27,7 @@ _TESTS_DIR = str(Path(__file__).resolve().parent)
 if _TESTS_DIR not in sys.path:
     sys.path.insert(0, _TESTS_DIR)
 
+from faultproxy import FaultProxy
 from sshd import SSHD, SSHDStartError, SSHHome, find_sshd, make_ssh_home, running_sshd
 
 
@@ -40,14 +44,33 @@ def sshd(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SSHD]:
         pytest.fail(str(exc), pytrace=False)
 
 
-@pytest.fixture
-def ssh_home(sshd: SSHD, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
-    """A fresh HOME for the laptop side, reaching the robot as ``robot``."""
-    home = make_ssh_home(tmp_path / "home", sshd=sshd)
+def _use_home(home: SSHHome, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
     monkeypatch.setenv("HOME", str(home.home))
     # A developer's agent would offer their own keys to the robot.
     monkeypatch.delenv("SSH_AUTH_SOCK", raising=False)
     return home
+
+
+@pytest.fixture
+def ssh_home(sshd: SSHD, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
+    """A fresh HOME for the laptop side, reaching the robot as ``robot``."""
+    return _use_home(make_ssh_home(tmp_path / "home", sshd=sshd), monkeypatch)
+
+
+@pytest.fixture
+def fault_proxy(sshd: SSHD) -> Iterator[FaultProxy]:
+    """A link to the robot that a test can blackhole, cut or throttle."""
+    with FaultProxy(sshd.host, sshd.port) as proxy:
+        yield proxy
+
+
+@pytest.fixture
+def proxied_home(
+    sshd: SSHD, fault_proxy: FaultProxy, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> SSHHome:
+    """Like ``ssh_home``, but ``robot`` is reached through ``fault_proxy``."""
+    home = make_ssh_home(tmp_path / "home-proxied", sshd=sshd, port=fault_proxy.port)
+    return _use_home(home, monkeypatch)
 
 
 @pytest.fixture

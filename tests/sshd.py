@@ -110,8 +110,12 @@ class SSHHome:
         return self.sshd.ssh_argv(*command, config=self.config)
 
 
-def make_ssh_home(home: Path, *, sshd: SSHD) -> SSHHome:
-    """Create ``home/.ssh`` with a config, known_hosts and key copies for ``sshd``."""
+def make_ssh_home(home: Path, *, sshd: SSHD, port: int | None = None) -> SSHHome:
+    """Create ``home/.ssh`` with a config, known_hosts and key copies for ``sshd``.
+
+    ``port`` reaches the robot on another port of 127.0.0.1 (a FaultProxy in
+    front of it); known_hosts then holds the host key under that port.
+    """
     ssh_dir = home / ".ssh"
     ssh_dir.mkdir(parents=True, mode=0o700)
     identity = ssh_dir / "id_ed25519"
@@ -119,9 +123,10 @@ def make_ssh_home(home: Path, *, sshd: SSHD) -> SSHHome:
     identity.chmod(0o600)
     shutil.copyfile(sshd.client_key.with_suffix(".pub"), ssh_dir / "id_ed25519.pub")
     known_hosts = ssh_dir / "known_hosts"
-    shutil.copyfile(sshd.known_hosts, known_hosts)
+    port = sshd.port if port is None else port
+    known_hosts.write_text(f"[{sshd.host}]:{port} {sshd.host_key_pub}\n")
     config = write_client_config(
-        ssh_dir / "config", sshd=sshd, identity=identity, known_hosts=known_hosts
+        ssh_dir / "config", sshd=sshd, identity=identity, known_hosts=known_hosts, port=port
     )
     return SSHHome(
         sshd=sshd,
@@ -147,7 +152,9 @@ def fingerprint(public_key_line: str) -> str:
     return "SHA256:" + digest.rstrip("=")
 
 
-def write_client_config(path: Path, *, sshd: SSHD, identity: Path, known_hosts: Path) -> Path:
+def write_client_config(
+    path: Path, *, sshd: SSHD, identity: Path, known_hosts: Path, port: int | None = None
+) -> Path:
     """Write an OpenSSH client config with ``Host robot`` pointing at ``sshd``.
 
     Paths are absolute: OpenSSH would expand ``~`` to the passwd home, paramiko
@@ -156,7 +163,7 @@ def write_client_config(path: Path, *, sshd: SSHD, identity: Path, known_hosts: 
     path.write_text(
         f"Host {HOST_ALIAS}\n"
         f"    HostName {sshd.host}\n"
-        f"    Port {sshd.port}\n"
+        f"    Port {sshd.port if port is None else port}\n"
         f"    User {sshd.user}\n"
         f"    IdentityFile {identity}\n"
         f"    IdentitiesOnly yes\n"
