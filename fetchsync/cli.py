@@ -62,7 +62,7 @@ def _resolve(robot: str | None, user: str | None, workspace: str | None,
              remote_workspace: str | None) -> Any:
     from fetchsync.config import resolve_target
     return resolve_target(robot=robot, user=user, workspace=workspace,
-                          remote_workspace=remote_workspace)
+                          remote_workspace=remote_workspace, defer_ssh_user=True)
 
 
 class _Progress:
@@ -86,6 +86,11 @@ class _Progress:
         if self.shown:
             sys.stderr.write("\r" + " " * 70 + "\r")
             sys.stderr.flush()
+
+
+def _connection_kind(conn: Any) -> str:
+    name = type(conn.transport).__name__
+    return {"MuxTransport": "master", "LocalTransport": "local"}.get(name, "ssh")
 
 
 def _print_report(report: Any, as_json: bool) -> None:
@@ -182,6 +187,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                             rules=rules, policy="refuse" if strict else "preserve")
             report = syncer.push(dry_run=dry_run, progress=progress)
+            report.connection = _connection_kind(conn)
     finally:
         progress.close()
         state.close()
@@ -228,6 +234,7 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
             report = do_pull(conn, state, local_workspace=str(target.workspace),
                              remote_workspace=target.remote_workspace, rules=rules,
                              confirm=confirm, dry_run=dry_run, progress=progress)
+            report.connection = _connection_kind(conn)
     finally:
         progress.close()
         state.close()

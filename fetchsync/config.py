@@ -70,15 +70,24 @@ def resolve_target(
     remote_workspace: str | None = None,
     environ: Mapping[str, str] = os.environ,
     ssh_config: SSHConfigSource | None = None,
+    defer_ssh_user: bool = False,
 ) -> Target:
-    """Resolve every part of the target from options, environment and ssh config."""
+    """Resolve every part of the target from options, environment and ssh config.
+
+    With ``defer_ssh_user``, a user given by no option or variable is left
+    ``None``: the SSH transport then applies the rest of the same order (the
+    ssh config's User, then ours) when it connects. That saves reading the ssh
+    config, and importing paramiko, in calls that never open an SSH connection
+    themselves (a connection master already holds one).
+    """
     robot_name = resolve_robot(robot, environ=environ)
     is_local = robot_name == LOCAL_ROBOT
-    login = (
-        None
-        if is_local
-        else resolve_user(user, host=robot_name, environ=environ, ssh_config=ssh_config)
-    )
+    if is_local:
+        login = None
+    elif defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
+        login = None
+    else:
+        login = resolve_user(user, host=robot_name, environ=environ, ssh_config=ssh_config)
     local_ws = resolve_workspace(workspace, environ=environ)
     remote_ws = resolve_remote_workspace(remote_workspace, workspace=local_ws, environ=environ)
     return Target(

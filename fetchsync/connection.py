@@ -23,6 +23,11 @@ log = logging.getLogger(__name__)
 DEFAULT_PYTHON = "python3"
 
 
+def remote_python() -> str:
+    """The robot's Python: ``$FETCHSYNC_REMOTE_PYTHON`` or ``python3``."""
+    return os.environ.get("FETCHSYNC_REMOTE_PYTHON") or DEFAULT_PYTHON
+
+
 class Connection:
     def __init__(self, transport: Transport, channel: Channel, reader: wire.Reader,
                  hello: dict[str, Any], algorithm: str, compress: bool) -> None:
@@ -44,7 +49,7 @@ class Connection:
     # ------------------------------------------------------------------ setup
     @classmethod
     def open(cls, transport: Transport, *, python: str | None = None) -> Connection:
-        python = python or os.environ.get("FETCHSYNC_REMOTE_PYTHON") or DEFAULT_PYTHON
+        python = python or remote_python()
         command, archive = loader_command(python)
         channel = transport.exec(command)
         reader = wire.Reader(channel.recv)

@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Iterator
 
 from fetchsync.config import Target
-from fetchsync.connection import Connection
+from fetchsync.connection import Connection, remote_python
+from fetchsync.protocol.loader import loader_command
 from fetchsync.errors import ConfigError
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
@@ -34,15 +35,27 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None) -> 
             raise ConfigError(f"the local robot's workspace {resolved} is the local workspace itself",
                               hint="pass --remote-workspace with another path")
         return LocalTransport(home)
+    from fetchsync.agent import mux
+
+    persist = mux.persist_seconds() > 0
+    path = mux.socket_path(target.host, target.user) if persist else None
+    if path is not None:
+        attached = mux.MuxTransport.attach(path, target.robot)
+        if attached is not None:
+            return attached
     from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
-    return SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint)
+    transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint)
+    if path is not None:
+        # this call paid for the handshake; leave a master behind for the next ones
+        mux.spawn_master(target.host, target.user, path, warm=loader_command(remote_python())[0])
+    return transport
 
 
 @contextmanager
 def connect(target: Target, *, accept_fingerprint: str | None = None) -> Iterator[Connection]:
     transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
-        conn = Connection.open(transport)
+        conn = Connection.open(transport, python=remote_python())
         try:
             yield conn
         finally:

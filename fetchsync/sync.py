@@ -43,6 +43,7 @@ Progress = Callable[[int, int], None]
 class Report:
     verb: str
     robot: str = ""
+    connection: str = ""     # "ssh", "master" (a persistent connection) or "local"
     local: str = ""
     remote: str = ""
     files: int = 0

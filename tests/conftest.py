@@ -73,6 +73,14 @@ def proxied_home(
     return _use_home(home, monkeypatch)
 
 
+@pytest.fixture(autouse=True)
+def _no_lingering_masters(tmp_path_factory: pytest.TempPathFactory,
+                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tests open fresh SSH connections unless they ask for a connection master."""
+    monkeypatch.setenv("FETCHSYNC_PERSIST", "0")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
+
+
 @pytest.fixture
 def remote_dir(tmp_path: Path) -> Path:
     """An empty directory on the robot to use as the remote workspace."""

@@ -380,3 +380,10 @@ def test_resolve_target_errors_propagate() -> None:
         resolve_target(environ=env(ROS_DISTRO="noetic"))
     with pytest.raises(ConfigError, match="workspace"):
         resolve_target(robot="local", environ=env())
+
+
+def test_deferred_ssh_user_is_left_to_the_transport(tmp_path):
+    env = {"HOME": str(tmp_path), "FETCHSYNC_ROBOT": "fetch1", "FETCHSYNC_WORKSPACE": str(tmp_path / "ws")}
+    assert resolve_target(environ=env, defer_ssh_user=True).user is None
+    assert resolve_target(environ=dict(env, FETCH_USER="bob"), defer_ssh_user=True).user == "bob"
+    assert resolve_target(user="amy", environ=env, defer_ssh_user=True).user == "amy"

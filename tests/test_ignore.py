@@ -973,19 +973,14 @@ def _tree_paths(n: int) -> list[tuple[str, bool]]:
     return out[:n]
 
 
-def test_speed_100k_paths() -> None:
+def test_100k_paths_with_many_nested_files_give_sane_answers() -> None:
+    # speed is measured in bench/, not asserted here (timing asserts are flaky)
     paths = _tree_paths(100_000)
     r = IgnoreRules.build(extra=["*.bag"]).with_file("", "*.stl\n!keep.stl\n/build_*/\ndocs/\n")
     for k in range(0, 200, 4):
         r = r.with_file(f"pkg{k}", "*.bag\n/data/\n!data/keep\nsrc/**/gen_*\n")
-    elapsed = []
-    for _ in range(2):  # CPU time, best of two: robust to a busy machine
-        start = time.process_time()
-        n_ignored = sum(r.ignored(p, d) for p, d in paths)
-        elapsed.append(time.process_time() - start)
+    n_ignored = sum(r.ignored(p, d) for p, d in paths)
     assert 0 < n_ignored < len(paths)
-    # Measured about 0.2 s here; the bound leaves room for a slow CI machine.
-    assert min(elapsed) < 1.0, f"{min(elapsed):.3f} s for 100,000 paths"
 
 
 # --------------------------------------------------------------------------

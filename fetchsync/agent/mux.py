@@ -1,0 +1,386 @@
+"""Keeping the SSH connection open between calls, as OpenSSH's ControlPersist does.
+
+The first one-shot verb that reaches a robot over SSH leaves a *connection
+master* behind: a background process that holds the authenticated SSH
+connection, keeps one robot-side endpoint started and waiting, and serves
+later calls over an owner-only unix socket. A later ``fetchsync push`` then
+pays neither the SSH handshake nor sshd's session start-up nor the endpoint's
+Python start-up. The master exits after ``FETCHSYNC_PERSIST`` idle seconds
+(default 600; 0 disables it) or as soon as its link dies.
+
+Socket protocol (one connection per remote command): the client sends one
+JSON line ``{"exec": COMMAND}`` and then the command's stdin as raw bytes
+(half-close = EOF); the master answers with frames ``u8 kind | u32 len |
+data``: 1 stdout, 2 stderr, 3 exit status (i32), 4 error message.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from fetchsync.errors import ConnectError, LinkLostError
+
+log = logging.getLogger(__name__)
+
+K_STDOUT, K_STDERR, K_EXIT, K_ERROR = 1, 2, 3, 4
+_HDR = struct.Struct(">BI")
+DEFAULT_PERSIST = 600.0
+
+
+def persist_seconds() -> float:
+    try:
+        return float(os.environ.get("FETCHSYNC_PERSIST", DEFAULT_PERSIST))
+    except ValueError:
+        return DEFAULT_PERSIST
+
+
+def runtime_dir() -> Path:
+    base = os.environ.get("XDG_RUNTIME_DIR")
+    path = Path(base) / "fetchsync" if base else Path(f"/tmp/fetchsync-{os.getuid()}")
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    st = path.stat()
+    if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
+        raise ConnectError(f"{path} is not private to you; refusing to use it for sockets")
+    return path
+
+
+def socket_path(host: str, user: str | None) -> Path:
+    key = f"{user or ''}@{host}\0{os.environ.get('HOME', '')}"
+    return runtime_dir() / f"mux-{hashlib.sha256(key.encode()).hexdigest()[:20]}.sock"
+
+
+# --------------------------------------------------------------------------- client side
+class MuxChannel:
+    """A remote command run by the master; implements transport.Channel."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self._buf = bytearray()
+        self._out = bytearray()
+        self._err = bytearray()
+        self._status: int | None = None
+        self._eof = False
+
+    def _pump(self) -> bool:
+        """Read one more frame; False at end of stream."""
+        while len(self._buf) < _HDR.size or len(self._buf) < _HDR.size + _HDR.unpack_from(self._buf)[1]:
+            try:
+                chunk = self.sock.recv(1 << 16)
+            except OSError as exc:
+                raise LinkLostError("the connection master went away") from exc
+            if not chunk:
+                self._eof = True
+                return False
+            self._buf += chunk
+        kind, n = _HDR.unpack_from(self._buf)
+        data = bytes(self._buf[_HDR.size:_HDR.size + n])
+        del self._buf[:_HDR.size + n]
+        if kind == K_STDOUT:
+            self._out += data
+        elif kind == K_STDERR:
+            self._err += data
+        elif kind == K_EXIT:
+            self._status = struct.unpack(">i", data)[0]
+        elif kind == K_ERROR:
+            raise LinkLostError(f"connection master: {data.decode('utf-8', 'replace')}")
+        return True
+
+    def send_all(self, data: bytes) -> None:
+        try:
+            self.sock.sendall(data)
+        except OSError as exc:
+            raise LinkLostError("the connection master went away") from exc
+
+    def recv(self, n: int) -> bytes:
+        while not self._out and not self._eof and self._status is None:
+            self._pump()
+        out = bytes(self._out[:n])
+        del self._out[:n]
+        return out
+
+    def recv_stderr(self, n: int) -> bytes:
+        while not self._eof and self._status is None:
+            self._pump()
+        out = bytes(self._err[:n])
+        del self._err[:n]
+        return out
+
+    def shutdown_write(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_WR)
+        except OSError:
+            pass
+
+    def exit_status(self, timeout: float | None = None) -> int | None:
+        self.sock.settimeout(timeout)
+        try:
+            while self._status is None and not self._eof:
+                self._pump()
+        except (TimeoutError, socket.timeout):
+            return None
+        finally:
+            self.sock.settimeout(None)
+        return self._status
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class MuxTransport:
+    """A transport whose commands run through a connection master's socket."""
+
+    def __init__(self, path: Path, name: str) -> None:
+        self.path = path
+        self.name = name
+
+    @classmethod
+    def attach(cls, path: Path, name: str) -> MuxTransport | None:
+        """The master at ``path`` if one answers, else None (a stale socket is removed)."""
+        if not path.exists():
+            return None
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            return None
+        finally:
+            probe.close()
+        return cls(path, name)
+
+    def exec(self, command: str, *, env: dict[str, str] | None = None, pty: bool = False) -> MuxChannel:
+        if env or pty:
+            raise ConnectError("the connection master runs plain commands only")
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            sock.connect(str(self.path))
+            sock.sendall(json.dumps({"exec": command}).encode() + b"\n")
+        except OSError as exc:
+            sock.close()
+            raise ConnectError(f"the connection master for {self.name} did not answer") from exc
+        return MuxChannel(sock)
+
+    def close(self) -> None:
+        pass
+
+
+def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = None) -> None:
+    """Start a connection master in the background (it authenticates on its own)."""
+    seconds = persist_seconds()
+    if seconds <= 0:
+        return
+    argv = [sys.executable, "-m", "fetchsync.agent.mux", "--host", host, "--socket", str(path),
+            "--idle", str(seconds)]
+    if user:
+        argv += ["--user", user]
+    if warm:
+        argv += ["--warm", warm]
+    log_path = os.environ.get("FETCHSYNC_MUX_LOG")
+    err = open(log_path, "ab") if log_path else subprocess.DEVNULL
+    try:
+        subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                         start_new_session=True, close_fds=True)
+    finally:
+        if log_path:
+            err.close()
+
+
+# --------------------------------------------------------------------------- master side
+class _Warm:
+    """One started command whose output so far is buffered, ready to hand over."""
+
+    def __init__(self, command: str, channel: Any) -> None:
+        self.command = command
+        self.channel = channel
+
+
+class Master:
+    def __init__(self, transport: Any, path: Path, idle: float, warm: str | None) -> None:
+        self.transport = transport
+        self.path = path
+        self.idle = idle
+        self.warm_command = warm
+        self.warm: _Warm | None = None
+        self.lock = threading.Lock()
+        self.active = 0
+        self.last_used = time.monotonic()
+
+    def _start_warm(self) -> None:
+        if not self.warm_command:
+            return
+        try:
+            channel = self.transport.exec(self.warm_command)
+        except Exception as exc:
+            log.debug("cannot warm an endpoint: %s", exc)
+            return
+        with self.lock:
+            self.warm = _Warm(self.warm_command, channel)
+
+    def _take(self, command: str) -> Any:
+        with self.lock:
+            warm, self.warm = self.warm, None
+        if warm is not None and warm.command == command:
+            threading.Thread(target=self._start_warm, daemon=True).start()
+            return warm.channel
+        if warm is not None:
+            warm.channel.close()
+        self.warm_command = command
+        channel = self.transport.exec(command)
+        threading.Thread(target=self._start_warm, daemon=True).start()
+        return channel
+
+    def serve(self) -> None:
+        tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
+        srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        srv.bind(str(tmp))
+        os.chmod(tmp, 0o600)
+        own = os.stat(tmp).st_ino
+        os.replace(tmp, self.path)
+        srv.listen(16)
+        srv.settimeout(1.0)
+        self._start_warm()
+        try:
+            while True:
+                try:
+                    conn, _ = srv.accept()
+                except (TimeoutError, socket.timeout):
+                    if not self.transport.is_alive(timeout=0):
+                        return
+                    with self.lock:
+                        idle = self.active == 0 and time.monotonic() - self.last_used > self.idle
+                    if idle or not self._owns(own):
+                        return  # idle, or another master took the socket over
+                    continue
+                with self.lock:
+                    self.active += 1
+                threading.Thread(target=self._client, args=(conn,), daemon=True).start()
+        finally:
+            if self._owns(own):
+                try:
+                    self.path.unlink()
+                except OSError:
+                    pass
+            srv.close()
+            if self.warm is not None:
+                self.warm.channel.close()
+            self.transport.close()
+
+    def _owns(self, ino: int) -> bool:
+        try:
+            return os.stat(self.path).st_ino == ino
+        except OSError:
+            return False
+
+    def _client(self, conn: socket.socket) -> None:
+        try:
+            f = conn.makefile("rb")
+            line = f.readline(1 << 16)
+            command = json.loads(line)["exec"]
+            channel = self._take(command)
+        except Exception as exc:
+            try:
+                msg = str(exc).encode()
+                conn.sendall(_HDR.pack(K_ERROR, len(msg)) + msg)
+            except OSError:
+                pass
+            conn.close()
+            self._done()
+            return
+        threading.Thread(target=self._upstream, args=(f, channel), daemon=True).start()
+        send_lock = threading.Lock()
+
+        def send(kind: int, data: bytes) -> None:
+            with send_lock:
+                conn.sendall(_HDR.pack(kind, len(data)) + data)
+
+        def errpump() -> None:
+            try:
+                while True:
+                    data = channel.recv_stderr(1 << 16)
+                    if not data:
+                        return
+                    send(K_STDERR, data)
+            except Exception:
+                return
+
+        et = threading.Thread(target=errpump, daemon=True)
+        et.start()
+        try:
+            while True:
+                data = channel.recv(1 << 16)
+                if not data:
+                    break
+                send(K_STDOUT, data)
+            status = channel.exit_status(timeout=5)
+            et.join(2)
+            send(K_EXIT, struct.pack(">i", -1 if status is None else status))
+        except Exception as exc:
+            try:
+                send(K_ERROR, str(exc).encode())
+            except OSError:
+                pass
+        finally:
+            channel.close()
+            conn.close()
+            self._done()
+
+    @staticmethod
+    def _upstream(f: Any, channel: Any) -> None:
+        try:
+            while True:
+                data = f.read1(1 << 16)
+                if not data:
+                    channel.shutdown_write()
+                    return
+                channel.send_all(data)
+        except Exception:
+            try:
+                channel.close()
+            except Exception:
+                pass
+
+    def _done(self) -> None:
+        with self.lock:
+            self.active -= 1
+            self.last_used = time.monotonic()
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from fetchsync.ssh import SSHTransport
+
+    parser = argparse.ArgumentParser(prog="fetchsync-mux")
+    parser.add_argument("--host", required=True)
+    parser.add_argument("--user")
+    parser.add_argument("--socket", required=True)
+    parser.add_argument("--idle", type=float, default=DEFAULT_PERSIST)
+    parser.add_argument("--warm")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
+    try:
+        transport = SSHTransport.connect(args.host, user=args.user)
+    except Exception as exc:
+        log.error("cannot connect to %s: %s", args.host, exc)
+        return 1
+    Master(transport, Path(args.socket), args.idle, args.warm).serve()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

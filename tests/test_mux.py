@@ -1,0 +1,77 @@
+"""The connection master keeps the SSH connection open between one-shot calls."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from helpers import fetchsync, make_workspace, report, tree_of
+
+pytestmark = pytest.mark.ssh
+
+
+def masters(runtime: Path) -> list[int]:
+    out = subprocess.run(["pgrep", "-f", f"fetchsync.agent.mux.*{runtime}"], capture_output=True)
+    return [int(x) for x in out.stdout.split()]
+
+
+def wait_for(cond, timeout=15.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.fixture
+def env(ssh_home, remote_dir, tmp_path):
+    runtime = tmp_path / "run"
+    runtime.mkdir(mode=0o700)
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
+        e.pop(k, None)
+    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_PERSIST="60",
+             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_MUX_LOG=str(tmp_path / "mux.log"), FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+             FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir), XDG_STATE_HOME=str(tmp_path / "state"))
+    make_workspace(tmp_path / "ws")
+    yield e
+    for pid in masters(runtime):
+        os.kill(pid, signal.SIGTERM)
+
+
+def test_second_call_goes_through_the_master_and_a_dead_master_is_replaced(env, remote_dir):
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "ssh"
+    assert wait_for(lambda: list((runtime / "fetchsync").glob("mux-*.sock")))
+    sock = next((runtime / "fetchsync").glob("mux-*.sock"))
+    assert sock.stat().st_mode & 0o077 == 0
+    (local / "my_pkg/new.txt").write_text("via the master\n")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "master" and r["files"] == 1
+    assert tree_of(local) == tree_of(remote_dir / "src")
+    # pull goes through it too
+    (remote_dir / "src/my_pkg/robot.txt").write_text("robot\n")
+    assert report(fetchsync("pull", "--json", "--yes", env=env))["connection"] == "master"
+    assert (local / "my_pkg/robot.txt").read_text() == "robot\n"
+    # a killed master leaves a stale socket: the next call connects directly
+    for pid in masters(runtime):
+        os.kill(pid, signal.SIGKILL)
+    assert wait_for(lambda: not masters(runtime))
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "ssh"
+
+
+def test_master_exits_when_idle(env):
+    env = dict(env, FETCHSYNC_PERSIST="1")
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    fetchsync("push", env=env)
+    assert wait_for(lambda: bool(masters(runtime)), 10)
+    assert wait_for(lambda: not masters(runtime), 15)
+    assert not list((runtime / "fetchsync").glob("mux-*.sock"))
