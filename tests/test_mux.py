@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -31,8 +33,8 @@ def wait_for(cond, timeout=15.0):
 
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path):
-    runtime = tmp_path / "run"
-    runtime.mkdir(mode=0o700)
+    # short: AF_UNIX socket paths are limited to 108 bytes
+    runtime = Path(tempfile.mkdtemp(prefix="fsrun", dir="/tmp"))
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
         e.pop(k, None)
@@ -43,6 +45,15 @@ def env(ssh_home, remote_dir, tmp_path):
     yield e
     for pid in masters(runtime):
         os.kill(pid, signal.SIGTERM)
+    shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_socket_path_falls_back_to_a_short_directory(tmp_path, monkeypatch):
+    from fetchsync.agent import mux
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / ("x" * 120)))
+    path = mux.socket_path("robot", None)
+    assert len(os.fsencode(path)) <= mux.MAX_SOCKET_PATH
+    assert path.parent.stat().st_mode & 0o077 == 0
 
 
 def test_second_call_goes_through_the_master_and_a_dead_master_is_replaced(env, remote_dir):

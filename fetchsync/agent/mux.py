@@ -46,9 +46,12 @@ def persist_seconds() -> float:
         return DEFAULT_PERSIST
 
 
-def runtime_dir() -> Path:
+MAX_SOCKET_PATH = 100  # AF_UNIX paths are limited to 108 bytes on Linux
+
+
+def runtime_dir(*, short: bool = False) -> Path:
     base = os.environ.get("XDG_RUNTIME_DIR")
-    path = Path(base) / "fetchsync" if base else Path(f"/tmp/fetchsync-{os.getuid()}")
+    path = Path(base) / "fetchsync" if base and not short else Path(f"/tmp/fetchsync-{os.getuid()}")
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
     st = path.stat()
     if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
@@ -58,7 +61,11 @@ def runtime_dir() -> Path:
 
 def socket_path(host: str, user: str | None) -> Path:
     key = f"{user or ''}@{host}\0{os.environ.get('HOME', '')}"
-    return runtime_dir() / f"mux-{hashlib.sha256(key.encode()).hexdigest()[:20]}.sock"
+    name = f"mux-{hashlib.sha256(key.encode()).hexdigest()[:20]}.sock"
+    path = runtime_dir() / name
+    if len(os.fsencode(path)) > MAX_SOCKET_PATH:
+        path = runtime_dir(short=True) / name
+    return path
 
 
 # --------------------------------------------------------------------------- client side
@@ -378,7 +385,12 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         log.error("cannot connect to %s: %s", args.host, exc)
         return 1
-    Master(transport, Path(args.socket), args.idle, args.warm).serve()
+    try:
+        Master(transport, Path(args.socket), args.idle, args.warm).serve()
+    except OSError as exc:
+        log.error("cannot serve on %s: %s", args.socket, exc)
+        transport.close()
+        return 1
     return 0
 
 
