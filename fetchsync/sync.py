@@ -236,6 +236,7 @@ class Syncer:
         self.policy = policy
         self.algorithm = conn.algorithm
         self.opened: dict[str, Any] | None = None
+        self._robot_sigs: dict[str, bytes] = {}
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -264,6 +265,8 @@ class Syncer:
             remote = self._apply_listing(listing, synced)
             epoch, gen = listing["epoch"], listing["gen"]
         signed = self.state.signed_paths()
+        robot_sigs: dict[str, bytes] = {}
+        self._robot_sigs = robot_sigs
         whole_only: set[str] = set()
         new_synced = dict(synced)
         upserts: dict[str, tuple[Synced, bytes | None]] = {}
@@ -289,6 +292,7 @@ class Syncer:
             if not planned and report.rounds > 0:
                 break
             report.rounds += 1
+            planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how == WHOLE))
@@ -335,6 +339,30 @@ class Syncer:
         report.seconds = time.monotonic() - t0
         return report
 
+    def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
+                          robot_sigs: dict[str, bytes], whole_only: set[str]) -> list[Planned]:
+        """Ask the robot to sign its copies of large files we would otherwise send whole.
+
+        That happens when the state has no signature for them: a first push
+        onto a tree someone else put there, or after a base mismatch.
+        """
+        wanted = [p for p in planned if p.op.kind == M.WRITE and p.how == WHOLE
+                  and p.op.size >= SIG_MIN and p.op.path not in whole_only
+                  and (r := remote.get(p.op.path)) is not None and r.kind == "f" and r.size >= SIG_MIN]
+        if not wanted:
+            return planned
+        frame = self.conn.request({"op": "sigs", "items": [{"p": p.op.path} for p in wanted]})
+        upgraded: dict[str, Planned] = {}
+        for p, ans in zip(wanted, frame.header.get("items", [])):
+            r = remote[p.op.path]
+            if ans.get("c") != M.OK or ans.get("h") != r.hash:
+                continue
+            off, length = ans["bl"]
+            robot_sigs[p.op.path] = frame.blob[off:off + length]
+            upgraded[p.op.path] = Planned(M.Op(**{**p.op.__dict__, "source": M.SRC_DELTA, "base": r.hash}),
+                                          DELTA, p.item)
+        return [upgraded.get(p.op.path, p) if p.op.kind == M.WRITE else p for p in planned]
+
     def _apply_listing(self, listing: dict[str, Any], synced: dict[str, Synced]) -> dict[str, M.Listed]:
         if listing.get("full"):
             return {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
@@ -370,7 +398,7 @@ class Syncer:
         local.stats[op.path] = entry
         sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if len(data) >= SIG_MIN else None
         if p.how == DELTA:
-            stored = self.state.signature(op.path)
+            stored = self._robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None:
                 d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
                 if len(d) < len(data):

@@ -197,3 +197,19 @@ def test_local_robot_refuses_its_own_workspace(env):
                FETCHSYNC_LOCAL_ROBOT_HOME="/")
     proc = push(env, check=False)
     assert proc.returncode == 2 and b"local workspace itself" in proc.stderr
+
+
+def test_first_push_onto_an_existing_robot_tree_uses_the_robots_signatures(env):
+    # the robot already holds an older copy (say, from rsync) and we have no state
+    robot_src = robot_ws(env) / "src"
+    import shutil
+    shutil.copytree(local_src(env), robot_src, symlinks=True)
+    f = local_src(env) / "my_pkg/data.txt"
+    old = f.read_text()
+    f.write_text("// new first line\n" + old)
+    r = report(push(env))
+    assert r["deltas"] == 1 and r["bytes_sent"] < 16384   # not the whole 2 MB
+    assert tree_of(local_src(env)) == tree_of(robot_src)
+    # the robot's version was not seen by us before: it is kept
+    kept = list((robot_ws(env) / ".fetchsync/conflicts").rglob("data.txt"))
+    assert len(kept) == 1 and kept[0].read_text() == old

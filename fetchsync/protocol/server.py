@@ -186,6 +186,29 @@ class Server:
         store.save_index()
         return {"items": answers}, b"".join(parts)
 
+    def do_sigs(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        """Delta signatures of files here, for a sender that has none of its own."""
+        store = self._store()
+        wanted = h.get("items")
+        if not isinstance(wanted, list):
+            raise ProtocolError("sigs without items")
+        parts = []  # type: List[bytes]
+        pos = 0
+        answers = []
+        for item in wanted:
+            if not isinstance(item, dict) or not isinstance(item.get("p"), str):
+                raise ProtocolError("bad sigs item")
+            try:
+                sig, digest = store.signature(item["p"])
+            except (OSError, ProtocolError) as exc:
+                answers.append({"c": M.IO_ERROR, "msg": str(exc)})
+                continue
+            answers.append({"c": M.OK, "h": digest, "bl": [pos, len(sig)]})
+            parts.append(sig)
+            pos += len(sig)
+        store.save_index()
+        return {"items": answers}, b"".join(parts)
+
     def do_adopt(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         store = self._store()
         items = [M.Listed.from_wire(e) for e in h.get("entries", [])]

@@ -298,6 +298,17 @@ class Store:
         self._dirty = True
         return n
 
+    def signature(self, path: str) -> Tuple[bytes, str]:
+        """The delta signature of the file at ``path``, and its content hash."""
+        full = self._resolver.full(path)
+        entry = stat_path(full)
+        if entry is None or entry.kind != FILE:
+            raise PathError("%r is not a regular file" % path)
+        with open(full, "rb") as fh:
+            data = fh.read()
+        digest = hashing.digest(self.algorithm, data).hex()
+        return delta_mod.signature(data, algorithm=self.algorithm).to_bytes(), digest
+
     def read(self, path: str, *, sig: Optional[bytes] = None, offset: int = 0,
              length: int = -1) -> Tuple[M.Listed, str, bytes]:
         """Content of a file: (what it is, "data" or "delta", payload)."""
@@ -361,6 +372,18 @@ class Store:
             if not self.trash_log or self.trash_log[-1][0] != top:
                 self.trash_log.append([top, 0])
             self.trash_log[-1][1] += _fsize(dest) if os.path.isdir(dest) else os.lstat(dest).st_size
+        return os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
+
+    def _keep_copy(self, path: str, where: str) -> str:
+        """Like _set_aside, but the file stays where it is too (a hard link, else a copy)."""
+        rel = os.path.join(where, self.stamp(), path)
+        dest = os.path.join(self.meta, rel)
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        src = self._resolver.full(path)
+        try:
+            os.link(src, dest)
+        except OSError:
+            shutil.copy2(src, dest, follow_symlinks=False)
         return os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
 
     def _prune_trash(self) -> None:
@@ -444,6 +467,11 @@ class _Batch:
             return cur, ""
         if self.policy == "refuse":
             raise _Refused("%s was changed here since the last sync" % op.path)
+        if cur.kind == FILE and op.kind == M.WRITE and op.source == M.SRC_DELTA and op.base == cur.hash:
+            # the delta was made against exactly this version: keep it by a
+            # link (the rename below replaces only the directory entry) and
+            # patch from it
+            return cur, self.s._keep_copy(op.path, "conflicts")
         where = self.s._set_aside(op.path, "conflicts")
         self.s._forget_below(op.path)
         return None, where
