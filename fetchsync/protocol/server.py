@@ -156,58 +156,61 @@ class Server:
         store.save_index()
         return out, b""
 
-    def do_read(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
-        store = self._store()
+    @staticmethod
+    def _per_item(h: Dict[str, Any], serve: Any) -> Tuple[List[Dict[str, Any]], bytes]:
+        """Run ``serve(item) -> (answer, data)`` for each item; a failure is that item's answer."""
         items = h.get("items")
         if not isinstance(items, list):
-            raise ProtocolError("read without items")
+            raise ProtocolError("request without items")
         parts = []  # type: List[bytes]
         pos = 0
         answers = []
         for item in items:
             if not isinstance(item, dict) or not isinstance(item.get("p"), str):
-                raise ProtocolError("bad read item")
-            sig = None
-            if "sig" in item:
-                off, length = item["sig"]
-                if not (isinstance(off, int) and isinstance(length, int)
-                        and 0 <= off and 0 <= length and off + length <= len(blob)):
-                    raise ProtocolError("bad signature reference")
-                sig = blob[off:off + length]
+                raise ProtocolError("bad request item")
             try:
-                listed, src, data = store.read(item["p"], sig=sig, offset=int(item.get("off", 0)),
-                                               length=int(item.get("len", -1)))
+                answer, data = serve(item)
             except (OSError, ProtocolError) as exc:
-                answers.append({"c": M.IO_ERROR, "msg": "%s: %s" % (item["p"], getattr(exc, "strerror", None) or exc)})
+                answers.append({"c": M.IO_ERROR, "msg": "%s: %s" % (
+                    item["p"], getattr(exc, "strerror", None) or exc)})
                 continue
-            answers.append({"c": M.OK, "l": listed.to_wire(), "src": src, "bl": [pos, len(data)]})
+            answer["bl"] = [pos, len(data)]
+            answers.append(answer)
             parts.append(data)
             pos += len(data)
+        return answers, b"".join(parts)
+
+    def do_read(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        """File contents, whole or as a delta against a signature the client sent."""
+        store = self._store()
+
+        def serve(item: Dict[str, Any]) -> Tuple[Dict[str, Any], bytes]:
+            sig = None
+            if "sig" in item:
+                ref = item["sig"]
+                if not (isinstance(ref, list) and len(ref) == 2 and all(isinstance(x, int) for x in ref)
+                        and 0 <= ref[0] and 0 <= ref[1] and ref[0] + ref[1] <= len(blob)):
+                    raise ProtocolError("bad signature reference")
+                sig = blob[ref[0]:ref[0] + ref[1]]
+            listed, src, data = store.read(item["p"], sig=sig, offset=int(item.get("off", 0)),
+                                           length=int(item.get("len", -1)))
+            return {"c": M.OK, "l": listed.to_wire(), "src": src}, data
+
+        answers, data = self._per_item(h, serve)
         store.save_index()
-        return {"items": answers}, b"".join(parts)
+        return {"items": answers}, data
 
     def do_sigs(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         """Delta signatures of files here, for a sender that has none of its own."""
         store = self._store()
-        wanted = h.get("items")
-        if not isinstance(wanted, list):
-            raise ProtocolError("sigs without items")
-        parts = []  # type: List[bytes]
-        pos = 0
-        answers = []
-        for item in wanted:
-            if not isinstance(item, dict) or not isinstance(item.get("p"), str):
-                raise ProtocolError("bad sigs item")
-            try:
-                sig, digest = store.signature(item["p"])
-            except (OSError, ProtocolError) as exc:
-                answers.append({"c": M.IO_ERROR, "msg": str(exc)})
-                continue
-            answers.append({"c": M.OK, "h": digest, "bl": [pos, len(sig)]})
-            parts.append(sig)
-            pos += len(sig)
+
+        def serve(item: Dict[str, Any]) -> Tuple[Dict[str, Any], bytes]:
+            sig, digest = store.signature(item["p"])
+            return {"c": M.OK, "h": digest}, sig
+
+        answers, data = self._per_item(h, serve)
         store.save_index()
-        return {"items": answers}, b"".join(parts)
+        return {"items": answers}, data
 
     def do_adopt(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         store = self._store()

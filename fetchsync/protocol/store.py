@@ -349,11 +349,17 @@ class Store:
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
 
-    def _set_aside(self, path: str, where: str) -> str:
-        """Move what stands at ``path`` to ``.fetchsync/<where>/<stamp>/path``."""
+    def _aside(self, path: str, where: str) -> Tuple[str, str]:
+        """Where ``path`` goes in ``.fetchsync/<where>/<stamp>/``: (full path, path to show)."""
         rel = os.path.join(where, self.stamp(), path)
         dest = os.path.join(self.meta, rel)
         os.makedirs(os.path.dirname(dest), exist_ok=True)
+        shown = os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
+        return dest, shown
+
+    def _set_aside(self, path: str, where: str) -> str:
+        """Move what stands at ``path`` to ``.fetchsync/<where>/<stamp>/path``."""
+        dest, shown = self._aside(path, where)
         src = self._resolver.full(path)
         try:
             os.rename(src, dest)
@@ -372,19 +378,17 @@ class Store:
             if not self.trash_log or self.trash_log[-1][0] != top:
                 self.trash_log.append([top, 0])
             self.trash_log[-1][1] += _fsize(dest) if os.path.isdir(dest) else os.lstat(dest).st_size
-        return os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
+        return shown
 
     def _keep_copy(self, path: str, where: str) -> str:
         """Like _set_aside, but the file stays where it is too (a hard link, else a copy)."""
-        rel = os.path.join(where, self.stamp(), path)
-        dest = os.path.join(self.meta, rel)
-        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        dest, shown = self._aside(path, where)
         src = self._resolver.full(path)
         try:
             os.link(src, dest)
         except OSError:
             shutil.copy2(src, dest, follow_symlinks=False)
-        return os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
+        return shown
 
     def _prune_trash(self) -> None:
         total = sum(n for _d, n in self.trash_log)
