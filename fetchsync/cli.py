@@ -211,7 +211,8 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
     """
     from fetchsync.errors import UsageError
     from fetchsync.session import connect, open_state
-    from fetchsync.sync import build_rules, pull as do_pull, raise_for
+    from fetchsync.sync import build_rules, raise_for
+    from fetchsync.sync import pull as do_pull
 
     target = _resolve(robot, user, workspace, remote_workspace)
 

@@ -82,9 +82,7 @@ def resolve_target(
     """
     robot_name = resolve_robot(robot, environ=environ)
     is_local = robot_name == LOCAL_ROBOT
-    if is_local:
-        login = None
-    elif defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
+    if is_local or defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
         login = None
     else:
         login = resolve_user(user, host=robot_name, environ=environ, ssh_config=ssh_config)

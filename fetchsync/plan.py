@@ -11,7 +11,7 @@ signature is known, else the whole content.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.paths import ancestors
@@ -83,7 +83,7 @@ def plan(source: Mapping[str, M.Listed], dest: Mapping[str, M.Listed],
         if dst is not None and dst.kind == "f" and dst.hash == src.hash:
             writes.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
             continue
-        base = dict(kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size)
+        base: dict[str, Any] = dict(kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size)
         reuse_from = by_hash.get(src.hash) if src.size > 0 else None
         if reuse_from is not None:
             writes.append(Planned(M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base),

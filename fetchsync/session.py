@@ -13,8 +13,8 @@ from typing import Iterator
 
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
-from fetchsync.protocol.loader import loader_command
 from fetchsync.errors import ConfigError
+from fetchsync.protocol.loader import loader_command
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 

@@ -136,8 +136,8 @@ class State:
             rows = [r[:-1] + (old_sigs.get(r[0]),) if r[-1] is None else r for r in rows]
             cur.executemany("INSERT OR REPLACE INTO entries VALUES (?,?,?,?,?,?,?,?,?,?)", rows)
             cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
-            for key, value in (meta or {}).items():
-                cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (key, value))
+            for name, value in (meta or {}).items():
+                cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
             cur.execute("COMMIT")
         except BaseException:
             cur.execute("ROLLBACK")

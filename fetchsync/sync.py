@@ -257,7 +257,8 @@ class Syncer:
             self.opened = self.conn.wait(open_req).header
         epoch, gen = self.state.epoch, self.state.gen
         remote: dict[str, M.Listed]
-        if fresh and not dry_run and self.opened.get("epoch") == epoch and self.opened.get("gen") == gen:
+        opened = self.opened or {}
+        if fresh and not dry_run and opened.get("epoch") == epoch and opened.get("gen") == gen:
             remote = {p: s.listed(p) for p, s in synced.items()}
         else:
             mode = "drift" if fresh else "full"
@@ -539,17 +540,17 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     upserts: list[tuple[str, Synced, bytes | None]] = []
     adopted: list[list[Any]] = []
     failed: set[str] = set()
-    for p, res in zip(tags, results):
-        if p is None:
+    for tag, res in zip(tags, results):
+        if tag is None:
             continue
         if res.preserved:
-            report.conflicts.append({"path": p.op.path, "kept": os.path.join(local_workspace, res.preserved)
+            report.conflicts.append({"path": tag.op.path, "kept": os.path.join(local_workspace, res.preserved)
                                      if not os.path.isabs(res.preserved) else res.preserved})
         if not res.ok:
-            failed.add(p.op.path)
-            report.errors.append({"path": p.op.path, "error": res.message or res.code})
+            failed.add(tag.op.path)
+            report.errors.append({"path": tag.op.path, "error": res.message or res.code})
             continue
-        report.count(p)
+        report.count(tag)
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
     for path, item in final.items.items():
         r = remote.get(path)

@@ -11,14 +11,14 @@ import time
 from pathlib import Path
 
 import pytest
-
 from helpers import fetchsync, make_workspace, report, tree_of
 
 pytestmark = pytest.mark.ssh
 
 
 def masters(runtime: Path) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"fetchsync.agent.mux.*{runtime}"], capture_output=True)
+    out = subprocess.run(["pgrep", "-f", f"fetchsync.agent.mux.*{runtime}"], check=False,
+                         capture_output=True)
     return [int(x) for x in out.stdout.split()]
 
 

@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from helpers import fetchsync, make_workspace, report, tree_of
 
 

@@ -198,13 +198,13 @@ def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = 
     if warm:
         argv += ["--warm", warm]
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
-    err = open(log_path, "ab") if log_path else subprocess.DEVNULL
-    try:
-        subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                         start_new_session=True, close_fds=True)
-    finally:
-        if log_path:
-            err.close()
+    if log_path:
+        with open(log_path, "ab") as err:
+            subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                             start_new_session=True, close_fds=True)
+    else:
+        subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
 
 
 # --------------------------------------------------------------------------- master side

@@ -84,7 +84,7 @@ class Op:
     blob: Tuple[int, int] = (0, 0)  # (offset, length) in the request's blob
     upload: str = ""               # WRITE from upload / UPLOAD: the upload id
 
-    def validate(self) -> "Op":
+    def validate(self) -> Op:
         if self.kind not in OP_KINDS:
             raise ProtocolError("unknown operation %r" % (self.kind,))
         if self.kind == UPLOAD:
@@ -143,7 +143,7 @@ class Op:
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any) -> "Op":
+    def from_wire(cls, obj: Any) -> Op:
         if not isinstance(obj, dict):
             raise ProtocolError("operation is not an object")
         try:
@@ -184,7 +184,7 @@ class Result:
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any) -> "Result":
+    def from_wire(cls, obj: Any) -> Result:
         if not isinstance(obj, dict) or not isinstance(obj.get("c"), str):
             raise ProtocolError("bad result")
         return cls(code=obj["c"], message=str(obj.get("msg", "")), preserved=str(obj.get("pv", "")),
@@ -213,7 +213,7 @@ class Listed:
         return [self.path, self.kind, self.mode, self.size, self.hash or self.target]
 
     @classmethod
-    def from_wire(cls, obj: Any) -> "Listed":
+    def from_wire(cls, obj: Any) -> Listed:
         if not isinstance(obj, (list, tuple)) or len(obj) != 5:
             raise ProtocolError("bad listing entry")
         path, kind, mode, size, extra = obj

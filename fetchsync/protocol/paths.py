@@ -40,7 +40,7 @@ def parent(path: str) -> str:
     return path[:i] if i >= 0 else ""
 
 
-def ancestors(path: str) -> "list[str]":
+def ancestors(path: str) -> list[str]:
     """Every proper ancestor of ``path``, outermost first."""
     parts = path.split("/")
     return ["/".join(parts[:i]) for i in range(1, len(parts))]

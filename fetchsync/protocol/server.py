@@ -16,9 +16,8 @@ import sys
 import traceback
 from typing import Any, BinaryIO, Dict, List, Optional, Tuple
 
-from fetchsync.protocol import hashing
+from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
-from fetchsync.protocol import wire
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import Store, StoreError
 

@@ -35,9 +35,8 @@ import uuid
 from typing import Any, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import delta as delta_mod
-from fetchsync.protocol import hashing
+from fetchsync.protocol import hashing, paths
 from fetchsync.protocol import messages as M
-from fetchsync.protocol import paths
 from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
 from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, scan, stat_path
 
@@ -131,8 +130,8 @@ class Store:
             self._dirty = False
         self.epoch = data["epoch"]  # type: str
         self.gen = int(data["gen"])
-        self.synced = data["synced"]  # type: Dict[str, List[Any]]   path -> [kind, mode, hash|target]
-        self.cache = data["cache"]    # type: Dict[str, List[Any]]   path -> [size, mtime, ctime, ino, hash]
+        self.synced = data["synced"]  # type: Dict[str, List[Any]]  # path -> [kind, mode, hash|target]
+        self.cache = data["cache"]    # type: Dict[str, List[Any]]  # path -> [size, mtime, ctime, ino, hash]
         self.trash_log = data.get("trash", [])  # type: List[List[Any]]
         if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
             self._clean_temps()
@@ -423,7 +422,7 @@ class _Batch:
         self.s = store
         self.blob = blob
         self.policy = policy
-        self.renames = []  # type: List[Tuple[str, str, str, int]]   (tmp, final, path, result index)
+        self.renames = []  # type: List[Tuple[str, str, str, int]]  # (tmp, final, path, result index)
         self.n = 0
 
     def _blob(self, op: M.Op) -> bytes:

@@ -28,7 +28,7 @@ class Entry(NamedTuple):
     ino: int
     target: str = ""    # symlink target
 
-    def same_stat(self, other: "Entry") -> bool:
+    def same_stat(self, other: Entry) -> bool:
         return (self.kind == other.kind and self.mode == other.mode and self.size == other.size
                 and self.mtime_ns == other.mtime_ns and self.ctime_ns == other.ctime_ns
                 and self.ino == other.ino and self.target == other.target)
