@@ -1,0 +1,901 @@
+#!/usr/bin/env python3
+"""fetchsync push vs rsync, side by side over the same sshd, as ratios.
+
+    python3 bench/run.py [--files 7000 --size-mb 150] [--quick] [--json out.json]
+
+One run generates a seeded ROS-like workspace (``bench/workspace.py``), starts
+the test suite's real OpenSSH ``sshd`` on 127.0.0.1 (``tests/sshd.py``; the
+robot is this machine) and runs every scenario for both tools, each push a new
+process, interleaved and repeated:
+
+    initial   push into an empty remote directory
+    no-op     nothing changed
+    one edit  one line of one .cpp changed
+    insert    one line inserted at the top of a 2 MiB text file
+    rename    that 2 MiB file renamed
+
+Both tools reach the robot through the same ``ProxyCommand``
+(``bench/countproxy.py``), which counts the bytes on the wire. rsync runs with
+fetch_tools' flags plus ``-l`` (``-phErtzl --delete``) into its own remote
+directory. After each scenario both remote trees are compared with the local
+one (paths, kinds, permission bits, link targets, SHA-256 of contents); a
+difference fails the run.
+
+The report is markdown: machine info, then time and bytes tables with the
+ratio fetchsync/rsync and each target marked PASS or MISS. ``--json`` writes
+the raw samples. ``--profile`` adds where a no-op ``fetchsync push`` spends
+its time (``-X importtime`` and cProfile).
+
+lsyncd belongs to the watch agent's comparison (``fetchsync watch``, a later
+issue): see :data:`WATCH_TOOLS` for where it plugs in.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import platform
+import pstats
+import re
+import shlex
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+for _p in (str(BENCH), str(REPO / "tests")):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
+
+from countproxy import Counter
+from sshd import SSHD, make_ssh_home, running_sshd
+from workspace import Workspace, generate
+
+ALIAS = "robot-counted"
+RSYNC_FLAGS = "-phErtzl"  # fetch_tools' -phErtz plus -l: symlinks as symlinks
+KiB = 1024
+
+# (scenario, title) in the order they run; each leaves the tree the next starts from.
+SCENARIOS = (
+    ("initial", "initial push (empty remote)"),
+    ("noop", "no-op push"),
+    ("edit", "one small edit (.cpp)"),
+    ("insert", "insert a line at the top of a 2 MiB file"),
+    ("rename", "rename the 2 MiB file"),
+)
+# Time targets: fetchsync/rsync wall-time ratio at most this.
+TIME_TARGETS = {"initial": 1.0, "noop": 0.5, "edit": 0.5}
+# Byte targets: fetchsync's bytes on the wire beyond a no-op push, at most this.
+BYTE_TARGETS = {"insert": 2 * KiB, "rename": 4 * KiB}
+
+# The watch agent (``fetchsync watch``) is compared with lsyncd (rsync over ssh
+# on inotify events) in a separate set of scenarios: latency from a save to the
+# file on the robot, bytes per save, CPU while idle. Each would be a class like
+# FetchsyncPush/RsyncPush below, started once and fed edits instead of being run
+# per push. Not implemented until the watch agent exists.
+WATCH_TOOLS: tuple[str, ...] = ()
+
+
+# --------------------------------------------------------------------------- samples
+@dataclasses.dataclass
+class Sample:
+    tool: str
+    scenario: str
+    rep: int
+    seconds: float
+    up: int
+    down: int
+    connections: int
+    report: dict[str, Any] | None = None
+    """fetchsync's own ``--json`` report (files, deltas, reused, bytes_sent, seconds, ...)."""
+
+    @property
+    def bytes(self) -> int:
+        return self.up + self.down
+
+
+class PushFailed(RuntimeError):
+    pass
+
+
+# --------------------------------------------------------------------------- the tools
+class Tool:
+    """One push tool: a command run as a new process per push, and its remote tree."""
+
+    name = ""
+
+    def __init__(self, *, bench: Bench, remote: Path) -> None:
+        self.bench = bench
+        self.remote = remote
+
+    @property
+    def remote_src(self) -> Path:
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        """Empty the remote directory (and any local memory of it)."""
+        if self.remote.exists():
+            shutil.rmtree(self.remote)
+        self.remote.mkdir(parents=True)
+
+    def command(self) -> tuple[list[str], dict[str, str]]:
+        raise NotImplementedError
+
+    def parse(self, stdout: str) -> dict[str, Any] | None:
+        return None
+
+    def push(self, scenario: str, rep: int) -> Sample:
+        argv, env = self.command()
+        counter = self.bench.counter
+        os.sync()  # start each push with no writeback pending from the last one
+        before = counter.read()
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            argv, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, check=False
+        )
+        seconds = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise PushFailed(
+                f"{self.name} {scenario} #{rep} exited {proc.returncode}:\n"
+                f"{shlex.join(argv)}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+            )
+        # bytes a push causes after it returns (a connection master's handshake,
+        # its next warm endpoint, channel closes) are counted to it too
+        after = counter.settle()
+        return Sample(
+            self.name,
+            scenario,
+            rep,
+            seconds,
+            after.up - before.up,
+            after.down - before.down,
+            len(after.per_conn) - len(before.per_conn),
+            self.parse(proc.stdout),
+        )
+
+
+class FetchsyncPush(Tool):
+    """``fetchsync push``; with ``persist`` (its default) a connection master outlives each call."""
+
+    def __init__(self, *, bench: Bench, remote: Path, persist: bool = True) -> None:
+        super().__init__(bench=bench, remote=remote)
+        self.persist = persist
+        self.name = "fetchsync" if persist else "fetchsync-cold"
+        self.resets = 0
+
+    @property
+    def remote_src(self) -> Path:
+        return self.remote / "src"
+
+    @property
+    def state_home(self) -> Path:
+        return self.bench.workdir / f"{self.name}-state-{self.resets}"
+
+    def reset(self) -> None:
+        super().reset()
+        self.resets += 1  # a fresh XDG_STATE_HOME: no memory of the last sync
+        if self.persist:
+            self.bench.stop_masters()  # and no connection left open: a first push
+
+    def command(self) -> tuple[list[str], dict[str, str]]:
+        env = self.bench.base_env()
+        env.update(
+            FETCHSYNC_ROBOT=ALIAS,
+            FETCHSYNC_WORKSPACE=str(self.bench.ws.root),
+            FETCHSYNC_REMOTE_WORKSPACE=str(self.remote),
+            XDG_STATE_HOME=str(self.state_home),
+        )
+        if not self.persist:
+            env["FETCHSYNC_PERSIST"] = "0"
+        return [sys.executable, "-m", "fetchsync", "push", "--json"], env
+
+    def parse(self, stdout: str) -> dict[str, Any] | None:
+        for line in reversed(stdout.splitlines()):
+            if line.startswith("{"):
+                return dict(json.loads(line))
+        return None
+
+
+class RsyncPush(Tool):
+    name = "rsync"
+
+    @property
+    def remote_src(self) -> Path:
+        return self.remote / "src"
+
+    def command(self) -> tuple[list[str], dict[str, str]]:
+        ssh = f"ssh -F {shlex.quote(str(self.bench.ssh_config))} -o BatchMode=yes"
+        argv = [
+            "rsync",
+            RSYNC_FLAGS,
+            "--delete",
+            "-e",
+            ssh,
+            str(self.bench.ws.src),
+            f"{ALIAS}:{self.remote}/",
+        ]
+        return argv, self.bench.base_env()
+
+
+# --------------------------------------------------------------------------- verification
+def snapshot(root: Path) -> dict[str, tuple[Any, ...]]:
+    """Every path under ``root``: kind, permission bits, link target or size and SHA-256."""
+    out: dict[str, tuple[Any, ...]] = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            full = os.path.join(dirpath, name)
+            rel = os.path.relpath(full, root)
+            st = os.lstat(full)
+            mode = st.st_mode & 0o7777
+            if os.path.islink(full):
+                out[rel] = ("l", os.readlink(full))
+            elif os.path.isdir(full):
+                out[rel] = ("d", mode)
+            else:
+                h = hashlib.sha256()
+                with open(full, "rb") as fh:
+                    while chunk := fh.read(1 << 20):
+                        h.update(chunk)
+                digest = h.hexdigest()
+                out[rel] = ("f", mode, st.st_size, digest)
+    return out
+
+
+def differences(local: dict[str, tuple[Any, ...]], remote: dict[str, tuple[Any, ...]]) -> list[str]:
+    diffs = [f"missing on the robot: {p}" for p in sorted(local.keys() - remote.keys())]
+    diffs += [f"extra on the robot: {p}" for p in sorted(remote.keys() - local.keys())]
+    for p in sorted(local.keys() & remote.keys()):
+        a, b = local[p], remote[p]
+        if a != b:
+            if a[0] == b[0] == "d":
+                diffs.append(f"mode of {p}/: {a[1]:o} here, {b[1]:o} on the robot")
+            elif a[0] == b[0] == "f" and a[2:] == b[2:]:
+                diffs.append(f"mode of {p}: {a[1]:o} here, {b[1]:o} on the robot")
+            else:
+                diffs.append(f"differs: {p}: {a} here, {b} on the robot")
+    return diffs
+
+
+# --------------------------------------------------------------------------- edits
+class Edits:
+    """The changes the scenarios make to the local tree, distinct on every repetition."""
+
+    def __init__(self, ws: Workspace) -> None:
+        self.ws = ws
+        self.big = ws.big_text
+        lines = ws.edit_target.read_bytes().splitlines(keepends=True)
+        # a line of code in the middle of the file, not the license or includes
+        self.edit_line = next(i for i in range(len(lines) // 2, len(lines)) if b";" in lines[i])
+        self.edit_original = lines[self.edit_line]
+
+    def one_edit(self, rep: int) -> None:
+        path = self.ws.edit_target
+        lines = path.read_bytes().splitlines(keepends=True)
+        lines[self.edit_line] = (
+            self.edit_original.rstrip(b"\n") + f"  // tuned, rev {rep}\n".encode()
+        )
+        path.write_bytes(b"".join(lines))
+
+    def insert_top(self, rep: int) -> None:
+        data = self.big.read_bytes()
+        self.big.write_bytes(f"// generated by table_gen, revision {rep}\n".encode() + data)
+
+    def rename(self, rep: int) -> None:
+        new = self.big.with_name(f"generated_lookup_tables_r{rep}.cpp")
+        os.rename(self.big, new)
+        self.big = new
+
+
+# --------------------------------------------------------------------------- the run
+@dataclasses.dataclass
+class Params:
+    files: int
+    size_mb: float
+    reps_small: int
+    reps_initial: int
+    seed: int
+    cold: bool
+    """Also run fetchsync without its connection master (FETCHSYNC_PERSIST=0)."""
+
+
+class Bench:
+    def __init__(
+        self,
+        *,
+        workdir: Path,
+        ws: Workspace,
+        sshd: SSHD,
+        params: Params,
+        log: Callable[[str], None],
+    ) -> None:
+        self.workdir = workdir
+        self.ws = ws
+        self.sshd = sshd
+        self.params = params
+        self.log = log
+        self.home = make_ssh_home(workdir / "home", sshd=sshd)
+        self.counter = Counter(workdir / "wire")
+        # fetchsync's connection masters listen here: a directory of this run only
+        # (short, for the unix socket path limit), so they are ours to stop
+        self.runtime_dir = Path(tempfile.mkdtemp(prefix="fsbench-run-"))
+        self.ssh_config = self.home.config
+        proxy = (
+            f"{shlex.quote(sys.executable)} -S {shlex.quote(str(BENCH / 'countproxy.py'))} "
+            f"{sshd.host} {sshd.port} {shlex.quote(str(self.counter.dir))}"
+        )
+        with open(self.ssh_config, "a") as fh:
+            fh.write(
+                f"\nHost {ALIAS}\n"
+                f"    HostName {sshd.host}\n"
+                f"    Port {sshd.port}\n"
+                f"    User {sshd.user}\n"
+                f"    IdentityFile {self.home.identity}\n"
+                f"    IdentitiesOnly yes\n"
+                f"    UserKnownHostsFile {self.home.known_hosts}\n"
+                f"    GlobalKnownHostsFile /dev/null\n"
+                f"    StrictHostKeyChecking yes\n"
+                f"    UpdateHostKeys no\n"
+                f"    ProxyCommand {proxy}\n"
+            )
+        robot = workdir / "robot"
+        self.tools: list[Tool] = [FetchsyncPush(bench=self, remote=robot / "fetchsync-ws")]
+        if params.cold:
+            self.tools.append(
+                FetchsyncPush(bench=self, remote=robot / "fetchsync-cold-ws", persist=False)
+            )
+        self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
+        self.samples: list[Sample] = []
+        self.verified: dict[str, dict[str, list[str]]] = {}
+        self.repairs: dict[str, dict[str, dict[str, Any]]] = {}
+        self.edits = Edits(ws)
+
+    def base_env(self) -> dict[str, str]:
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith(("FETCHSYNC_", "FETCH_", "XDG_"))
+            and k not in ("SSH_AUTH_SOCK", "ROS_MASTER_URI")
+        }
+        env["HOME"] = str(self.home.home)
+        env["XDG_RUNTIME_DIR"] = str(self.runtime_dir)
+        return env
+
+    # ---------------------------------------------------------------------- masters
+    def _master_pids(self) -> list[int]:
+        """Connection masters of this run: their --socket is under our runtime dir."""
+        mark = str(self.runtime_dir).encode()
+        pids = []
+        for proc in Path("/proc").iterdir():
+            if not proc.name.isdigit():
+                continue
+            try:
+                cmdline = (proc / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"fetchsync.agent.mux" in cmdline and mark in cmdline:
+                pids.append(int(proc.name))
+        return pids
+
+    def stop_masters(self) -> None:
+        """End fetchsync's connection masters of this run, as a new login session would find none.
+
+        A master exits within a second of its socket being taken away; one that
+        does not is sent SIGTERM by pid.
+        """
+        for sock in self.runtime_dir.glob("fetchsync/mux-*.sock"):
+            sock.unlink(missing_ok=True)
+        deadline = time.monotonic() + 5
+        while self._master_pids() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for pid in self._master_pids():
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGTERM)
+        self.counter.settle(live=0, timeout=10)
+
+    def close(self) -> None:
+        self.stop_masters()
+        shutil.rmtree(self.runtime_dir, ignore_errors=True)
+
+    # ---------------------------------------------------------------------- scenarios
+    def order(self, rep: int) -> list[Tool]:
+        # rotate which tool goes first, so none always meets a warm or a cold cache
+        k = rep % len(self.tools)
+        return self.tools[k:] + self.tools[:k]
+
+    def run_scenario(
+        self,
+        scenario: str,
+        reps: int,
+        before: Callable[[int], None] | None = None,
+        each: Callable[[Tool], None] | None = None,
+    ) -> None:
+        for rep in range(reps):
+            if before is not None:
+                before(rep)
+            for tool in self.order(rep):
+                if each is not None:
+                    each(tool)
+                s = tool.push(scenario, rep)
+                self.samples.append(s)
+                inner = f" (in-process {s.report['seconds']:.3f} s)" if s.report else ""
+                self.log(
+                    f"  {scenario:8} #{rep} {tool.name:14} {s.seconds:7.3f} s{inner} "
+                    f"{_human(s.bytes):>10} over {s.connections} new connection(s)"
+                )
+        self.verify(scenario)
+
+    def verify(self, scenario: str) -> None:
+        local = snapshot(self.ws.src)
+        result = {}
+        for tool in self.tools:
+            diffs = differences(local, snapshot(tool.remote_src))
+            result[tool.name] = diffs
+            status = (
+                "identical" if not diffs else f"{len(diffs)} difference(s): " + "; ".join(diffs[:3])
+            )
+            self.log(f"  verify {scenario}: {tool.name}: {status} ({len(local)} paths)")
+            if diffs:
+                self.repair(scenario, tool, local)
+        self.verified[scenario] = result
+
+    def repair(
+        self, scenario: str, tool: Tool, local: dict[str, tuple[Any, ...]], tries: int = 5
+    ) -> None:
+        """Push again (untimed) until the tool's tree verifies, so the next scenario starts
+        from a mirrored tree and measures what it says. The failure stays in the report."""
+        done: list[Sample] = []
+        diffs: list[str] = []
+        for k in range(tries):
+            done.append(tool.push("repair", k))
+            diffs = differences(local, snapshot(tool.remote_src))
+            if not diffs:
+                break
+        self.repairs.setdefault(scenario, {})[tool.name] = {
+            "pushes": len(done),
+            "converged": not diffs,
+            "seconds": sum(s.seconds for s in done),
+            "bytes": sum(s.bytes for s in done),
+            "remaining": diffs[:20],
+        }
+        self.log(
+            f"  repair {scenario}: {tool.name}: "
+            + (
+                f"identical after {len(done)} more push(es)"
+                if not diffs
+                else f"still {len(diffs)} difference(s) after {len(done)} more pushes"
+            )
+        )
+
+    def run(self) -> None:
+        p = self.params
+        for tool in self.tools:
+            tool.reset()
+
+        def fresh(tool: Tool) -> None:
+            tool.reset()
+
+        self.run_scenario("initial", p.reps_initial, each=fresh)
+        self.run_scenario("noop", p.reps_small)
+        self.run_scenario("edit", p.reps_small, before=self.edits.one_edit)
+        self.run_scenario("insert", p.reps_small, before=self.edits.insert_top)
+        self.run_scenario("rename", p.reps_small, before=self.edits.rename)
+
+    # ---------------------------------------------------------------------- results
+    def median(self, tool: str, scenario: str, key: Callable[[Sample], float]) -> float:
+        return statistics.median(
+            key(s) for s in self.samples if s.tool == tool and s.scenario == scenario
+        )
+
+    def verified_ok(self) -> bool:
+        return set(self.verified) == {sc for sc, _ in SCENARIOS} and all(
+            not d for r in self.verified.values() for d in r.values()
+        )
+
+    def summary(self, ours: str = "fetchsync", theirs: str = "rsync") -> dict[str, Any]:
+        rows: dict[str, Any] = {}
+        for scenario, title in SCENARIOS:
+            if not any(s.scenario == scenario for s in self.samples):
+                continue
+            row: dict[str, Any] = {"title": title}
+            for tool in (ours, theirs):
+                sel = [s for s in self.samples if s.tool == tool and s.scenario == scenario]
+                row[tool] = {
+                    "seconds": statistics.median(s.seconds for s in sel),
+                    "seconds_min": min(s.seconds for s in sel),
+                    "seconds_max": max(s.seconds for s in sel),
+                    "bytes": statistics.median(s.bytes for s in sel),
+                    "up": statistics.median(s.up for s in sel),
+                    "down": statistics.median(s.down for s in sel),
+                    "n": len(sel),
+                }
+                if scenario in BYTE_TARGETS:
+                    row[tool]["beyond_noop"] = row[tool]["bytes"] - self.median(
+                        tool, "noop", lambda s: s.bytes
+                    )
+            f, r = row[ours], row[theirs]
+            row["time_ratio"] = f["seconds"] / r["seconds"] if r["seconds"] else None
+            row["bytes_ratio"] = f["bytes"] / r["bytes"] if r["bytes"] else None
+            if scenario in TIME_TARGETS:
+                row["time_target"] = TIME_TARGETS[scenario]
+                row["time_pass"] = (
+                    row["time_ratio"] is not None and row["time_ratio"] <= TIME_TARGETS[scenario]
+                )
+            if scenario in BYTE_TARGETS:
+                row["bytes_target"] = BYTE_TARGETS[scenario]
+                row["bytes_pass"] = f["beyond_noop"] <= BYTE_TARGETS[scenario]
+                if r["beyond_noop"] > 0:
+                    row["beyond_noop_ratio"] = f["beyond_noop"] / r["beyond_noop"]
+            rows[scenario] = row
+        return rows
+
+
+# --------------------------------------------------------------------------- report
+def _human(n: float) -> str:
+    sign = "-" if n < 0 else ""
+    n = abs(n)
+    for unit in ("B", "KiB", "MiB"):
+        if n < 1024:
+            return f"{sign}{n:.0f} {unit}" if unit == "B" else f"{sign}{n:.1f} {unit}"
+        n /= 1024
+    return f"{sign}{n:.2f} GiB"
+
+
+def _ratio(x: float | None) -> str:
+    return "—" if x is None else f"{x:.2f}x"
+
+
+def _verdict(ok: bool) -> str:
+    return "**PASS**" if ok else "**MISS**"
+
+
+def machine_info() -> dict[str, str]:
+    def first_line(argv: list[str]) -> str:
+        try:
+            out = subprocess.run(argv, capture_output=True, text=True, check=False)
+            return (out.stdout or out.stderr).strip().splitlines()[0]
+        except (OSError, IndexError):
+            return "?"
+
+    cpu = "?"
+    with contextlib.suppress(OSError):
+        m = re.search(r"^model name\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
+        cpu = m.group(1) if m else "?"
+    try:
+        import paramiko
+
+        paramiko_version = paramiko.__version__
+    except ImportError:
+        paramiko_version = "?"
+    commit = first_line(["git", "-C", str(REPO), "describe", "--always", "--dirty"])
+    return {
+        "nproc": str(len(os.sched_getaffinity(0))),
+        "cpu": cpu,
+        "kernel": platform.release(),
+        "python": platform.python_version(),
+        "rsync": first_line(["rsync", "--version"]),
+        "ssh": first_line(["ssh", "-V"]),
+        "paramiko": paramiko_version,
+        "fetchsync": first_line([sys.executable, "-m", "fetchsync", "--version"]) + f" ({commit})",
+    }
+
+
+def _tables(
+    rows: dict[str, Any], ours: str, theirs: str, failed: set[tuple[str, str]]
+) -> list[str]:
+    def mark(scenario: str, tool: str) -> str:
+        return " ✗" if (scenario, tool) in failed else ""
+
+    out = [
+        "| scenario | fetchsync | rsync | ratio (fetchsync/rsync) | target |",
+        "| --- | ---: | ---: | ---: | --- |",
+    ]
+    for scenario, row in rows.items():
+        target = "—"
+        if "time_target" in row:
+            target = f"≤ {row['time_target']:.1f}x {_verdict(row['time_pass'])}"
+        out.append(
+            f"| {row['title']} | {row[ours]['seconds']:.3f} s{mark(scenario, ours)} | "
+            f"{row[theirs]['seconds']:.3f} s{mark(scenario, theirs)} | "
+            f"{_ratio(row['time_ratio'])} | {target} |"
+        )
+    out += [
+        "",
+        (
+            "Bytes on the wire (both directions, SSH framing and handshakes included; "
+            "insert and rename: beyond the same tool's no-op push)"
+        ),
+        "",
+        "| scenario | fetchsync | rsync | ratio (fetchsync/rsync) | target |",
+        "| --- | ---: | ---: | ---: | --- |",
+    ]
+    for scenario, row in rows.items():
+        f, r = row[ours], row[theirs]
+        if scenario in BYTE_TARGETS:
+            out.append(
+                f"| {row['title']} | {_human(f['beyond_noop'])} | {_human(r['beyond_noop'])} | "
+                f"{_ratio(row.get('beyond_noop_ratio'))} | ≤ {_human(row['bytes_target'])} "
+                f"{_verdict(row['bytes_pass'])} |"
+            )
+        else:
+            out.append(
+                f"| {row['title']} | {_human(f['bytes'])}{mark(scenario, ours)} | "
+                f"{_human(r['bytes'])}{mark(scenario, theirs)} | {_ratio(row['bytes_ratio'])} | — |"
+            )
+    if any(t in (ours, theirs) for _s, t in failed):
+        out += [
+            "",
+            (
+                "✗ the robot's tree was not identical to the local one after this scenario "
+                "(see verification below)"
+            ),
+        ]
+    return out
+
+
+def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> str:
+    p = bench.params
+    out = [
+        (
+            f"Machine: {machine['nproc']} CPUs ({machine['cpu']}), Linux {machine['kernel']}, "
+            f"Python {machine['python']}, {machine['rsync']}, {machine['ssh']}, "
+            f"paramiko {machine['paramiko']}, {machine['fetchsync']}"
+        ),
+        "",
+        (
+            f"Workspace: {ws_info['files']} files + 1 symlink, {ws_info['bytes'] / 2**20:.1f} MiB "
+            f"(seed {p.seed}); medians of {p.reps_small} runs ({p.reps_initial} for the initial push), "
+            f"each push a new process, tools interleaved; rsync {RSYNC_FLAGS} --delete."
+        ),
+        "",
+        (
+            "Wall time of `fetchsync push` (as installed: its connection master persists "
+            "between calls) "
+            "and of rsync"
+        ),
+        "",
+    ]
+    failed = {
+        (sc, tool) for sc, res in bench.verified.items() for tool, diffs in res.items() if diffs
+    }
+    out += _tables(bench.summary("fetchsync", "rsync"), "fetchsync", "rsync", failed)
+    if any(t.name == "fetchsync-cold" for t in bench.tools):
+        out += [
+            "",
+            (
+                "The same without the connection master (`FETCHSYNC_PERSIST=0`: every push makes "
+                "its own SSH connection and starts its own endpoint, as rsync does)"
+            ),
+            "",
+        ]
+        out += _tables(bench.summary("fetchsync-cold", "rsync"), "fetchsync-cold", "rsync", failed)
+    out.append("")
+    if bench.verified_ok():
+        out.append(
+            f"verification: PASS (after each of the {len(bench.verified)} scenarios every remote "
+            "tree equals the local src/: paths, kinds, modes, symlink targets, SHA-256)"
+        )
+    else:
+        out.append("verification: FAIL")
+        out.append("")
+        for sc, res in bench.verified.items():
+            for tool, diffs in res.items():
+                if diffs:
+                    out.append(
+                        f"- after {sc}, {tool}'s tree had {len(diffs)} difference(s), e.g. "
+                        + "; ".join(diffs[:3])
+                    )
+                    r = bench.repairs.get(sc, {}).get(tool)
+                    if r is not None:
+                        out.append(
+                            f"  - then {r['pushes']} more untimed push(es) "
+                            f"({r['seconds']:.1f} s, {_human(r['bytes'])}) "
+                            + (
+                                "made it identical; the next scenarios start from there"
+                                if r["converged"]
+                                else "did not make it identical"
+                            )
+                        )
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------- profile
+def profile_noop(bench: Bench) -> str:
+    """Where a no-op ``fetchsync push`` spends its time: cProfile and ``-X importtime``.
+
+    Profiled both through the connection master (the default) and without it.
+    """
+    out = []
+    for tool in bench.tools:
+        if not isinstance(tool, FetchsyncPush):
+            continue
+        argv, env = tool.command()
+        if not tool.persist:
+            env["FETCHSYNC_PERSIST"] = "0"
+        out += _profile_one(bench, tool, argv, env)
+    return "\n".join(out)
+
+
+def _profile_one(
+    bench: Bench, tool: FetchsyncPush, argv: list[str], env: dict[str, str]
+) -> list[str]:
+    lines = ["", f"Profile of a no-op `{tool.name} push` (cProfile; seconds)", ""]
+    prof = bench.workdir / f"noop-{tool.name}.prof"
+    t0 = time.perf_counter()
+    run = subprocess.run(
+        [sys.executable, "-m", "cProfile", "-o", str(prof), *argv[1:]],
+        env=env,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        check=False,
+    )
+    wall = time.perf_counter() - t0
+    bench.counter.settle()
+    if run.returncode != 0:
+        return lines + [f"profile failed: {run.stderr[-2000:]}"]
+    st = pstats.Stats(str(prof))
+    entries = []
+    for (file, line, func), (_cc, _nc, tt, ct, _callers) in st.stats.items():  # type: ignore[attr-defined]
+        entries.append((ct, tt, f"{_short(file)}:{line}({func})"))
+    lines.append(f"wall {wall:.3f} s under the profiler, {st.total_tt:.3f} s profiled")  # type: ignore[attr-defined]
+    lines.append("```")
+    lines.append(f"{'cumulative':>10} {'self':>8}  function")
+    for ct, tt, name in sorted(entries, reverse=True)[:22]:
+        lines.append(f"{ct:10.3f} {tt:8.3f}  {name}")
+    lines.append("-- top by self time")
+    for ct, tt, name in sorted(entries, key=lambda e: -e[1])[:12]:
+        lines.append(f"{ct:10.3f} {tt:8.3f}  {name}")
+    lines.append("```")
+    run = subprocess.run(
+        [sys.executable, "-X", "importtime", *argv[1:]],
+        env=env,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        check=False,
+    )
+    bench.counter.settle()
+    imports = []
+    for ln in run.stderr.splitlines():
+        m = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|( *)(\S+)", ln)
+        if m and len(m.group(3)) == 1:  # top-level imports only
+            imports.append((int(m.group(2)), m.group(4)))
+    total_us = sum(us for us, _ in imports)
+    lines.append("")
+    lines.append(
+        f"Imports (`-X importtime`): {total_us / 1e6:.3f} s in all; the largest top-level ones:"
+    )
+    lines.append("```")
+    for us, name in sorted(imports, reverse=True)[:12]:
+        lines.append(f"{us / 1e6:8.3f}  {name}")
+    lines.append("```")
+    return lines
+
+
+def _short(file: str) -> str:
+    for marker in ("site-packages/", "/lib/python3.", str(REPO) + "/"):
+        if marker in file:
+            return file.split(marker, 1)[1]
+    return file
+
+
+# --------------------------------------------------------------------------- main
+@contextlib.contextmanager
+def _workdir(path: str | None, keep: bool) -> Iterator[Path]:
+    if path:
+        p = Path(path).resolve()
+        p.mkdir(parents=True, exist_ok=True)
+        yield p
+        return
+    p = Path(tempfile.mkdtemp(prefix="fetchsync-bench-"))
+    try:
+        yield p
+    finally:
+        if not keep:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description="fetchsync push vs rsync over the same sshd, as ratios."
+    )
+    ap.add_argument("--files", type=int, help="files in the workspace (default 7000; --quick 500)")
+    ap.add_argument("--size-mb", type=float, help="workspace size in MiB (default 150; --quick 10)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: 500 files, 10 MiB, 2 repetitions, no cold variant",
+    )
+    ap.add_argument(
+        "--reps", type=int, help="repetitions of the small cases (default 5; --quick 2)"
+    )
+    ap.add_argument(
+        "--reps-initial", type=int, help="repetitions of the initial push (default 2; --quick 1)"
+    )
+    ap.add_argument(
+        "--cold",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="also run fetchsync with FETCHSYNC_PERSIST=0 (default: on, off with --quick)",
+    )
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
+    ap.add_argument("--profile", action="store_true", help="also profile a no-op fetchsync push")
+    ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
+    a = ap.parse_args(argv)
+    params = Params(
+        files=a.files or (500 if a.quick else 7000),
+        size_mb=a.size_mb or (10 if a.quick else 150),
+        reps_small=a.reps or (2 if a.quick else 5),
+        reps_initial=a.reps_initial or (1 if a.quick else 2),
+        seed=a.seed,
+        cold=(not a.quick) if a.cold is None else a.cold,
+    )
+
+    def log(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    machine = machine_info()
+    for k, v in machine.items():
+        log(f"{k}: {v}")
+    with _workdir(a.workdir, a.keep) as workdir:
+        log(f"workdir: {workdir}")
+        ws = generate(workdir / "ws", files=params.files, size_mb=params.size_mb, seed=params.seed)
+        ws_info = {
+            "files": ws.files,
+            "bytes": ws.bytes,
+            "symlinks": ws.symlinks,
+            "generate_seconds": round(ws.seconds, 3),
+        }
+        log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB in {ws.seconds:.1f} s")
+        with running_sshd(workdir / "sshd") as sshd:
+            bench = Bench(workdir=workdir, ws=ws, sshd=sshd, params=params, log=log)
+            try:
+                bench.run()
+                report = render(bench, machine, ws_info)
+                if a.profile:
+                    report += "\n" + profile_noop(bench)
+            finally:
+                bench.close()
+        print(report, flush=True)
+        if a.json_out:
+            a.json_out.write_text(
+                json.dumps(
+                    {
+                        "machine": machine,
+                        "params": dataclasses.asdict(params),
+                        "workspace": ws_info,
+                        "samples": [
+                            dataclasses.asdict(s) | {"bytes": s.bytes} for s in bench.samples
+                        ],
+                        "summary": {
+                            t.name: bench.summary(t.name, "rsync")
+                            for t in bench.tools
+                            if isinstance(t, FetchsyncPush)
+                        },
+                        "verification": bench.verified,
+                        "repairs": bench.repairs,
+                        "verified": bench.verified_ok(),
+                    },
+                    indent=1,
+                    sort_keys=True,
+                )
+                + "\n"
+            )
+    return 0 if bench.verified_ok() else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
