@@ -200,6 +200,9 @@ class _Batcher:
         if not self.ops and not extra:
             return
         header = dict(self.header, op="sync", ops=self.ops, **extra)
+        # each batch applied moves the robot's generation on by one: batch k
+        # of this round may apply only if nobody else wrote in between
+        header["gen"] = self.header["gen"] + len(self.sent)
         req = self.conn.send(header, b"".join(self.blob))
         self.sent.append((req, self.tags))
         self.done += self.blob_len
@@ -207,19 +210,23 @@ class _Batcher:
             self.progress(self.done, self.total)
         self.ops, self.tags, self.blob, self.blob_len = [], [], [], 0
 
-    def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any]]:
+    def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any], bool]:
+        """Results of every batch that applied, the last answer, and whether one was refused
+        as stale (someone else wrote to the robot meanwhile; later batches are refused too)."""
         out: list[tuple[Any, M.Result]] = []
         last: dict[str, Any] = {}
+        stale = False
         for req, tags in self.sent:
             frame = self.conn.wait(req)
+            if frame.header.get("stale"):
+                stale = True
+                continue
             last = frame.header
-            if last.get("stale"):
-                return [], last
             results = last.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
             out.extend((t, M.Result.from_wire(r)) for t, r in zip(tags, results))
-        return out, last
+        return out, last, stale
 
 
 # --------------------------------------------------------------------------- push
@@ -300,17 +307,18 @@ class Syncer:
             for p in planned:
                 self._send_op(batcher, p, local, report)
             batcher.flush(verify=True)
-            results, last = batcher.results()
-            if last.get("stale"):
-                listing = self.conn.request({"op": "list", "mode": "full"}).header
-                remote = self._apply_listing(listing, synced)
-                epoch, gen = listing["epoch"], listing["gen"]
-                report.rounds -= 1
-                continue
-            epoch, gen = last["epoch"], last["gen"]
+            results, last, stale = batcher.results()
+            if last:
+                epoch, gen = last["epoch"], last["gen"]
             for tag, res in results:
                 self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local, report,
                              now_ns)
+            if stale:
+                # another writer touched the robot: start again from what it holds now
+                listing = self.conn.request({"op": "list", "mode": "full"}).header
+                remote = self._apply_listing(listing, synced)
+                epoch, gen = listing["epoch"], listing["gen"]
+                continue
             for entry in last.get("drift", []):
                 item = M.Listed.from_wire(entry)
                 remote[item.path] = item
@@ -319,6 +327,13 @@ class Syncer:
             if not last.get("drift") and not last.get("gone") and not any(
                     not r.ok for _t, r in results):
                 break
+        if not dry_run:
+            left = [p for p in plan(local.items, remote, expect) if p.op.path not in
+                    {e["path"] for e in report.errors}]
+            if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
+                report.errors.append({"path": left[0].op.path, "error":
+                                      f"{len(left)} path(s) still differ on the robot after "
+                                      f"{report.rounds} rounds (is something there rewriting them?)"})
         # paths already identical need no operation, but the state must know them
         for path, item in local.items.items():
             r = remote.get(path)
