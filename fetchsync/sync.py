@@ -258,20 +258,18 @@ class Syncer:
             synced = {}
         fresh = bool(synced) and self.state.epoch != ""
         open_req = self.conn.send(self._open_header()) if self.opened is None else None
+        epoch, gen = self.state.epoch, self.state.gen
+        # ask for the robot's changes now, so its scan overlaps with ours
+        list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
+                                   "epoch": epoch, "gen": gen})
         local = scan_local(self.local_root, self.rules, synced, self.algorithm)
         report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
-        epoch, gen = self.state.epoch, self.state.gen
-        remote: dict[str, M.Listed]
-        opened = self.opened or {}
-        if fresh and not dry_run and opened.get("epoch") == epoch and opened.get("gen") == gen:
-            remote = {p: s.listed(p) for p, s in synced.items()}
-        else:
-            mode = "drift" if fresh else "full"
-            listing = self.conn.request({"op": "list", "mode": mode, "epoch": epoch, "gen": gen}).header
-            remote = self._apply_listing(listing, synced)
-            epoch, gen = listing["epoch"], listing["gen"]
+        listing = self.conn.wait(list_req).header
+        remote = self._apply_listing(listing, synced)
+        epoch, gen = listing["epoch"], listing["gen"]
+        checked = True  # remote holds what the robot reported just now
         signed = self.state.signed_paths()
         robot_sigs: dict[str, bytes] = {}
         self._robot_sigs = robot_sigs
@@ -297,7 +295,7 @@ class Syncer:
                     report.count(p)
                     report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
                 break
-            if not planned and report.rounds > 0:
+            if not planned and (checked or report.rounds > 0):
                 break
             report.rounds += 1
             planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)

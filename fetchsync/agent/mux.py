@@ -217,39 +217,52 @@ class _Warm:
 
 
 class Master:
+    WARM = 2  # endpoints kept started: back-to-back calls need not wait for sshd
+
     def __init__(self, transport: Any, path: Path, idle: float, warm: str | None) -> None:
         self.transport = transport
         self.path = path
         self.idle = idle
         self.warm_command = warm
-        self.warm: _Warm | None = None
+        self.pool: list[_Warm] = []
+        self.starting = 0
         self.lock = threading.Lock()
         self.active = 0
         self.last_used = time.monotonic()
 
-    def _start_warm(self) -> None:
-        if not self.warm_command:
-            return
-        try:
-            channel = self.transport.exec(self.warm_command)
-        except Exception as exc:
-            log.debug("cannot warm an endpoint: %s", exc)
-            return
+    def _refill(self) -> None:
         with self.lock:
-            self.warm = _Warm(self.warm_command, channel)
+            command = self.warm_command
+            if not command or len(self.pool) + self.starting >= self.WARM:
+                return
+            self.starting += 1
+        try:
+            channel = self.transport.exec(command)
+        except Exception as exc:  # the link may be dying; serve() notices
+            log.debug("cannot warm an endpoint: %s", exc)
+            channel = None
+        with self.lock:
+            self.starting -= 1
+            if channel is not None:
+                if command == self.warm_command:
+                    self.pool.append(_Warm(command, channel))
+                else:
+                    channel.close()
+        if channel is not None:
+            self._refill()
 
     def _take(self, command: str) -> Any:
         with self.lock:
-            warm, self.warm = self.warm, None
-        if warm is not None and warm.command == command:
-            threading.Thread(target=self._start_warm, daemon=True).start()
-            return warm.channel
-        if warm is not None:
-            warm.channel.close()
-        self.warm_command = command
-        channel = self.transport.exec(command)
-        threading.Thread(target=self._start_warm, daemon=True).start()
-        return channel
+            found = next((w for w in self.pool if w.command == command), None)
+            if found is not None:
+                self.pool.remove(found)
+            elif command != self.warm_command:
+                for w in self.pool:
+                    w.channel.close()
+                self.pool = []
+                self.warm_command = command
+        threading.Thread(target=self._refill, daemon=True).start()
+        return found.channel if found is not None else self.transport.exec(command)
 
     def serve(self) -> None:
         tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
@@ -260,7 +273,7 @@ class Master:
         os.replace(tmp, self.path)
         srv.listen(16)
         srv.settimeout(1.0)
-        self._start_warm()
+        threading.Thread(target=self._refill, daemon=True).start()
         try:
             while True:
                 try:
@@ -283,8 +296,10 @@ class Master:
                 except OSError:
                     pass
             srv.close()
-            if self.warm is not None:
-                self.warm.channel.close()
+            with self.lock:
+                for w in self.pool:
+                    w.channel.close()
+                self.pool = []
             self.transport.close()
 
     def _owns(self, ino: int) -> bool:

@@ -111,8 +111,16 @@ class Store:
         self._load_index()
 
     # ------------------------------------------------------------------ index
+    def _index_stamp(self) -> Any:
+        try:
+            st = os.stat(os.path.join(self.meta, "index.json"))
+        except OSError:
+            return None
+        return (st.st_ino, st.st_size, st.st_mtime_ns)
+
     def _load_index(self) -> None:
         path = os.path.join(self.meta, "index.json")
+        self._loaded_stamp = self._index_stamp()
         data = None  # type: Any
         try:
             with open(path, "rb") as fh:
@@ -147,6 +155,7 @@ class Store:
             fh.write(json.dumps(data, separators=(",", ":")).encode("utf-8", "surrogateescape"))
         os.replace(tmp, path)
         self._dirty = False
+        self._loaded_stamp = self._index_stamp()
 
     def _clean_temps(self) -> None:
         for dirpath, dirs, files in os.walk(self.root):
@@ -186,8 +195,8 @@ class Store:
                     raise StoreError("another fetchsync is writing to %s" % self.workspace)
                 time.sleep(0.05)
         self._lock_fd = fd
-        # someone else may have written since we loaded
-        self._load_index()
+        if self._index_stamp() != self._loaded_stamp:
+            self._load_index()  # someone else wrote since we loaded
 
     def unlock(self) -> None:
         if self._lock_fd >= 0:
