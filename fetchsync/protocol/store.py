@@ -232,6 +232,19 @@ class Store:
             return M.Listed(path, LINK, target=entry.target)
         return M.Listed(path, DIR, entry.mode)
 
+    def written(self, path: str, digest: str) -> Optional[M.Listed]:
+        """What stands at ``path`` right after we wrote content with hash ``digest`` there.
+
+        The content was verified against its hash before the rename, so it is
+        not read again: the stat cache learns the hash directly.
+        """
+        entry = stat_path(self._resolver.full(path))
+        if entry is None or entry.kind != FILE or not digest:
+            return self.listed(path, entry)
+        self.cache[path] = [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest]
+        self._dirty = True
+        return M.Listed(path, FILE, entry.mode, entry.size, hash=digest)
+
     def current(self, path: str) -> Optional[M.Listed]:
         return self.listed(path, stat_path(self._resolver.full(path)))
 
@@ -431,7 +444,7 @@ class _Batch:
         self.s = store
         self.blob = blob
         self.policy = policy
-        self.renames = []  # type: List[Tuple[str, str, str, int]]  # (tmp, final, path, result index)
+        self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
         self.n = 0
 
     def _blob(self, op: M.Op) -> bytes:
@@ -539,7 +552,7 @@ class _Batch:
             os.symlink(op.target, tmp)
         else:
             self._write_file(op, cur, tmp)
-        self.renames.append((tmp, full, op.path, idx))
+        self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
         return M.Result(preserved=preserved)
 
     def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str) -> None:
@@ -586,13 +599,13 @@ class _Batch:
         rootfd = os.open(self.s.root, os.O_RDONLY)
         try:
             syncfs(rootfd)
-            for tmp, full, path, idx in self.renames:
+            for tmp, full, path, idx, digest in self.renames:
                 try:
                     os.rename(tmp, full)
                 except OSError as exc:
                     results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (path, exc.strerror))
                     continue
-                item = self.s.current(path)
+                item = self.s.written(path, digest)
                 self.s._record(path, item)
                 results[idx] = M.Result(results[idx].code, results[idx].message, results[idx].preserved,
                                         item.to_wire() if item else None)
@@ -602,7 +615,7 @@ class _Batch:
             os.close(rootfd)
 
     def cleanup(self) -> None:
-        for tmp, _full, _path, _idx in self.renames:
+        for tmp, _full, _path, _idx, _digest in self.renames:
             try:
                 os.unlink(tmp)
             except OSError:
