@@ -142,7 +142,13 @@ class Tool:
         before = counter.read()
         t0 = time.perf_counter()
         proc = subprocess.run(
-            argv, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True, check=False
+            argv,
+            env=env,
+            cwd=self.bench.workdir,
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            text=True,
+            check=False,
         )
         seconds = time.perf_counter() - t0
         if proc.returncode != 0:
@@ -369,6 +375,8 @@ class Bench:
         }
         env["HOME"] = str(self.home.home)
         env["XDG_RUNTIME_DIR"] = str(self.runtime_dir)
+        # benchmark this checkout's fetchsync, whatever is installed or the current directory
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
         return env
 
     # ---------------------------------------------------------------------- masters
@@ -562,7 +570,7 @@ def _verdict(ok: bool) -> str:
 def machine_info() -> dict[str, str]:
     def first_line(argv: list[str]) -> str:
         try:
-            out = subprocess.run(argv, capture_output=True, text=True, check=False)
+            out = subprocess.run(argv, capture_output=True, text=True, check=False, cwd=REPO)
             return (out.stdout or out.stderr).strip().splitlines()[0]
         except (OSError, IndexError):
             return "?"
@@ -590,6 +598,13 @@ def machine_info() -> dict[str, str]:
     }
 
 
+def _secs(cell: dict[str, Any]) -> str:
+    """The median, with the range when there was more than one run."""
+    if cell["n"] < 2:
+        return f"{cell['seconds']:.3f} s"
+    return f"{cell['seconds']:.3f} s ({cell['seconds_min']:.2f}–{cell['seconds_max']:.2f})"
+
+
 def _tables(
     rows: dict[str, Any], ours: str, theirs: str, failed: set[tuple[str, str]]
 ) -> list[str]:
@@ -605,8 +620,8 @@ def _tables(
         if "time_target" in row:
             target = f"≤ {row['time_target']:.1f}x {_verdict(row['time_pass'])}"
         out.append(
-            f"| {row['title']} | {row[ours]['seconds']:.3f} s{mark(scenario, ours)} | "
-            f"{row[theirs]['seconds']:.3f} s{mark(scenario, theirs)} | "
+            f"| {row['title']} | {_secs(row[ours])}{mark(scenario, ours)} | "
+            f"{_secs(row[theirs])}{mark(scenario, theirs)} | "
             f"{_ratio(row['time_ratio'])} | {target} |"
         )
     out += [
@@ -660,8 +675,7 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
         "",
         (
             "Wall time of `fetchsync push` (as installed: its connection master persists "
-            "between calls) "
-            "and of rsync"
+            "between calls) and of rsync: median (min–max)"
         ),
         "",
     ]
