@@ -41,6 +41,34 @@ class Connection:
         self._next_id = 1
         self._pending: dict[int, wire.Frame] = {}
         self._lock = threading.Lock()
+        # responses are read as they come, whatever the main thread is doing:
+        # a client that writes a long pipeline before reading would otherwise
+        # deadlock with an endpoint blocked on writing its first answer
+        self._arrived = threading.Condition()
+        self._failure: BaseException | None = None
+        self._reader = threading.Thread(target=self._read_loop, name="fetchsync-reader", daemon=True)
+        self._reader.start()
+
+    def _read_loop(self) -> None:
+        failure: BaseException
+        try:
+            while True:
+                frame = self.reader.read_frame()
+                if frame is None:
+                    failure = LinkLostError(f"the fetchsync endpoint on {self.transport.name} went away")
+                    break
+                with self._arrived:
+                    self._pending[frame.req_id] = frame
+                    self._arrived.notify_all()
+        except EOFError:
+            failure = LinkLostError(f"the connection to {self.transport.name} ended mid-request")
+        except (ProtocolError, LinkLostError) as exc:
+            failure = exc
+        except Exception as exc:  # anything else from the transport ends the session, reported
+            failure = LinkLostError(f"the connection to {self.transport.name} failed: {exc}")
+        with self._arrived:
+            self._failure = failure
+            self._arrived.notify_all()
 
     @property
     def bytes_in(self) -> int:
@@ -135,15 +163,12 @@ class Connection:
         return req_id
 
     def wait(self, req_id: int) -> wire.Frame:
-        while req_id not in self._pending:
-            try:
-                frame = self.reader.read_frame()
-            except EOFError as exc:
-                raise LinkLostError(f"the connection to {self.transport.name} ended mid-request") from exc
-            if frame is None:
-                raise LinkLostError(f"the fetchsync endpoint on {self.transport.name} went away")
-            self._pending[frame.req_id] = frame
-        frame = self._pending.pop(req_id)
+        with self._arrived:
+            while req_id not in self._pending:
+                if self._failure is not None:
+                    raise self._failure
+                self._arrived.wait()
+            frame = self._pending.pop(req_id)
         if frame.type == wire.T_ERROR:
             kind = frame.header.get("kind", "")
             message = str(frame.header.get("error", "unknown error"))

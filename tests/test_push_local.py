@@ -212,3 +212,20 @@ def test_first_push_onto_an_existing_robot_tree_uses_the_robots_signatures(env):
     # the robot's version was not seen by us before: it is kept
     kept = list((robot_ws(env) / ".fetchsync/conflicts").rglob("data.txt"))
     assert len(kept) == 1 and kept[0].read_text() == old
+
+
+def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
+    # thousands of operations: the robot's answers fill a pipe buffer while
+    # the laptop is still writing requests
+    import subprocess
+    import sys
+    src = local_src(env)
+    for d in range(50):
+        (src / f"many{d}").mkdir()
+        for f in range(100):
+            (src / f"many{d}" / f"{f}.txt").write_bytes(os.urandom(64).hex().encode())
+    proc = subprocess.run([sys.executable, "-m", "fetchsync", "push", "--json"], env=env,
+                          capture_output=True, timeout=90)
+    assert proc.returncode == 0, proc.stderr
+    assert report(proc)["files"] == 5005
+    assert tree_of(src) == tree_of(robot_ws(env) / "src")
