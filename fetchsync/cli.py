@@ -16,7 +16,12 @@ from typing import Any, Callable
 import click
 
 from fetchsync import __version__
+from fetchsync.commands.common import resolve as _resolve
+from fetchsync.commands.common import target_options
 from fetchsync.errors import FetchsyncError
+
+# verb -> "module:attribute" of its click command, imported only when used
+LAZY_COMMANDS: dict[str, str] = {}
 
 
 def _human(n: float) -> str:
@@ -25,25 +30,6 @@ def _human(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return f"{n:.1f} GiB"
-
-
-def target_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """The fetch_tools options every robot verb takes."""
-    opts = [
-        click.option("--robot", help="Robot host name (or 'local'). "
-                     "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI."),
-        click.option("--user", help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
-                     "the ssh config's User, $USER."),
-        click.option("--workspace", type=click.Path(file_okay=False),
-                     help="Local workspace. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, ~/$ROS_DISTRO."),
-        click.option("--remote-workspace", help="Workspace on the robot. Default: "
-                     "$FETCHSYNC_REMOTE_WORKSPACE, $FETCH_REMOTE_WORKSPACE, the local path under ~."),
-        click.option("--accept-host-key", metavar="SHA256:...",
-                     help="Accept the robot's host key with this fingerprint (shown when it is unknown)."),
-    ]
-    for opt in reversed(opts):
-        func = opt(func)
-    return func
 
 
 def sync_options(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -56,13 +42,6 @@ def sync_options(func: Callable[..., Any]) -> Callable[..., Any]:
     for opt in reversed(opts):
         func = opt(func)
     return func
-
-
-def _resolve(robot: str | None, user: str | None, workspace: str | None,
-             remote_workspace: str | None) -> Any:
-    from fetchsync.config import resolve_target
-    return resolve_target(robot=robot, user=user, workspace=workspace,
-                          remote_workspace=remote_workspace, defer_ssh_user=True)
 
 
 class _Progress:
@@ -127,6 +106,17 @@ def _print_report(report: Any, as_json: bool) -> None:
 
 
 class _Group(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(LAZY_COMMANDS))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in LAZY_COMMANDS and name not in self.commands:
+            import importlib
+            module, attr = LAZY_COMMANDS[name].split(":")
+            cmd = getattr(importlib.import_module(module), attr)
+            self.add_command(cmd, name)
+        return super().get_command(ctx, name)
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)

@@ -25,7 +25,14 @@ def robot_id(target: Target) -> str:
     return f"{target.user or ''}@{target.host}"
 
 
-def open_transport(target: Target, *, accept_fingerprint: str | None = None) -> Transport:
+def open_transport(target: Target, *, accept_fingerprint: str | None = None,
+                   persistent: bool = True) -> Transport:
+    """A transport to the target's robot.
+
+    ``persistent`` goes through (or leaves behind) a connection master; pass
+    False for commands that need a PTY or an environment, which only a direct
+    SSH connection runs.
+    """
     if target.is_local:
         home = local_robot_home()
         remote = target.remote_workspace
@@ -37,7 +44,7 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None) -> 
         return LocalTransport(home)
     from fetchsync.agent import mux
 
-    persist = mux.persist_seconds() > 0
+    persist = persistent and mux.persist_seconds() > 0
     path = mux.socket_path(target.host, target.user) if persist else None
     if path is not None:
         attached = mux.MuxTransport.attach(path, target.robot)
