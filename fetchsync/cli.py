@@ -21,7 +21,9 @@ from fetchsync.commands.common import target_options
 from fetchsync.errors import FetchsyncError
 
 # verb -> "module:attribute" of its click command, imported only when used
-LAZY_COMMANDS: dict[str, str] = {}
+LAZY_COMMANDS: dict[str, str] = {
+    "shell-init": "fetchsync.commands.shell_init:command",
+}
 
 
 def _human(n: float) -> str:
