@@ -22,6 +22,8 @@ from fetchsync.errors import FetchsyncError
 
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
+    "create-account": "fetchsync.commands.create_account:command",
+    "lint": "fetchsync.commands.lint:command",
     "shell-init": "fetchsync.commands.shell_init:command",
 }
 

@@ -152,12 +152,13 @@ class Connection:
                             + (f": {last}" if last else f" (exit status {status})"))
 
     # ------------------------------------------------------------------ requests
-    def send(self, header: dict[str, Any], blob: bytes = b"") -> int:
+    def send(self, header: dict[str, Any], blob: bytes = b"", *, packed_blob: bool = False) -> int:
+        """Send a request; ``packed_blob`` says the blob carries its own compression."""
         with self._lock:
             req_id = self._next_id
             self._next_id += 1
         data = wire.encode_frame(wire.Frame(wire.T_REQUEST, req_id, header, blob),
-                                 compress=self.compress)
+                                 compress=self.compress, compress_blob=not packed_blob)
         self.channel.send_all(data)
         self.bytes_out += len(data)
         return req_id

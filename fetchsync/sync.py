@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -19,7 +20,7 @@ from fetchsync.connection import Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
 from fetchsync.protocol import delta as delta_mod
-from fetchsync.protocol import hashing
+from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.ignore import IgnoreRules
 from fetchsync.protocol.store import Store, is_temp
@@ -98,24 +99,55 @@ class LocalTree:
     items: dict[str, M.Listed]
     stats: dict[str, Entry]
     skipped: list[tuple[str, str]]
+    unhashed: set[str] = field(default_factory=set)   # new files whose hash nobody needed yet
+
+    def hash_where_needed(self, root: str, remote: dict[str, M.Listed], algorithm: str) -> None:
+        """Hash the new files the robot could hold already: at the same path, or the same size
+        elsewhere (content to reuse). The others are hashed as they are read to be sent."""
+        if not self.unhashed:
+            return
+        sizes = {r.size for r in remote.values() if r.kind == "f"}
+        for path in sorted(self.unhashed):
+            item = self.items[path]
+            if path not in remote and item.size not in sizes:
+                continue
+            try:
+                with open(os.path.join(root, path), "rb") as fh:
+                    digest = hashing.file_digest(algorithm, fh).hex()
+            except OSError as exc:
+                self.skipped.append((path, f"cannot read: {exc.strerror}"))
+                del self.items[path]
+                self.stats.pop(path, None)
+            else:
+                self.items[path] = M.Listed(path, "f", item.mode, item.size, hash=digest)
+            self.unhashed.discard(path)
 
 
 def _racy(entry: Entry, now_ns: int) -> bool:
     return now_ns - entry.mtime_ns < RACY_NS
 
 
-def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str) -> LocalTree:
-    """The local tree with content hashes; the state vouches for files whose stat is unchanged."""
+def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str, *,
+               lazy: bool = False) -> LocalTree:
+    """The local tree with content hashes; the state vouches for files whose stat is unchanged.
+
+    With ``lazy``, files the state does not know are left unhashed (hash ``""``,
+    listed in ``unhashed``) for :meth:`LocalTree.hash_where_needed`.
+    """
     result = scan(root, rules, is_temp=is_temp)
     items: dict[str, M.Listed] = {}
     stats: dict[str, Entry] = {}
     skipped = list(result.skipped)
+    unhashed: set[str] = set()
     for path, e in result.entries.items():
         if e.kind == "f":
             s = synced.get(path)
             if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
                     and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
                 digest = s.hash
+            elif lazy:
+                digest = ""
+                unhashed.add(path)
             else:
                 try:
                     with open(os.path.join(root, path), "rb") as fh:
@@ -129,7 +161,7 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
         else:
             items[path] = M.Listed(path, "d", e.mode)
         stats[path] = e
-    return LocalTree(items, stats, skipped)
+    return LocalTree(items, stats, skipped, unhashed)
 
 
 def read_stable(full: str, *, tries: int = 3) -> tuple[bytes, Entry]:
@@ -170,45 +202,73 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 
 # --------------------------------------------------------------------------- batching
+_PACKERS: ThreadPoolExecutor | None = None
+
+
+def _packer() -> ThreadPoolExecutor:
+    """Threads that compress file data while the main thread reads the next files
+    (zlib releases the GIL)."""
+    global _PACKERS
+    if _PACKERS is None:
+        _PACKERS = ThreadPoolExecutor(max_workers=max(1, min(4, (os.cpu_count() or 2) - 1)),
+                                      thread_name_prefix="fetchsync-pack")
+    return _PACKERS
+
+
 class _Batcher:
-    """Packs operations into pipelined requests; collects results in order."""
+    """Packs operations into pipelined requests; collects results in order.
+
+    Each file's data is compressed on its own, and only when a sample shows it
+    shrinks, so meshes and archives cost no compression time.
+    """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
                  total: int) -> None:
         self.conn = conn
         self.header = header
-        self.ops: list[dict[str, Any]] = []
+        self.items: list[tuple[M.Op, Future[tuple[bytes, bool]] | None]] = []
         self.tags: list[Any] = []
-        self.blob: list[bytes] = []
-        self.blob_len = 0
+        self.raw_len = 0
         self.sent: list[tuple[int, list[Any]]] = []
         self.progress = progress
         self.total = total
         self.done = 0
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        if data:
-            op = M.Op(**{**op.__dict__, "blob": (self.blob_len, len(data))})
-            self.blob.append(data)
-            self.blob_len += len(data)
-        self.ops.append(op.to_wire())
+        packed = _packer().submit(wire.pack, data) if data and self.conn.compress else None
+        if data and packed is None:
+            done: Future[tuple[bytes, bool]] = Future()
+            done.set_result((data, False))
+            packed = done
+        self.items.append((op, packed))
         self.tags.append(tag)
-        if self.blob_len >= BATCH_BYTES or len(self.ops) >= BATCH_OPS:
+        self.raw_len += len(data)
+        if self.raw_len >= BATCH_BYTES or len(self.items) >= BATCH_OPS:
             self.flush()
 
     def flush(self, **extra: Any) -> None:
-        if not self.ops and not extra:
+        if not self.items and not extra:
             return
-        header = dict(self.header, op="sync", ops=self.ops, **extra)
+        ops: list[dict[str, Any]] = []
+        blob: list[bytes] = []
+        pos = 0
+        for op, packed in self.items:
+            if packed is not None:
+                data, z = packed.result()
+                op = M.Op(**{**op.__dict__, "blob": (pos, len(data)), "z": int(z)})
+                blob.append(data)
+                pos += len(data)
+            ops.append(op.to_wire())
+        header = dict(self.header, op="sync", ops=ops, **extra)
         # each batch applied moves the robot's generation on by one: batch k
         # of this round may apply only if nobody else wrote in between
         header["gen"] = self.header["gen"] + len(self.sent)
-        req = self.conn.send(header, b"".join(self.blob))
+        req = self.conn.send(header, b"".join(blob), packed_blob=True)
         self.sent.append((req, self.tags))
-        self.done += self.blob_len
+        self.done += self.raw_len
         if self.progress is not None:
             self.progress(self.done, self.total)
-        self.ops, self.tags, self.blob, self.blob_len = [], [], [], 0
+        self.items, self.tags, self.raw_len = [], [], 0
 
     def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any], bool]:
         """Results of every batch that applied, the last answer, and whether one was refused
@@ -262,13 +322,14 @@ class Syncer:
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
-        local = scan_local(self.local_root, self.rules, synced, self.algorithm)
-        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
+        local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header
         remote = self._apply_listing(listing, synced)
         epoch, gen = listing["epoch"], listing["gen"]
+        local.hash_where_needed(self.local_root, remote, self.algorithm)
+        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
         checked = True  # remote holds what the robot reported just now
         signed = self.state.signed_paths()
         robot_sigs: dict[str, bytes] = {}
@@ -398,7 +459,7 @@ class Syncer:
             return
         full = os.path.join(self.local_root, op.path)
         if op.size > BIG:
-            self._send_big(batcher, p, full, report)
+            self._send_big(batcher, p, full, report, local)
             return
         try:
             data, entry = read_stable(full)
@@ -411,6 +472,7 @@ class Syncer:
             op = M.Op(**{**op.__dict__, "hash": digest, "size": len(data), "source": M.SRC_DATA,
                          "base": ""})
             p = Planned(op, WHOLE, M.Listed(op.path, "f", entry.mode, len(data), hash=digest))
+            local.items[op.path] = p.item  # type: ignore[assignment]
         local.stats[op.path] = entry
         sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if len(data) >= SIG_MIN else None
         if p.how == DELTA:
@@ -424,7 +486,8 @@ class Syncer:
             p = Planned(op, WHOLE, p.item)
         batcher.add(op, data, tag=(p, sig))
 
-    def _send_big(self, batcher: _Batcher, p: Planned, full: str, report: Report) -> None:
+    def _send_big(self, batcher: _Batcher, p: Planned, full: str, report: Report,
+                  local: LocalTree) -> None:
         """A large file travels in pieces to the robot's upload area, then is renamed into place."""
         upload = os.urandom(8).hex()
         h = hashing.new(self.algorithm)
@@ -453,6 +516,9 @@ class Syncer:
                      "hash": h.digest().hex(), "size": offset})
         entry = entry_from_stat(after)
         item = M.Listed(op.path, "f", p.op.mode, offset, hash=op.hash)
+        local.items[op.path] = item
+        if entry is not None:
+            local.stats[op.path] = entry
         batcher.add(op, tag=(Planned(op, WHOLE, item), None))
 
     def _settle(self, tag: Any, res: M.Result, remote: dict[str, M.Listed], new_synced: dict[str, Synced],

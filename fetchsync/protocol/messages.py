@@ -83,6 +83,7 @@ class Op:
     from_path: str = ""            # WRITE from copy
     blob: Tuple[int, int] = (0, 0)  # (offset, length) in the request's blob
     upload: str = ""               # WRITE from upload / UPLOAD: the upload id
+    z: int = 0                     # 1: the blob is zlib-compressed
 
     def validate(self) -> Op:
         if self.kind not in OP_KINDS:
@@ -97,6 +98,7 @@ class Op:
             if self.expect is None:
                 raise ProtocolError("%s of %r has no expectation" % (self.kind, self.path))
         _check_int("mode", self.mode, 0, 0o7777)
+        _check_int("z", self.z, 0, 1)
         off, length = self.blob
         _check_int("blob offset", off)
         _check_int("blob length", length)
@@ -140,6 +142,8 @@ class Op:
             out["bl"] = list(self.blob)
         if self.upload:
             out["u"] = self.upload
+        if self.z:
+            out["z"] = self.z
         return out
 
     @classmethod
@@ -153,7 +157,7 @@ class Op:
             op = cls(kind=obj["k"], path=obj.get("p", ""), expect=obj.get("e"), mode=obj.get("m", 0),
                      target=obj.get("t", ""), hash=obj.get("h", ""), size=obj.get("s", 0),
                      source=obj.get("src", ""), base=obj.get("b", ""), from_path=obj.get("fp", ""),
-                     blob=(blob[0], blob[1]), upload=obj.get("u", ""))
+                     blob=(blob[0], blob[1]), upload=obj.get("u", ""), z=obj.get("z", 0))
         except KeyError as exc:
             raise ProtocolError("operation lacks %s" % exc)
         for name in ("path", "target", "hash", "source", "base", "from_path", "upload"):

@@ -35,7 +35,7 @@ import uuid
 from typing import Any, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import delta as delta_mod
-from fetchsync.protocol import hashing, paths
+from fetchsync.protocol import hashing, paths, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
 from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, scan, stat_path
@@ -61,6 +61,15 @@ def _temp_name(final_name: str) -> str:
 
 
 _libc = None
+_WRITERS = None  # type: Any
+
+
+def _writers() -> Any:
+    global _WRITERS
+    if _WRITERS is None:
+        from concurrent.futures import ThreadPoolExecutor
+        _WRITERS = ThreadPoolExecutor(max_workers=4)
+    return _WRITERS
 
 
 def syncfs(fd: int) -> None:
@@ -355,8 +364,11 @@ class Store:
             pass
         try:
             results = [batch.run(op) for op in ops]
+            batch.finish_writes(results)
             batch.commit(results)
         finally:
+            for fut, _idx, _op, _tmp in batch.writes:
+                fut.exception()  # let every writer finish before cleaning up
             batch.cleanup()
             try:
                 os.unlink(marker)
@@ -445,13 +457,18 @@ class _Batch:
         self.blob = blob
         self.policy = policy
         self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
+        self.writes = []  # type: List[Tuple[Any, int, M.Op, str]]  # (future, result index, op, tmp)
         self.n = 0
 
     def _blob(self, op: M.Op) -> bytes:
         off, length = op.blob
         if off + length > len(self.blob):
             raise ProtocolError("operation on %r points past the request's data" % op.path)
-        return self.blob[off:off + length]
+        raw = self.blob[off:off + length]
+        if op.z:
+            limit = op.size if op.kind == M.WRITE and op.source == M.SRC_DATA else wire.MAX_BODY
+            return wire.inflate(raw, limit)
+        return raw
 
     def run(self, op: M.Op) -> M.Result:
         idx = self.n
@@ -550,10 +567,37 @@ class _Batch:
         tmp = os.path.join(parent_dir, _temp_name(os.path.basename(full)))
         if op.kind == M.SYMLINK:
             os.symlink(op.target, tmp)
-        else:
+        elif op.source == M.SRC_UPLOAD:
             self._write_file(op, cur, tmp)
+        else:
+            # the temporaries of a batch are independent (renames come later,
+            # in order), and creating, inflating and hashing release the GIL
+            self.writes.append((_writers().submit(self._write_file, op, cur, tmp), idx, op, tmp))
         self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
         return M.Result(preserved=preserved)
+
+    def finish_writes(self, results: List[M.Result]) -> None:
+        """Wait for the temporaries being written; a failed one becomes its op's result."""
+        failed = set()
+        for fut, idx, op, tmp in self.writes:
+            exc = fut.exception()
+            if exc is None:
+                continue
+            failed.add(idx)
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            if isinstance(exc, DeltaError):
+                results[idx] = M.Result(M.BASE_MISMATCH, "delta does not apply: %s" % exc)
+            elif isinstance(exc, OSError):
+                code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
+                results[idx] = M.Result(code, "%s: %s" % (op.path, exc.strerror or exc))
+            else:
+                results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
+        self.writes = []
+        if failed:
+            self.renames = [r for r in self.renames if r[3] not in failed]
 
     def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str) -> None:
         s = self.s

@@ -34,7 +34,8 @@ MAX_FRAME = 64 * 1024 * 1024       # compressed or not, on the wire
 MAX_BODY = 96 * 1024 * 1024        # after decompression
 MAX_HEADER = 32 * 1024 * 1024
 
-FLAG_ZLIB = 0x01
+FLAG_ZLIB = 0x01   # the whole body is zlib-compressed
+FLAG_ZHEAD = 0x02  # only the JSON header is (the blob carries its own compression)
 
 # frame types
 T_REQUEST = 1
@@ -59,11 +60,17 @@ def _json_default(obj: Any) -> Any:
     raise TypeError("not JSON-serialisable: %r" % type(obj))
 
 
-def encode_frame(frame: Frame, *, compress: bool = False, level: int = 1) -> bytes:
+def encode_frame(frame: Frame, *, compress: bool = False, compress_blob: bool = True,
+                 level: int = 1) -> bytes:
     head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
-    body = b"".join((_U32.pack(len(head)), head, frame.blob))
     flags = 0
-    if compress and len(body) >= COMPRESS_MIN:
+    if compress and not compress_blob and len(head) >= COMPRESS_MIN:
+        packed_head = zlib.compress(head, level)
+        if len(packed_head) < len(head):
+            head = packed_head
+            flags |= FLAG_ZHEAD
+    body = b"".join((_U32.pack(len(head)), head, frame.blob))
+    if compress and compress_blob and len(body) >= COMPRESS_MIN:
         packed = zlib.compress(body, level)
         if len(packed) < len(body):
             body = packed
@@ -74,7 +81,7 @@ def encode_frame(frame: Frame, *, compress: bool = False, level: int = 1) -> byt
 
 
 def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
-    if flags & ~FLAG_ZLIB:
+    if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
         raise ProtocolError("unknown frame flags 0x%02x" % flags)
     if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
         raise ProtocolError("unknown frame type %d" % ftype)
@@ -91,13 +98,39 @@ def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
     (hlen,) = _U32.unpack_from(body)
     if hlen > MAX_HEADER or 4 + hlen > len(body):
         raise ProtocolError("frame header length %d is out of range" % hlen)
+    raw_head = body[4:4 + hlen]
+    if flags & FLAG_ZHEAD:
+        raw_head = inflate(raw_head, MAX_HEADER)
     try:
-        header = json.loads(body[4:4 + hlen].decode("utf-8"))
+        header = json.loads(raw_head.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProtocolError("frame header is not JSON: %s" % exc)
     if not isinstance(header, dict):
         raise ProtocolError("frame header is not an object")
     return Frame(ftype, req_id, header, body[4 + hlen:])
+
+
+def inflate(data: bytes, limit: int) -> bytes:
+    """zlib-decompress ``data``, refusing output over ``limit`` bytes or a truncated stream."""
+    try:
+        d = zlib.decompressobj()
+        out = d.decompress(data, limit)
+        if d.unconsumed_tail or not d.eof:
+            raise ProtocolError("compressed data is truncated or over %d bytes" % limit)
+    except zlib.error as exc:
+        raise ProtocolError("corrupt compressed data: %s" % exc)
+    return out
+
+
+def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
+    """``data`` zlib-compressed when a sample shows it shrinks, and whether it was."""
+    if len(data) < COMPRESS_MIN:
+        return data, False
+    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:][:16384]
+    if len(zlib.compress(sample, level)) > 0.9 * len(sample):
+        return data, False  # already compressed (meshes, images, archives): do not waste time
+    packed = zlib.compress(data, level)
+    return (packed, True) if len(packed) < len(data) else (data, False)
 
 
 class Reader:
