@@ -196,8 +196,9 @@ def lint(target: str, *, workspace: str | os.PathLike[str] | None = None,
          tools: Iterable[str] = TOOLS, max_line_length: int = DEFAULT_MAX_LINE_LENGTH,
          environ: Mapping[str, str] = os.environ) -> LintReport:
     """Lint a file, a directory or a workspace package with the chosen tools."""
-    chosen = [t for t in TOOLS if t in set(tools)]
-    unknown = set(tools) - set(TOOLS)
+    wanted = set(tools)
+    chosen = [t for t in TOOLS if t in wanted]
+    unknown = wanted - set(TOOLS)
     if unknown:
         raise UsageError(f"unknown tool {min(unknown)!r}; choose from {', '.join(TOOLS)}")
     found = resolve_targets(target, workspace=workspace, environ=environ)
