@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
+import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -202,45 +204,39 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 
 # --------------------------------------------------------------------------- batching
-_PACKERS: ThreadPoolExecutor | None = None
-
-
-def _packer() -> ThreadPoolExecutor:
-    """Threads that compress file data while the main thread reads the next files
-    (zlib releases the GIL)."""
-    global _PACKERS
-    if _PACKERS is None:
-        _PACKERS = ThreadPoolExecutor(max_workers=max(1, min(4, (os.cpu_count() or 2) - 1)),
-                                      thread_name_prefix="fetchsync-pack")
-    return _PACKERS
+SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
 
 
 class _Batcher:
     """Packs operations into pipelined requests; collects results in order.
 
-    Each file's data is compressed on its own, and only when a sample shows it
-    shrinks, so meshes and archives cost no compression time.
+    The main thread reads files and adds operations; a sender thread packs
+    each batch (the compressible data as one zlib stream, the rest, such as
+    meshes and archives, raw) and sends it, while the robot applies the
+    previous one.
     """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
                  total: int) -> None:
         self.conn = conn
         self.header = header
-        self.items: list[tuple[M.Op, Future[tuple[bytes, bool]] | None]] = []
+        self.items: list[tuple[M.Op, bytes, bool]] = []
         self.tags: list[Any] = []
         self.raw_len = 0
+        self.batches = 0
         self.sent: list[tuple[int, list[Any]]] = []
         self.progress = progress
         self.total = total
         self.done = 0
+        self._queue: queue.Queue[tuple[dict[str, Any], list[tuple[M.Op, bytes, bool]], list[Any]] | None] \
+            = queue.Queue(maxsize=2)
+        self._sender: threading.Thread | None = None
+        self._failure: BaseException | None = None
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        packed = _packer().submit(wire.pack, data) if data and self.conn.compress else None
-        if data and packed is None:
-            done: Future[tuple[bytes, bool]] = Future()
-            done.set_result((data, False))
-            packed = done
-        self.items.append((op, packed))
+        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.pack(
+            data[:16384] + data[len(data) // 2:][:16384])[1])
+        self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
         if self.raw_len >= BATCH_BYTES or len(self.items) >= BATCH_OPS:
@@ -249,30 +245,70 @@ class _Batcher:
     def flush(self, **extra: Any) -> None:
         if not self.items and not extra:
             return
-        ops: list[dict[str, Any]] = []
-        blob: list[bytes] = []
-        pos = 0
-        for op, packed in self.items:
-            if packed is not None:
-                data, z = packed.result()
-                op = M.Op(**{**op.__dict__, "blob": (pos, len(data)), "z": int(z)})
-                blob.append(data)
-                pos += len(data)
-            ops.append(op.to_wire())
-        header = dict(self.header, op="sync", ops=ops, **extra)
+        header = dict(self.header, op="sync", **extra)
         # each batch applied moves the robot's generation on by one: batch k
         # of this round may apply only if nobody else wrote in between
-        header["gen"] = self.header["gen"] + len(self.sent)
-        req = self.conn.send(header, b"".join(blob), packed_blob=True)
-        self.sent.append((req, self.tags))
-        self.done += self.raw_len
+        header["gen"] = self.header["gen"] + self.batches
+        self.batches += 1
+        if self._sender is None:
+            self._sender = threading.Thread(target=self._send_loop, name="fetchsync-sender", daemon=True)
+            self._sender.start()
+        if self._failure is None:
+            self._queue.put((header, self.items, self.tags))
+        self.items, self.tags, self.raw_len = [], [], 0
+
+    def _send_loop(self) -> None:
+        while True:
+            job = self._queue.get()
+            if job is None:
+                return
+            if self._failure is not None:
+                continue
+            header, items, tags = job
+            try:
+                self._send(header, items, tags)
+            except BaseException as exc:  # re-raised in results(), on the main thread
+                self._failure = exc
+
+    def _send(self, header: dict[str, Any], items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> None:
+        ops: list[dict[str, Any]] = []
+        packed: list[bytes] = []
+        raw: list[bytes] = []
+        zpos = rpos = nbytes = 0
+        for op, data, z in items:
+            if data:
+                nbytes += len(data)
+                if z:
+                    op = M.Op(**{**op.__dict__, "blob": (zpos, len(data)), "z": 1})
+                    packed.append(data)
+                    zpos += len(data)
+                else:
+                    op = M.Op(**{**op.__dict__, "blob": (rpos, len(data))})
+                    raw.append(data)
+                    rpos += len(data)
+            ops.append(op.to_wire())
+        zpart = zlib.compress(b"".join(packed), 1) if packed else b""
+        header = dict(header, ops=ops)
+        if zpart:
+            header["zpart"] = [len(zpart), zpos]
+        req = self.conn.send(header, zpart + b"".join(raw), packed_blob=True)
+        self.sent.append((req, tags))
+        self.done += nbytes
         if self.progress is not None:
             self.progress(self.done, self.total)
-        self.items, self.tags, self.raw_len = [], [], 0
+
+    def _drain(self) -> None:
+        if self._sender is not None:
+            self._queue.put(None)
+            self._sender.join()
+            self._sender = None
+        if self._failure is not None:
+            raise self._failure
 
     def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any], bool]:
         """Results of every batch that applied, the last answer, and whether one was refused
         as stale (someone else wrote to the robot meanwhile; later batches are refused too)."""
+        self._drain()
         out: list[tuple[Any, M.Result]] = []
         last: dict[str, Any] = {}
         stale = False

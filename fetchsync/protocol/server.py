@@ -146,7 +146,7 @@ class Server:
         policy = h.get("policy", "preserve")
         if policy not in ("preserve", "refuse"):
             raise ProtocolError("unknown conflict policy %r" % (policy,))
-        results = store.apply(ops, blob, policy=policy)
+        results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"))
         out = {"results": [r.to_wire() for r in results], "epoch": store.epoch,
                "gen": store.gen}  # type: Dict[str, Any]
         if h.get("verify"):

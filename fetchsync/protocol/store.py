@@ -356,9 +356,24 @@ class Store:
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
 
     # ------------------------------------------------------------------ writing
-    def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve") -> List[M.Result]:
-        """Apply ``ops`` in order; one result each. Per-file failures are results."""
+    def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
+              zpart: Optional[List[int]] = None) -> List[M.Result]:
+        """Apply ``ops`` in order; one result each. Per-file failures are results.
+
+        ``zpart`` = [compressed length, length] says the blob starts with one
+        zlib stream, which operations flagged ``z`` address once inflated.
+        """
+        packed = b""
+        if zpart is not None:
+            if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
+                    and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
+                raise ProtocolError("bad compressed-part reference")
+            packed = wire.inflate(blob[:zpart[0]], zpart[1])
+            if len(packed) != zpart[1]:
+                raise ProtocolError("compressed part has the wrong length")
+            blob = blob[zpart[0]:]
         batch = _Batch(self, blob, policy)
+        batch.zpart = packed
         marker = os.path.join(self.meta, "batch-in-progress")
         with open(marker, "wb"):
             pass
@@ -458,17 +473,18 @@ class _Batch:
         self.policy = policy
         self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
         self.writes = []  # type: List[Tuple[Any, int, M.Op, str]]  # (future, result index, op, tmp)
+        self.zpart = b""
         self.n = 0
 
     def _blob(self, op: M.Op) -> bytes:
         off, length = op.blob
-        if off + length > len(self.blob):
+        if not op.z and off + length > len(self.blob):
             raise ProtocolError("operation on %r points past the request's data" % op.path)
-        raw = self.blob[off:off + length]
         if op.z:
-            limit = op.size if op.kind == M.WRITE and op.source == M.SRC_DATA else wire.MAX_BODY
-            return wire.inflate(raw, limit)
-        return raw
+            if off + length > len(self.zpart):
+                raise ProtocolError("operation on %r points past the request's data" % op.path)
+            return self.zpart[off:off + length]
+        return self.blob[off:off + length]
 
     def run(self, op: M.Op) -> M.Result:
         idx = self.n

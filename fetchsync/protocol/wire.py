@@ -127,8 +127,8 @@ def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
     if len(data) < COMPRESS_MIN:
         return data, False
     sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:][:16384]
-    if len(zlib.compress(sample, level)) > 0.9 * len(sample):
-        return data, False  # already compressed (meshes, images, archives): do not waste time
+    if len(zlib.compress(sample, level)) > 0.95 * len(sample):
+        return data, False  # already compressed (images, archives, bags): do not waste time
     packed = zlib.compress(data, level)
     return (packed, True) if len(packed) < len(data) else (data, False)
 

@@ -1,0 +1,155 @@
+"""The filesystem endpoint's rules, one test each (no transport involved)."""
+
+from __future__ import annotations
+
+import os
+import zlib
+from pathlib import Path
+
+import pytest
+
+from fetchsync.protocol import hashing, wire
+from fetchsync.protocol import messages as M
+from fetchsync.protocol.errors import ProtocolError
+from fetchsync.protocol.store import TRASH_KEEP_BATCHES, Store
+
+ALG = "blake2b-128"
+
+
+def h(data: bytes) -> str:
+    return hashing.digest(ALG, data).hex()
+
+
+def write(path: str, data: bytes, *, expect: str = M.ABSENT, at: int = 0) -> M.Op:
+    return M.Op(M.WRITE, path, expect=expect, mode=0o644, hash=h(data), size=len(data),
+                source=M.SRC_DATA, blob=(at, len(data)))
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> Store:
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    yield s
+    s.unlock()
+
+
+def src(store: Store) -> Path:
+    return Path(store.root)
+
+
+def test_write_lands_whole_and_leaves_no_temporary(store):
+    [r] = store.apply([write("a.txt", b"hello")], b"hello")
+    assert r.ok and (src(store) / "a.txt").read_bytes() == b"hello"
+    assert M.Listed.from_wire(r.written).hash == h(b"hello")
+    assert [p.name for p in src(store).iterdir()] == ["a.txt"]
+
+
+def test_content_not_matching_its_hash_is_refused(store):
+    op = M.Op(M.WRITE, "a.txt", expect=M.ABSENT, hash=h(b"other"), size=5, source=M.SRC_DATA, blob=(0, 5))
+    [r] = store.apply([op], b"hello")
+    assert not r.ok and not (src(store) / "a.txt").exists()
+
+
+def test_a_file_changed_here_is_kept_in_conflicts_before_replacement(store):
+    store.apply([write("a.txt", b"v1")], b"v1")
+    (src(store) / "a.txt").write_bytes(b"edited on the robot")
+    [r] = store.apply([write("a.txt", b"v2", expect=M.expect_file(h(b"v1")))], b"v2")
+    assert r.ok and r.preserved
+    assert (src(store) / "a.txt").read_bytes() == b"v2"
+    assert (Path(store.workspace) / r.preserved).read_bytes() == b"edited on the robot"
+
+
+def test_refuse_policy_leaves_the_robot_version(store):
+    store.apply([write("a.txt", b"v1")], b"v1")
+    (src(store) / "a.txt").write_bytes(b"edited")
+    [r] = store.apply([write("a.txt", b"v2", expect=M.expect_file(h(b"v1")))], b"v2", policy="refuse")
+    assert r.code == M.CONFLICT and (src(store) / "a.txt").read_bytes() == b"edited"
+
+
+def test_deleted_files_go_to_a_bounded_trash(store):
+    for i in range(TRASH_KEEP_BATCHES + 5):
+        data = b"gen %d" % i
+        store.apply([write("x.txt", data)], data)
+        store.apply([M.Op(M.DELETE, "x.txt", expect=M.expect_file(h(data)))], b"")
+    batches = list((Path(store.meta) / "trash").iterdir())
+    assert len(batches) == TRASH_KEEP_BATCHES
+    assert not (src(store) / "x.txt").exists()
+
+
+def test_files_edited_here_inside_a_deleted_directory_are_kept_apart_from_the_trash(store):
+    store.apply([M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o755), write("d/a", b"a")], b"a")
+    (src(store) / "d" / "a").write_bytes(b"robot work")
+    [r] = store.apply([M.Op(M.DELETE, "d", expect=M.IS_DIR)], b"")
+    assert r.ok and not (src(store) / "d").exists()
+    kept = list((Path(store.meta) / "conflicts").rglob("a"))
+    assert [k.read_bytes() for k in kept] == [b"robot work"]
+
+
+def test_no_write_through_a_symlinked_directory(store, tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    os.symlink(outside, src(store) / "link")
+    [r] = store.apply([write("link/evil", b"x")], b"x")
+    assert r.code == M.PATH_ERROR and not (outside / "evil").exists()
+
+
+@pytest.mark.parametrize("path", ["../escape", "/etc/passwd", "a/../../b"])
+def test_paths_out_of_the_root_are_protocol_errors(store, path):
+    with pytest.raises(ProtocolError):
+        M.Op.from_wire({"k": "write", "p": path, "e": "-", "h": "00", "s": 1, "src": "data", "bl": [0, 1]})
+
+
+def test_delta_against_the_wrong_base_is_a_base_mismatch(store):
+    store.apply([write("a.txt", b"v1")], b"v1")
+    op = M.Op(M.WRITE, "a.txt", expect=M.expect_file(h(b"v1")), hash=h(b"v2"), size=2,
+              source=M.SRC_DELTA, base=h(b"not v1"), blob=(0, 0))
+    [r] = store.apply([op], b"")
+    assert r.code == M.BASE_MISMATCH and (src(store) / "a.txt").read_bytes() == b"v1"
+
+
+def test_copy_reuses_content_held_here(store):
+    store.apply([write("a.txt", b"payload")], b"payload")
+    op = M.Op(M.WRITE, "b.txt", expect=M.ABSENT, hash=h(b"payload"), size=7, source=M.SRC_COPY,
+              base=h(b"payload"), from_path="a.txt")
+    [r] = store.apply([op], b"")
+    assert r.ok and (src(store) / "b.txt").read_bytes() == b"payload"
+
+
+def test_compressed_part_is_inflated_once_and_addressed(store):
+    data = b"text " * 1000
+    zpart = zlib.compress(data)
+    op = M.Op(**{**write("z.txt", data).__dict__, "z": 1})
+    [r] = store.apply([op], zpart, zpart=[len(zpart), len(data)])
+    assert r.ok and (src(store) / "z.txt").read_bytes() == data
+
+
+@pytest.mark.parametrize("zpart", [[10**9, 5], [0, wire.MAX_BODY + 1], "x", [1]])
+def test_bad_compressed_part_references_are_refused(store, zpart):
+    with pytest.raises(ProtocolError):
+        store.apply([], b"abc", zpart=zpart)
+
+
+def test_an_interrupted_batch_is_cleaned_up_on_next_open(tmp_path):
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    tmp = Path(s.root) / ".x.fetchsync-tmp-abcdef012345"
+    tmp.write_bytes(b"half")
+    (Path(s.meta) / "batch-in-progress").write_bytes(b"")
+    Store(str(tmp_path / "ws"), algorithm=ALG)
+    assert not tmp.exists()
+
+
+def test_drift_reports_edits_made_here_since_the_last_sync(store):
+    store.apply([write("a.txt", b"v1"), write("b.txt", b"b", at=2)], b"v1b")
+    (src(store) / "a.txt").write_bytes(b"robot edit")
+    (src(store) / "b.txt").unlink()
+    (src(store) / "new.txt").write_bytes(b"new")
+    changed, gone = store.drift()
+    assert sorted(c.path for c in changed) == ["a.txt", "new.txt"]
+    assert gone == ["b.txt"]
+
+
+def test_pack_skips_incompressible_data():
+    data, z = wire.pack(os.urandom(100000))
+    assert not z
+    data, z = wire.pack(b"abc" * 100000)
+    assert z and zlib.decompress(data) == b"abc" * 100000
