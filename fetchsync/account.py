@@ -125,7 +125,8 @@ class AccountRequest:
             "skeleton": [{"path": f.path, "type": f.kind, "mode": f.mode,
                           "data": base64.b64encode(f.data).decode("ascii")}
                          for f in (sk.files if sk else ())],
-            "init": base64.b64encode(sk.init).decode("ascii") if sk and sk.init is not None else None,
+            "init": (base64.b64encode(sk.init).decode("ascii")
+                     if sk is not None and sk.init is not None else None),
             "env": self.env,
         }
         return json.dumps(payload).encode("utf-8")
@@ -365,8 +366,11 @@ class AdminSession:
                               hint="log in as root: --admin-user root")
         if "not in the sudoers" in text or "not allowed" in text or "may not run sudo" in text:
             raise ConnectError(f"{who} may not use sudo", hint="pass --admin-user with an admin")
-        raise ConnectError(f"sudo refused the password of {who}",
-                           hint="check FETCHSYNC_ADMIN_PASSWORD or what you typed")
+        if "incorrect password" in text or "Sorry, try again" in text or "no password" in text:
+            raise ConnectError(f"sudo refused the password of {who}",
+                               hint="check FETCHSYNC_ADMIN_PASSWORD or what you typed")
+        detail = text.strip().splitlines()[-1] if text.strip() else f"exit {status}"
+        raise RemoteError(f"sudo failed for {who}: {detail}")
 
     def apply(self, request: AccountRequest, *, sudo_password: str | None,
               on_stderr: Callable[[bytes], None]) -> AccountReport:

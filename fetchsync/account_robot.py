@@ -31,7 +31,7 @@ import sys
 import tempfile
 import time
 import traceback
-from typing import Any, Dict, List
+from typing import Any
 
 RESULT_PREFIX = "FETCHSYNC-ACCOUNT-RESULT "
 STATE_DIR = ".fetchsync"
@@ -46,7 +46,7 @@ class Failure(Exception):
 
 
 def main() -> int:
-    result: Dict[str, Any] = {}
+    result: dict[str, Any] = {}
     try:
         line = sys.stdin.buffer.readline()
         request = json.loads(line.decode("utf-8"))
@@ -65,12 +65,12 @@ def main() -> int:
     return status
 
 
-def apply(request: Dict[str, Any]) -> Dict[str, Any]:
+def apply(request: dict[str, Any]) -> dict[str, Any]:
     """Create or repair the account described by ``request``; the result as a dict."""
     if os.geteuid() != 0:
         raise Failure("the account program is not running as root")
     name = request["user"]
-    result: Dict[str, Any] = {"user": name}
+    result: dict[str, Any] = {"user": name}
     try:
         entry = pwd.getpwnam(name)
     except KeyError:
@@ -113,11 +113,11 @@ def uid_min() -> int:
     return DEFAULT_UID_MIN
 
 
-def run(argv: List[str], *, stdin: bytes | None = None) -> None:
+def run(argv: list[str], *, stdin: bytes | None = None) -> None:
     """Run a system tool; raise Failure with its stderr (never its stdin) when it fails."""
     try:
         proc = subprocess.run(argv, input=stdin if stdin is not None else b"",
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_tool_env())
+                              capture_output=True, env=_tool_env(), check=False)
     except OSError as exc:
         raise Failure(f"cannot run {argv[0]} on the robot: {exc.strerror}") from None
     if proc.returncode != 0:
@@ -137,10 +137,11 @@ def create_user(name: str, fullname: str) -> None:
 
 def set_password(name: str, password: str) -> None:
     # chpasswd reads "name:password" lines on stdin: the secret stays off every command line.
-    run(["chpasswd"], stdin=f"{name}:{password}\n".encode("utf-8"))
+    run(["chpasswd"], stdin=f"{name}:{password}\n".encode())
 
 
-def add_groups(name: str, entry: pwd.struct_passwd, wanted: List[str]) -> tuple[List[str], List[str]]:
+def add_groups(name: str, entry: pwd.struct_passwd,
+               wanted: list[str]) -> tuple[list[str], list[str]]:
     """Add ``name`` to those of ``wanted`` that exist; (added, absent)."""
     added, absent = [], []
     for group in wanted:
@@ -167,7 +168,8 @@ def ensure_home(entry: pwd.struct_passwd) -> bool:
     return True
 
 
-def in_home_as(entry: pwd.struct_passwd, request: Dict[str, Any], *, overwrite: bool) -> Dict[str, Any]:
+def in_home_as(entry: pwd.struct_passwd, request: dict[str, Any], *,
+               overwrite: bool) -> dict[str, Any]:
     """Do the home-directory work in a child that has become the user; its result."""
     read_fd, write_fd = os.pipe()
     sys.stdout.flush()
@@ -175,7 +177,7 @@ def in_home_as(entry: pwd.struct_passwd, request: Dict[str, Any], *, overwrite: 
     pid = os.fork()
     if pid == 0:  # the child
         os.close(read_fd)
-        out: Dict[str, Any] = {}
+        out: dict[str, Any] = {}
         code = 0
         try:
             become(entry)
@@ -208,9 +210,10 @@ def become(entry: pwd.struct_passwd) -> None:
     os.chdir(entry.pw_dir)
 
 
-def furnish(entry: pwd.struct_passwd, request: Dict[str, Any], *, overwrite: bool) -> Dict[str, Any]:
+def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
+            overwrite: bool) -> dict[str, Any]:
     """As the user: key, skeleton, initialize.sh. Runs in the home directory."""
-    out: Dict[str, Any] = {"key": install_key(request.get("key"))}
+    out: dict[str, Any] = {"key": install_key(request.get("key"))}
     out["skeleton_added"] = copy_skeleton(request.get("skeleton") or [], overwrite=overwrite)
     init = request.get("init")
     if init is None:
@@ -257,7 +260,7 @@ def install_key(key: str | None) -> str:
     return "added"
 
 
-def copy_skeleton(entries: List[Dict[str, Any]], *, overwrite: bool) -> List[str]:
+def copy_skeleton(entries: list[dict[str, Any]], *, overwrite: bool) -> list[str]:
     """Create the skeleton's directories and files; existing files are replaced only
     with ``overwrite`` (a new account, whose files came from /etc/skel)."""
     added = []
@@ -296,7 +299,7 @@ def write_file(path: str, data: bytes, mode: int) -> None:
         raise
 
 
-def run_init(entry: pwd.struct_passwd, script: str, extra: Dict[str, str]) -> int:
+def run_init(entry: pwd.struct_passwd, script: str, extra: dict[str, str]) -> int:
     env = {
         "HOME": entry.pw_dir,
         "USER": entry.pw_name,
@@ -313,11 +316,11 @@ def run_init(entry: pwd.struct_passwd, script: str, extra: Dict[str, str]) -> in
     # Its output is progress for the user: stderr, so stdout carries only our result.
     proc = subprocess.run(["/bin/bash", script], cwd=entry.pw_dir, env=env,
                           stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(),
-                          stderr=sys.stderr.fileno())
+                          stderr=sys.stderr.fileno(), check=False)
     return proc.returncode
 
 
-def _tool_env() -> Dict[str, str]:
+def _tool_env() -> dict[str, str]:
     env = {"PATH": SAFE_PATH, "LC_ALL": "C"}
     return env
 

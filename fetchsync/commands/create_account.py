@@ -77,7 +77,8 @@ def _remote_workspace(option: str | None) -> str | None:
     )
     from fetchsync.errors import ConfigError
 
-    given = [("--remote-workspace", option)] + [(v, os.environ.get(v)) for v in REMOTE_WORKSPACE_VARS]
+    given = [("--remote-workspace", option)]
+    given += [(name, os.environ.get(name)) for name in REMOTE_WORKSPACE_VARS]
     for source, value in given:
         if value and value.strip():
             return check_remote_workspace(value, source=source)
@@ -123,7 +124,8 @@ _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
               help="Home-directory skeleton to copy. Default: ~/.fetchsync/robot_skeleton, "
                    "~/.fetch/robot_skeleton, else the built-in one.")
 @click.option("--key", type=click.Path(dir_okay=False),
-              help="Public key to install. Default: ~/.ssh/id_ed25519.pub, id_ecdsa.pub, id_rsa.pub.")
+              help="Public key to install. "
+                   "Default: ~/.ssh/id_ed25519.pub, id_ecdsa.pub, id_rsa.pub.")
 @click.option("--remote-workspace", help="Workspace initialize.sh creates. Default: as push "
               "resolves it, else ~/$ROS_DISTRO on the robot.")
 @click.option("--reset-password", is_flag=True,
@@ -171,7 +173,8 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
     check_user_name(admin)
     target = resolve_robot(robot)
     if target == LOCAL_ROBOT:
-        raise UsageError("create-account needs a real robot, not the local one", hint="pass --robot NAME")
+        raise UsageError("create-account needs a real robot, not the local one",
+                         hint="pass --robot NAME")
     sk = load_skeleton(find_skeleton(skeleton))
     key_path = find_public_key(key)
     public_key = read_public_key(key_path) if key_path is not None else None
