@@ -17,7 +17,7 @@ A mismatch is a conflict: the receiver's version is preserved, never lost.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from fetchsync.protocol import paths
 from fetchsync.protocol.errors import ProtocolError
@@ -195,9 +195,12 @@ class Result:
                    written=obj.get("w"))
 
 
-@dataclass(frozen=True)
-class Listed:
-    """One entry of a receiver's listing: what stands at a path, with its content hash."""
+class Listed(NamedTuple):
+    """One entry of a receiver's listing: what stands at a path, with its content hash.
+
+    A NamedTuple rather than a dataclass: trees hold tens of thousands of
+    these, and building them is on the no-op push's critical path.
+    """
 
     path: str
     kind: str
