@@ -25,6 +25,8 @@ LAZY_COMMANDS: dict[str, str] = {
     "create-account": "fetchsync.commands.create_account:command",
     "lint": "fetchsync.commands.lint:command",
     "shell-init": "fetchsync.commands.shell_init:command",
+    "snapshot": "fetchsync.commands.snapshot:command",
+    "debug-snapshot": "fetchsync.commands.snapshot:command",
 }
 
 

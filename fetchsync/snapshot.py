@@ -31,6 +31,7 @@ written.
 from __future__ import annotations
 
 import datetime as _dt
+import io
 import json
 import logging
 import os
@@ -45,10 +46,10 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 from fetchsync import __version__
-from fetchsync.errors import ConfigError, FetchsyncError, LinkLostError, UsageError
+from fetchsync.errors import ConfigError, FetchsyncError, LinkLostError, RemoteError, UsageError
 from fetchsync.transport import Channel, Transport
 
 log = logging.getLogger(__name__)
@@ -97,10 +98,12 @@ class Collector:
 
     def validate(self) -> None:
         """Raise ConfigError when a field is out of range."""
-        if not _NAME.match(self.name) or self.name in (BAG_NAME, "manifest"):
+        if (not _NAME.match(self.name) or self.name in (BAG_NAME, "manifest")
+                or self.name.endswith(".stderr")):
             raise ConfigError(
                 f"invalid collector name {self.name!r}: letters, digits, '_', '.', '-' "
-                f"(at most 64), not starting with a punctuation mark, not {BAG_NAME!r} or 'manifest'"
+                "(at most 64), starting with a letter or digit; not ending in .stderr, not "
+                f"{BAG_NAME!r} or 'manifest'"
             )
         if not self.command.strip() or "\0" in self.command:
             raise ConfigError(f"collector {self.name!r} has an empty or invalid command")
@@ -377,10 +380,11 @@ def parse_probe(text: str) -> RobotInfo:
     try:
         uid = int(values["uid"])
     except (KeyError, ValueError) as exc:
-        raise FetchsyncError("the robot's probe printed no user id (is its shell POSIX?)") from exc
+        raise RemoteError("the robot's probe printed no user id (is its shell POSIX?)") from exc
     found.sort(key=lambda r: r.distro)
     preferred = [r for r in found if r.distro == values.get("ros_distro")]
-    ros = (preferred or found or [None])[-1]
+    candidates = preferred or found
+    ros = candidates[-1] if candidates else None
     return RobotInfo(uid=uid, user=values.get("user", ""), has_timeout=values.get("timeout") == "yes",
                      sudo=values.get("sudo") or None, ros=ros, ros_found=tuple(found))
 
@@ -396,7 +400,7 @@ def probe(transport: Transport, *, ros_root: str = DEFAULT_ROS_ROOT, check_sudo:
             raise LinkLostError(result.error or "the link to the robot was lost")
         text = result.stdout.read_text(errors="replace") if result.stdout else ""
         if result.status != OK:
-            raise FetchsyncError(f"cannot probe the robot ({result.status}): "
+            raise RemoteError(f"cannot probe the robot ({result.status}): "
                                  f"{result.stderr_text() or result.error or 'no output'}")
     return parse_probe(text)
 
@@ -430,49 +434,50 @@ class SudoPlan:
 
 def plan_sudo(transport: Transport, info: RobotInfo, *, needed: Sequence[str], policy: str,
               password: PasswordSource | None) -> SudoPlan:
-    """Decide how to run the ``needed`` collectors: ``policy`` ``auto``, ``always`` or ``never``.
+    """Decide how the ``needed`` collectors run; ``policy`` is ``auto``, ``always`` or ``never``.
 
-    With ``always`` a missing or refused password is an error; with ``auto``
-    those collectors then run without sudo (and the plan's note says so).
-    The password is tried once on the robot before it is used, so a wrong one
-    costs one refused attempt, not one per collector.
+    Without a password (none given, no terminal), ``always`` is an error and
+    ``auto`` runs them without sudo, saying so in the plan's note. A password
+    is tried once on the robot before use, so a wrong one costs one refused
+    attempt, not one per collector; one refused every time it was asked for is
+    an error whatever the policy: the user meant sudo to be used.
     """
-    if not needed or policy == "never" or info.uid == 0:
-        note = None
-        if needed and info.uid != 0:
-            note = f"ran {', '.join(needed)} without sudo (--no-sudo)"
-        return SudoPlan("none", note=note)
+    without = f"ran {', '.join(needed)} without sudo"
+    if not needed or info.uid == 0:
+        return SudoPlan("none")
+    if policy == "never":
+        return SudoPlan("none", note=f"{without} (--no-sudo)")
     if info.sudo == "missing":
         if policy == "always":
-            raise ConfigError(f"--sudo: the robot has no sudo for {info.user}")
-        return SudoPlan("none", note=f"ran {', '.join(needed)} without sudo: the robot has no sudo")
+            raise ConfigError(f"--sudo: the robot has no sudo command for {info.user}")
+        return SudoPlan("none", note=f"{without}: the robot has no sudo command")
     if info.sudo == "nopasswd":
         return SudoPlan("nopasswd")
-    without = f"ran {', '.join(needed)} without sudo"
+    refusal = ""
     for attempt in range(3):
         pw = password(attempt) if password is not None else None
         if pw is None:
-            if attempt == 0 and policy == "always":
-                raise UsageError("--sudo needs the robot's sudo password and there is no "
-                                 "terminal to ask", hint="set FETCHSYNC_SUDO_PASSWORD")
-            if attempt == 0:
-                return SudoPlan("none", note=f"{without} (no password: pass --sudo in a "
-                                             "terminal, or set FETCHSYNC_SUDO_PASSWORD)")
             break
         if "\n" in pw or "\r" in pw or "\0" in pw:
             raise UsageError("the sudo password cannot contain a line break or NUL")
         plan = SudoPlan("password", password=pw.encode("utf-8"))
-        refusal = _check_password(transport, plan, info)
-        if refusal is None:
+        refused = _check_password(transport, plan)
+        if refused is None:
             return plan
         log.info("sudo on the robot refused the password (attempt %d)", attempt + 1)
-        last = refusal
+        refusal = refused
+    if refusal:
+        raise ConfigError(f"sudo on the robot refused the password for {info.user}: {refusal}",
+                          hint="check FETCHSYNC_SUDO_PASSWORD, or pass --no-sudo")
     if policy == "always":
-        raise ConfigError(f"sudo on the robot refused the password for {info.user}: {last}")
-    return SudoPlan("none", note=f"{without}: sudo refused the password ({last})")
+        raise UsageError("--sudo needs the robot's sudo password and there is no terminal to "
+                         "ask it", hint="set FETCHSYNC_SUDO_PASSWORD")
+    return SudoPlan("none", note=f"{without} (sudo wants a password: pass --sudo in a terminal, "
+                                 "or set FETCHSYNC_SUDO_PASSWORD)")
 
 
-def _check_password(transport: Transport, plan: SudoPlan, info: RobotInfo) -> str | None:
+def _check_password(transport: Transport, plan: SudoPlan) -> str | None:
+    """None when sudo accepts the plan's password, else sudo's last line of complaint."""
     job = _Job(name="sudo-check", kind="system", command="true",
                remote=plan.prefix() + "true", deadline=20.0, stdin=plan.stdin(), sudo=True)
     with tempfile.TemporaryDirectory(prefix="fetchsync-sudo-") as tmp:
@@ -666,7 +671,7 @@ def remote_command(collector: Collector, *, info: RobotInfo, sudo: SudoPlan,
     if collector.kind != "system":
         if info.ros is None:
             raise ValueError(f"{collector.name} needs ROS and the robot has none")
-        script = ros_env_script(info.ros, overlay) + script
+        script = _ros_env_script(info.ros, overlay) + script
         shell = "bash"
     use_sudo = collector.needs_sudo and sudo.mode != "none"
     if use_sudo:
@@ -682,17 +687,19 @@ def remote_command(collector: Collector, *, info: RobotInfo, sudo: SudoPlan,
     return line
 
 
-def ros_env_script(ros: RosInstall, overlay: str | None) -> str:
+def _ros_env_script(ros: RosInstall, overlay: str | None) -> str:
     """bash that sources the distribution and, when given, the workspace overlay on the robot.
 
-    A private helper until a shared ROS-environment module exists; the overlay
-    is the first of ``devel/``, ``devel_isolated/``, ``install/`` that has a
-    ``setup.bash``. Sourcing noise goes to /dev/null so it does not fill the
-    collectors' stderr.
+    The distribution is the one :func:`probe` chose, so the ROS version the
+    collectors and the bag were picked for is the one they run under. The
+    overlay is the first of ``devel/``, ``devel_isolated/``, ``install/`` with
+    a ``setup.bash``. Sourcing noise goes to /dev/null, not into the
+    collectors' stderr. (``run``'s ``fetchsync.remote`` builds a similar
+    environment; it was not in the repository yet when this was written.)
     """
     parts = [f"source {shlex.quote(ros.prefix + '/setup.bash')} >/dev/null 2>&1"]
     if overlay:
-        ws = shell_path(overlay)
+        ws = _shell_path(overlay)
         parts.append(
             f"for _f in {ws}/devel/setup.bash {ws}/devel_isolated/setup.bash "
             f"{ws}/install/setup.bash; do if [ -f \"$_f\" ]; then source \"$_f\" >/dev/null 2>&1; "
@@ -701,7 +708,7 @@ def ros_env_script(ros: RosInstall, overlay: str | None) -> str:
     return "; ".join(parts) + "; "
 
 
-def shell_path(path: str) -> str:
+def _shell_path(path: str) -> str:
     """``~/x`` -> ``"$HOME"/'x'``; anything else quoted as it is."""
     if path == "~":
         return '"$HOME"'
@@ -724,7 +731,7 @@ def bag_command(ros: RosInstall, topics: Sequence[str], duration: float, *, has_
         # is how it closes the bag cleanly (timeout exits 124 then: expected).
         record = f"timeout -s INT -k 10 {d} ros2 bag record -o snapshot_bag {quoted}"
     script = (
-        ros_env_script(ros, overlay)
+        _ros_env_script(ros, overlay)
         + 'd=$(mktemp -d) || exit 1; trap \'rm -rf "$d"\' EXIT; '
         + f'(cd "$d" && {record}) </dev/null >&2; rc=$?; '
         + 'tar -C "$d" -cf - . || exit 1; '
@@ -756,14 +763,11 @@ class Snapshot:
     link_lost: str | None = None
 
     def counts(self) -> dict[str, int]:
-        counts = dict.fromkeys(STATUSES, 0)
-        for entry in self.manifest["commands"]:
-            counts[entry["status"]] += 1
-        return counts
+        """Commands per status (``ok``, ``failed``, ``missing``, ``timeout``, ``skipped``)."""
+        return dict(self.manifest["summary"])
 
     def to_json(self) -> dict[str, Any]:
-        return {"archive": str(self.archive), "size": self.size, "counts": self.counts(),
-                "notes": list(self.notes), **self.manifest}
+        return {"archive": str(self.archive), "size": self.size, **self.manifest}
 
 
 def archive_name(robot: str, when: _dt.datetime) -> str:
@@ -792,14 +796,15 @@ def take_snapshot(
     ``output`` is a directory (the archive gets :func:`archive_name` there) or
     a file path. ``sudo`` is ``auto`` (sudo for the collectors that need it
     when a password is to be had), ``always`` or ``never``; ``password`` is
-    asked at most a few times, only when sudo wants one. ``overlay`` is the
-    remote workspace whose setup is sourced after the distribution's.
+    asked only when sudo wants one. ``overlay`` is the remote workspace whose
+    setup is sourced after the distribution's. ``progress`` is called (from a
+    worker thread) as each command finishes.
     """
     if sudo not in ("auto", "always", "never"):
         raise ValueError(f"sudo must be auto, always or never, not {sudo!r}")
     if not 1 <= jobs <= MAX_JOBS:
-        raise UsageError(f"--jobs must be within 1..{MAX_JOBS} (sshd's MaxSessions)")
-    if bag_topics and not (0 < bag_duration <= 3600):
+        raise UsageError(f"--jobs must be within 1..{MAX_JOBS} (sshd's default MaxSessions)")
+    if bag_topics and not 0 < bag_duration <= 3600:
         raise UsageError("--bag-duration must be within (0, 3600] seconds")
     for c in collectors:
         c.validate()
@@ -808,144 +813,161 @@ def take_snapshot(
     t0 = time.monotonic()
     notes: list[str] = []
 
-    needed = [c.name for c in collectors if c.needs_sudo]
-    info = probe(transport, ros_root=ros_root, check_sudo=bool(needed) and sudo != "never")
+    wants_sudo = sudo != "never" and any(c.needs_sudo for c in collectors)
+    info = probe(transport, ros_root=ros_root, check_sudo=wants_sudo)
     ros_version = info.ros.version if info.ros else None
     runnable = [c for c in collectors if c.runs_on(ros_version)]
+    names = [c.name for c in runnable]
+    if len(set(names)) != len(names):
+        raise UsageError("two collectors share a name: "
+                         + ", ".join(sorted({n for n in names if names.count(n) > 1})))
     plan = plan_sudo(transport, info, needed=[c.name for c in runnable if c.needs_sudo],
                      policy=sudo, password=password)
     if plan.note:
         notes.append(plan.note)
+    bag_skipped: str | None = None
     if info.ros is None:
-        if any(c.kind != "system" for c in collectors) or topics:
-            notes.append("ROS: not found on the robot (no setup.bash under "
-                         f"{ros_root}/*/); ROS commands{' and the bag' if topics else ''} skipped")
+        bag_skipped = "ROS not found on the robot"
+        if topics or any(c.kind != "system" for c in collectors):
+            what = "ROS commands and the bag" if topics else "ROS commands"
+            notes.append(f"ROS not found on the robot (no {ros_root}/*/setup.bash): {what} skipped")
     elif len(info.ros_found) > 1:
-        notes.append(f"ROS: several distributions on the robot; used {info.ros.distro}")
+        notes.append(f"several ROS distributions on the robot; used {info.ros.distro}")
+    if topics and info.ros is not None and info.ros.version == 2 and not info.has_timeout:
+        bag_skipped = "recording a ROS 2 bag needs `timeout` (coreutils) on the robot"
+        notes.append(f"bag skipped: {bag_skipped}")
 
-    jobs_list = [
+    work_list = [
         _Job(name=c.name, kind=c.kind, command=c.command,
              remote=remote_command(c, info=info, sudo=plan, overlay=overlay),
              deadline=c.timeout + _DEADLINE_MARGIN, timeout=c.timeout,
-             stdin=plan.stdin() if c.needs_sudo and plan.mode == "password" else b"",
+             stdin=plan.stdin() if c.needs_sudo else b"",
              sudo=c.needs_sudo and plan.mode != "none")
         for c in runnable
     ]
-    if topics and info.ros is not None:
-        if info.ros.version == 2 and not info.has_timeout:
-            notes.append("bag skipped: recording with ROS 2 needs `timeout` (coreutils) on the robot")
-        else:
-            jobs_list.insert(0, _Job(
-                name=BAG_NAME, kind=f"ros{info.ros.version}",
-                command=f"record {' '.join(topics)} for {bag_duration:g} s",
-                remote=bag_command(info.ros, topics, bag_duration, has_timeout=info.has_timeout,
-                                   overlay=overlay),
-                deadline=bag_duration + _BAG_MARGIN, timeout=None, tar=True))
+    if topics and bag_skipped is None and info.ros is not None:
+        # First: it takes longest, and the pool starts jobs in order.
+        work_list.insert(0, _Job(
+            name=BAG_NAME, kind=f"ros{info.ros.version}",
+            command=f"record {' '.join(topics)} for {bag_duration:g} s",
+            remote=bag_command(info.ros, topics, bag_duration, has_timeout=info.has_timeout,
+                               overlay=overlay),
+            deadline=bag_duration + _BAG_MARGIN, tar=True))
 
+    out_path = Path(output)
+    if out_path.is_dir():
+        out_path = out_path / archive_name(robot, started)
     with tempfile.TemporaryDirectory(prefix="fetchsync-snapshot-") as tmp:
-        work = Path(tmp)
-        results: dict[str, CommandResult] = {}
-        lock = threading.Lock()
-
-        def run_one(job: _Job) -> None:
-            r = _run(transport, job, work, has_timeout=info.has_timeout)
-            with lock:
-                results[job.name] = r
-            if progress is not None:
-                progress(r)
-
-        with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="fetchsync-snapshot") as pool:
-            for f in [pool.submit(run_one, job) for job in jobs_list]:
-                f.result()
-
-        ordered: list[CommandResult] = []
-        for c in collectors:
-            if c.runs_on(ros_version):
-                ordered.append(results[c.name])
-            elif not any(o.name == c.name for o in ordered) and not any(
-                    k.name == c.name and k.runs_on(ros_version) for k in collectors):
-                # skipped once per name (its ROS 1 and ROS 2 variants share it)
-                ordered.append(CommandResult(
-                    name=c.name, kind=c.kind, command=c.command, status=SKIPPED,
-                    error=("ROS not found on the robot" if ros_version is None
-                           else f"for {c.kind}; the robot has ROS {ros_version}")))
+        results = _run_all(transport, work_list, Path(tmp), jobs=jobs,
+                           has_timeout=info.has_timeout, progress=progress)
+        ordered = _in_order(collectors, results, ros_version)
         if BAG_NAME in results:
-            bag = results[BAG_NAME]
-            bag.extra.update({"topics": list(topics), "requested_duration": bag_duration})
-            ordered.insert(0, bag)
+            results[BAG_NAME].extra.update(topics=list(topics), requested_duration=bag_duration)
+            ordered.insert(0, results[BAG_NAME])
         elif topics:
             ordered.insert(0, CommandResult(
                 name=BAG_NAME, kind="ros", command=f"record {' '.join(topics)}", status=SKIPPED,
-                error="ROS not found on the robot" if info.ros is None else notes[-1],
-                extra={"topics": list(topics), "requested_duration": bag_duration}))
-
+                error=bag_skipped, extra={"topics": list(topics),
+                                          "requested_duration": bag_duration}))
         manifest: dict[str, Any] = {
             "format": MANIFEST_FORMAT,
             "fetchsync_version": __version__,
             "robot": robot,
             "user": info.user,
             "created": started.isoformat(timespec="seconds"),
-            "duration": 0.0,
-            "host": socket.gethostname(),
+            "duration": round(time.monotonic() - t0, 3),
+            "collected_on": socket.gethostname(),
             "ros": ({"version": info.ros.version, "distro": info.ros.distro,
                      "prefix": info.ros.prefix} if info.ros else None),
-            "sudo": plan.mode if needed else None,
+            "sudo": plan.mode,
             "remote_timeout": info.has_timeout,
-            "commands": [],
+            "notes": list(notes),
         }
-        out_path = Path(output)
-        if out_path.is_dir():
-            out_path = out_path / archive_name(robot, started)
-        top = out_path.name.removesuffix(".gz").removesuffix(".tgz").removesuffix(".tar")
-        manifest["duration"] = round(time.monotonic() - t0, 3)
-        size = write_archive(out_path, top=top or "snapshot", results=ordered, manifest=manifest)
+        size = write_archive(out_path, results=ordered, manifest=manifest)
 
     lost = [r for r in ordered if r.link_lost]
     return Snapshot(archive=out_path, size=size, manifest=manifest, notes=notes,
                     link_lost=lost[0].error if lost else None)
 
 
-def write_archive(path: Path, *, top: str, results: Sequence[CommandResult],
-                  manifest: dict[str, Any]) -> int:
-    """Write the ``.tar.gz`` (atomically: a ``.part`` renamed) and return its size.
+def _run_all(transport: Transport, work: Sequence[_Job], workdir: Path, *, jobs: int,
+             has_timeout: bool, progress: Callable[[CommandResult], None] | None
+             ) -> dict[str, CommandResult]:
+    results: dict[str, CommandResult] = {}
+    lock = threading.Lock()
 
-    Fills ``manifest["commands"]`` with each result's entry, files included.
+    def run_one(job: _Job) -> None:
+        r = _run(transport, job, workdir, has_timeout=has_timeout)
+        with lock:
+            results[job.name] = r
+        if progress is not None:
+            progress(r)
+
+    with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="fetchsync-snapshot") as pool:
+        for future in [pool.submit(run_one, job) for job in work]:
+            future.result()
+    return results
+
+
+def _in_order(collectors: Sequence[Collector], results: dict[str, CommandResult],
+              ros_version: int | None) -> list[CommandResult]:
+    """Results in the collectors' order, with one ``skipped`` entry per name that did not run."""
+    ordered: list[CommandResult] = []
+    listed: set[str] = set()
+    for c in collectors:
+        if c.name in listed:
+            continue
+        if c.name in results:
+            ordered.append(results[c.name])
+        else:
+            why = ("ROS not found on the robot" if ros_version is None
+                   else f"{c.kind} only; the robot has ROS {ros_version}")
+            ordered.append(CommandResult(name=c.name, kind=c.kind, command=c.command,
+                                         status=SKIPPED, error=why))
+        listed.add(c.name)
+    return ordered
+
+
+def write_archive(path: Path, *, results: Sequence[CommandResult],
+                  manifest: dict[str, Any]) -> int:
+    """Write the ``.tar.gz`` (a ``.part`` renamed into place) and return its size.
+
+    Everything lies under one directory named like the archive. Adds the
+    per-command entries (``commands``) and the ``summary`` to ``manifest``.
     """
+    top = path.name
+    for suffix in (".gz", ".tgz", ".tar"):
+        top = top.removesuffix(suffix)
+    top = top or "snapshot"
     part = path.with_name(path.name + ".part")
     now = time.time()
     try:
         with tarfile.open(part, "w:gz") as tar:
-            entries: list[dict[str, Any]] = []
-            members: list[tuple[str, Path]] = []
-            bag_members: list[tuple[tarfile.TarInfo, tarfile.TarFile, str]] = []
+            files: list[tuple[str, Path]] = []
+            bags: list[Path] = []
             for r in results:
-                if r.status == SKIPPED:
-                    entries.append(r.to_json())
+                if r.status == SKIPPED or r.stdout is None:
                     continue
-                if r.tar and r.stdout is not None:
-                    r.files = _bag_files(r, bag_members)
+                names = _bag_names(r) if r.tar else []
+                if r.tar:  # still: _bag_names clears it when the stream is unreadable
+                    r.files = [f"{BAG_NAME}/{name}" for name in names]
+                    bags.append(r.stdout)
                 else:
-                    if r.stdout is not None:
-                        r.files.append(f"{r.name}.txt")
-                        members.append((f"{r.name}.txt", r.stdout))
+                    r.files.append(f"{r.name}.txt")
+                    files.append((f"{r.name}.txt", r.stdout))
                 if r.stderr is not None and r.stderr_bytes:
                     r.files.append(f"{r.name}.stderr.txt")
-                    members.append((f"{r.name}.stderr.txt", r.stderr))
-                entries.append(r.to_json())
+                    files.append((f"{r.name}.stderr.txt", r.stderr))
+            entries = [r.to_json() for r in results]
             manifest["commands"] = entries
-            manifest["summary"] = {s: sum(1 for e in entries if e["status"] == s) for s in STATUSES}
-            data = (json.dumps(manifest, indent=2, sort_keys=False) + "\n").encode()
-            _add_bytes(tar, f"{top}/{MANIFEST}", data, now)
-            for name, src in members:
-                info = tarfile.TarInfo(f"{top}/{name}")
-                info.size, info.mtime, info.mode = src.stat().st_size, now, 0o644
+            manifest["summary"] = {s: sum(e["status"] == s for e in entries) for s in STATUSES}
+            data = (json.dumps(manifest, indent=2) + "\n").encode()
+            _add(tar, f"{top}/{MANIFEST}", io.BytesIO(data), len(data), now)
+            for name, src in files:
                 with open(src, "rb") as f:
-                    tar.addfile(info, f)
-            for member, source, name in bag_members:
-                member.name = f"{top}/{BAG_NAME}/{name}"
-                tar.addfile(member, source.extractfile(name if False else member))  # noqa: SIM222
-            for _m, source, _n in bag_members:
-                source.close()
+                    _add(tar, f"{top}/{name}", f, src.stat().st_size, now)
+            for bag in bags:
+                _copy_bag(tar, bag, f"{top}/{BAG_NAME}")
         os.replace(part, path)
     except OSError as exc:
         try:
@@ -956,43 +978,46 @@ def write_archive(path: Path, *, top: str, results: Sequence[CommandResult],
     return path.stat().st_size
 
 
-def _bag_files(r: CommandResult, out: list[tuple[tarfile.TarInfo, tarfile.TarFile, str]]) -> list[str]:
-    """The regular files of the bag's tar stream, with safe names; queued for the archive."""
+def _bag_members(source: tarfile.TarFile) -> Iterable[tuple[str, tarfile.TarInfo]]:
+    """The regular files of a bag's tar stream, with names that stay inside ``rosbag/``."""
+    for member in source.getmembers():
+        name = os.path.normpath(member.name).lstrip("/")
+        if member.isfile() and name not in ("", ".") and not name.startswith(".."):
+            yield name, member
+
+
+def _bag_names(r: CommandResult) -> list[str]:
     assert r.stdout is not None
     if r.bytes == 0:
         return []
     try:
-        source = tarfile.open(r.stdout, "r:")
-        files = []
-        for member in source.getmembers():
-            name = os.path.normpath(member.name).lstrip("/")
-            if not member.isfile() or name.startswith("..") or name in ("", "."):
-                continue
-            copy = replace_member(member)
-            out.append((copy, source, name))
-            files.append(f"{BAG_NAME}/{name}")
-        return files
+        with tarfile.open(r.stdout, "r:") as source:
+            return [name for name, _m in _bag_members(source)]
     except (tarfile.TarError, OSError) as exc:
         r.error = f"the bag's tar stream is unreadable: {exc}"
         if r.status == OK:
             r.status = FAILED
+        r.tar = False  # keep the raw stream as rosbag.txt for whoever debugs it
         return []
 
 
-def replace_member(member: tarfile.TarInfo) -> tarfile.TarInfo:
-    """A copy of a tar member whose name may be changed without touching the source's index."""
-    copy = tarfile.TarInfo(member.name)
-    copy.size, copy.mtime, copy.mode = member.size, member.mtime, 0o644
-    copy.offset, copy.offset_data = member.offset, member.offset_data
-    return copy
+def _copy_bag(tar: tarfile.TarFile, stream: Path, under: str) -> None:
+    if stream.stat().st_size == 0:
+        return
+    try:
+        with tarfile.open(stream, "r:") as source:
+            for name, member in _bag_members(source):
+                f = source.extractfile(member)
+                if f is not None:
+                    _add(tar, f"{under}/{name}", f, member.size, member.mtime)
+    except tarfile.TarError as exc:  # cut short after its index was read: keep what came
+        log.warning("the bag's tar stream ended early: %s", exc)
 
 
-def _add_bytes(tar: tarfile.TarFile, name: str, data: bytes, mtime: float) -> None:
-    import io
-
+def _add(tar: tarfile.TarFile, name: str, f: IO[bytes], size: int, mtime: float) -> None:
     info = tarfile.TarInfo(name)
-    info.size, info.mtime, info.mode = len(data), mtime, 0o644
-    tar.addfile(info, io.BytesIO(data))
+    info.size, info.mtime, info.mode = size, mtime, 0o644
+    tar.addfile(info, f)
 
 
 __all__ = [
