@@ -277,16 +277,40 @@ class Store:
         return out, result.skipped
 
     def drift(self) -> Tuple[List[M.Listed], List[str]]:
-        """What differs on disk from what was last synced: (changed or new, gone)."""
-        items, _skipped = self.listing()
+        """What differs on disk from what was last synced: (changed or new, gone).
+
+        This runs on every push, so unchanged entries cost a stat comparison
+        against the cache and nothing more.
+        """
+        result = scan(self.root, self.rules, is_temp=is_temp)
+        racy_before = time.time_ns() - 2_000_000_000
+        synced, cache = self.synced, self.cache
         changed = []
-        seen = set()
-        for item in items:
-            seen.add(item.path)
-            rec = self.synced.get(item.path)
-            if rec is None or not self._matches(item, rec):
-                changed.append(item)
-        gone = [p for p in self.synced if p not in seen]
+        for path, e in result.entries.items():
+            rec = synced.get(path)
+            if e.kind == FILE:
+                c = cache.get(path)
+                if (c is not None and c[0] == e.size and c[1] == e.mtime_ns and c[2] == e.ctime_ns
+                        and c[3] == e.ino and e.mtime_ns < racy_before):
+                    digest = c[4]
+                else:
+                    try:
+                        digest = self.hash_file(path, e)
+                    except OSError:
+                        continue  # vanished or unreadable while we looked
+                if rec is not None and rec[0] == FILE and rec[2] == digest and rec[1] == e.mode:
+                    continue
+                changed.append(M.Listed(path, FILE, e.mode, e.size, hash=digest))
+            elif e.kind == LINK:
+                if rec is not None and rec[0] == LINK and rec[2] == e.target:
+                    continue
+                changed.append(M.Listed(path, LINK, target=e.target))
+            else:
+                if rec is not None and rec[0] == DIR and rec[1] == e.mode:
+                    continue
+                changed.append(M.Listed(path, DIR, e.mode))
+        entries = result.entries
+        gone = [p for p in synced if p not in entries]
         return changed, gone
 
     @staticmethod
