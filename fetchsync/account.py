@@ -10,7 +10,8 @@ in a log.
 With sudo, stdin starts with the admin password, which ``sudo -S`` reads one
 byte at a time up to the newline, leaving the rest to the bootstrap. Padding
 lines follow: were sudo to reject the password after all, its remaining tries
-read those and never the request. When sudo asks no password (NOPASSWD) the
+read those and never the request. An admin whose sudo needs no password
+(NOPASSWD) is asked none; should sudo not read one it was sent anyway, the
 bootstrap skips everything before its ``BEGIN`` line.
 
 The skeleton is looked up by :func:`find_skeleton`: ``--skeleton DIR``, then
@@ -353,6 +354,11 @@ class AdminSession:
         return RobotAccount(admin_is_root=uid_line.strip() == "0", exists=True,
                             uid=int(entry[2]) if entry[2].isdigit() else None, home=entry[5])
 
+    def sudo_asks_password(self) -> bool:
+        """False when the admin's sudo needs no password (NOPASSWD)."""
+        _out, _err, status = _run(self.transport.exec("sudo -k -n true"), b"")
+        return status != 0
+
     def check_sudo(self, password: str) -> None:
         """Make sure ``sudo`` takes ``password`` for the admin (cached credentials ignored)."""
         chan = self.transport.exec("sudo -k -S -p '' -v")
@@ -372,14 +378,16 @@ class AdminSession:
         detail = text.strip().splitlines()[-1] if text.strip() else f"exit {status}"
         raise RemoteError(f"sudo failed for {who}: {detail}")
 
-    def apply(self, request: AccountRequest, *, sudo_password: str | None,
+    def apply(self, request: AccountRequest, *, sudo: bool, sudo_password: str | None,
               on_stderr: Callable[[bytes], None]) -> AccountReport:
-        """Run the account program as root; stream its stderr; return its report."""
+        """Run the account program as root (through sudo with ``sudo``); stream its
+        stderr; return its report."""
         program = _PROGRAM.read_bytes()
         head = b""
         command = f"{shlex.quote(self.python)} -c {shlex.quote(BOOTSTRAP)}"
-        if sudo_password is not None:
+        if sudo:
             command = "sudo -k -S -p '' " + command
+        if sudo and sudo_password is not None:
             head = sudo_password.encode("utf-8") + b"\n" + b"-\n" * _SUDO_PADDING
         stdin = (head + BEGIN + str(len(program)).encode("ascii") + b"\n" + program
                  + request.to_json() + b"\n")

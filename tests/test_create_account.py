@@ -252,8 +252,9 @@ def _existing_groups() -> set[str]:
     return present
 
 
-def _make_admin(accounts: Callable[[str], str], password: str, ssh_home) -> str:
-    """A user with sudo rights that need its password; our key logs it in."""
+def _make_admin(accounts: Callable[[str], str], password: str, ssh_home, *,
+                rule: str = "ALL=(ALL:ALL) ALL") -> str:
+    """A user with sudo rights (that need its password); our key logs it in."""
     name = accounts("fsadmin")
     subprocess.run(["useradd", "--create-home", "--shell", "/bin/bash", name], check=True)
     subprocess.run(["chpasswd"], input=f"{name}:{password}\n".encode(), check=True)
@@ -265,9 +266,9 @@ def _make_admin(accounts: Callable[[str], str], password: str, ssh_home) -> str:
     for path in (ssh_dir, ssh_dir / "authorized_keys"):
         os.chown(path, entry.pw_uid, entry.pw_gid)
     Path("/etc/sudoers.d").mkdir(exist_ok=True)
-    rule = Path("/etc/sudoers.d", name)
-    rule.write_text(f"{name} ALL=(ALL:ALL) ALL\n")
-    rule.chmod(0o440)
+    sudoers = Path("/etc/sudoers.d", name)
+    sudoers.write_text(f"{name} {rule}\n")
+    sudoers.chmod(0o440)
     return name
 
 
@@ -381,6 +382,18 @@ def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
                              "--skeleton", str(skeleton), env=env))
     assert report["created"]
     assert _password_login(sshd, other, other_password, "echo ok").strip() == "ok"
+
+
+@pytest.mark.ssh
+@needs_root
+def test_create_through_sudo_without_password(sshd, ssh_home, accounts) -> None:
+    # NOPASSWD sudo and a key login: no admin password is asked for at all
+    admin = _make_admin(accounts, _password(), ssh_home, rule="ALL=(ALL:ALL) NOPASSWD: ALL")
+    name, password = accounts("fstest"), _password()
+    report = _report(_create(ssh_home, "--user", name, "--admin-user", admin,
+                             env={"FETCHSYNC_NEW_PASSWORD": password}))
+    assert report["created"] and report["initialize"] == "ran"
+    assert _password_login(sshd, name, password, "echo ok").strip() == "ok"
 
 
 @pytest.mark.ssh

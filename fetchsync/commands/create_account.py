@@ -203,13 +203,14 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
                        "adding what is missing", err=True)
         password = new_password.get() if not found.exists or reset_password else None
         sudo_password = None
-        if not found.admin_is_root:
+        if not found.admin_is_root and session.sudo_asks_password():
             sudo_password = admin_password.get()
             session.check_sudo(sudo_password)
         request = AccountRequest(user=name, fullname=check_fullname(fullname or name),
                                  groups=GROUPS, key=public_key, skeleton=sk, env=env,
                                  password=password)
-        report = session.apply(request, sudo_password=sudo_password, on_stderr=_to_stderr)
+        report = session.apply(request, sudo=not found.admin_is_root,
+                               sudo_password=sudo_password, on_stderr=_to_stderr)
     finally:
         transport.close()
     report.skeleton = str(sk.source)
