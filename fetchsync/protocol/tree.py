@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import stat as stat_mod
+from stat import S_ISDIR, S_ISLNK, S_ISREG
 from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 FILE = "f"
@@ -99,27 +100,34 @@ def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = No
                     break
         for de in items:
             name = de.name
-            path = rel + "/" + name if rel else name
             if is_temp is not None and is_temp(name):
+                continue
+            path = rel + "/" + name if rel else name
+            try:
+                # d_type from the directory listing: no syscall; decides the
+                # ignore rules before paying for a stat
+                is_dir = de.is_dir(follow_symlinks=False)
+            except OSError:
+                continue
+            if dir_rules is not None and dir_rules.ignored(path, is_dir):
                 continue
             try:
                 st = de.stat(follow_symlinks=False)
             except OSError:
                 continue  # vanished while we looked
-            is_dir = stat_mod.S_ISDIR(st.st_mode)
-            if dir_rules is not None and dir_rules.ignored(path, is_dir):
-                continue
-            target = ""
-            if stat_mod.S_ISLNK(st.st_mode):
+            mode = st.st_mode
+            if S_ISREG(mode):
+                entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
+                                      st.st_ino)
+            elif S_ISDIR(mode):
+                entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+                stack.append((path, dir_rules))
+            elif S_ISLNK(mode):
                 try:
                     target = os.fsdecode(os.readlink(de.path))
                 except OSError:
                     continue
-            entry = entry_from_stat(st, target)
-            if entry is None:
+                entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
+            else:
                 skipped.append((path, "not a regular file, directory or symlink"))
-                continue
-            entries[path] = entry
-            if is_dir:
-                stack.append((path, dir_rules))
     return ScanResult(entries, skipped)
