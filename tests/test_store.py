@@ -153,3 +153,17 @@ def test_pack_skips_incompressible_data():
     assert not z
     data, z = wire.pack(b"abc" * 100000)
     assert z and zlib.decompress(data) == b"abc" * 100000
+
+
+def test_a_rename_copies_before_the_source_is_deleted(store):
+    # a copy runs in a writer thread; the delete of its source later in the
+    # same batch must wait for it (a rename, as the planner emits it)
+    data = os.urandom(3 * 1024 * 1024)
+    store.apply([write("old.bin", data)], data)
+    for i in range(20):
+        new, old = f"new{i}.bin", ("old.bin" if i == 0 else f"new{i - 1}.bin")
+        copy = M.Op(M.WRITE, new, expect=M.ABSENT, hash=h(data), size=len(data), source=M.SRC_COPY,
+                    base=h(data), from_path=old)
+        results = store.apply([copy, M.Op(M.DELETE, old, expect=M.expect_file(h(data)))], b"")
+        assert [r.code for r in results] == [M.OK, M.OK]
+        assert (src(store) / new).read_bytes() == data and not (src(store) / old).exists()

@@ -498,6 +498,7 @@ class _Batch:
         self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
         self.writes = []  # type: List[Tuple[Any, int, M.Op, str]]  # (future, result index, op, tmp)
         self.zpart = b""
+        self.reading = set()  # type: set  # paths pending writers read (copy sources, delta bases)
         self.n = 0
 
     def _blob(self, op: M.Op) -> bytes:
@@ -543,7 +544,7 @@ class _Batch:
                 raise _Refused("%s was changed here since the last sync" % unsynced[0])
             where = ""
             for path in unsynced:
-                where = self.s._set_aside(path, "conflicts")
+                where = self._set_aside(path, "conflicts")
             return cur, where[: len(where) - len(unsynced[-1])] + op.path
         if op.kind == M.CHMOD or cur.expectation() == op.expect:
             return cur, ""
@@ -554,7 +555,7 @@ class _Batch:
             # link (the rename below replaces only the directory entry) and
             # patch from it
             return cur, self.s._keep_copy(op.path, "conflicts")
-        where = self.s._set_aside(op.path, "conflicts")
+        where = self._set_aside(op.path, "conflicts")
         self.s._forget_below(op.path)
         return None, where
 
@@ -577,13 +578,13 @@ class _Batch:
         full = s._resolver.full(op.path)
         if op.kind == M.DELETE:
             if cur is not None:
-                s._set_aside(op.path, "trash")
+                self._set_aside(op.path, "trash")
                 s._forget_below(op.path)
             s._record(op.path, None)
             return M.Result(preserved=preserved)
         if op.kind == M.MKDIR:
             if cur is not None and cur.kind != DIR:
-                s._set_aside(op.path, "trash")
+                self._set_aside(op.path, "trash")
                 cur = None
             if cur is None:
                 os.mkdir(full, op.mode or 0o755)
@@ -600,7 +601,7 @@ class _Batch:
             return M.Result(preserved=preserved, written=item.to_wire() if item else None)
         if cur is not None and cur.kind == DIR:
             # a directory becomes a file or link: the old tree goes to the trash
-            s._set_aside(op.path, "trash")
+            self._set_aside(op.path, "trash")
             s._forget_below(op.path)
             cur = None
         parent_dir = os.path.dirname(full)
@@ -613,8 +614,21 @@ class _Batch:
             # the temporaries of a batch are independent (renames come later,
             # in order), and creating, inflating and hashing release the GIL
             self.writes.append((_writers().submit(self._write_file, op, cur, tmp), idx, op, tmp))
+            if op.source == M.SRC_COPY:
+                self.reading.add(op.from_path)
+            elif op.source == M.SRC_DELTA:
+                self.reading.add(op.path)
         self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
         return M.Result(preserved=preserved)
+
+    def _set_aside(self, path: str, where: str) -> str:
+        """Store._set_aside, once no pending writer still reads below ``path``
+        (a copy's source, a delta's base)."""
+        if any(paths.is_within(r, path) for r in self.reading):
+            for fut, _idx, _op, _tmp in self.writes:
+                fut.exception()
+            self.reading = set()
+        return self.s._set_aside(path, where)
 
     def finish_writes(self, results: List[M.Result]) -> None:
         """Wait for the temporaries being written; a failed one becomes its op's result."""
