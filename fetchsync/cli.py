@@ -24,6 +24,7 @@ from fetchsync.errors import FetchsyncError
 LAZY_COMMANDS: dict[str, str] = {
     "create-account": "fetchsync.commands.create_account:command",
     "lint": "fetchsync.commands.lint:command",
+    "run": "fetchsync.commands.run:command",
     "shell-init": "fetchsync.commands.shell_init:command",
     "snapshot": "fetchsync.commands.snapshot:command",
     "debug-snapshot": "fetchsync.commands.snapshot:command",

@@ -2,8 +2,8 @@
 
 This file runs on the robot, by itself: ``fetchsync.remote`` sends its source
 as ``python3 -c SOURCE MODE COMMAND...``. It must therefore run on Python 3.8
-with the standard library only, import nothing from fetchsync and have no
-``if __name__`` guard (``-c`` runs it as ``__main__`` anyway).
+with the standard library only and import nothing from fetchsync (``-c``
+runs it as ``__main__``; importing it does nothing).
 
 Why it exists: without a PTY, sshd neither forwards a signal nor hangs up the
 command when the client goes away (Ctrl-C, a killed laptop process, a lost
@@ -11,9 +11,10 @@ link); ``sleep 300`` and ``roslaunch`` would keep running. So the command runs
 in its own process group, and this process watches the channel:
 
 - ``pipe`` mode: the command runs in a new session. When sshd closes the other
-  end of stdout or stderr (the channel closed or the connection died), every
-  process of that group gets SIGINT, the signal Ctrl-C sends and ROS nodes
-  shut down cleanly on, then SIGTERM, then SIGKILL, until none is left.
+  end of stdout or stderr (the channel closed or the connection died), the
+  group gets SIGINT, the signal Ctrl-C sends and ROS nodes shut down cleanly
+  on; once the command has ended (or after a grace period) what is left gets
+  SIGTERM, then SIGKILL, until none is left.
 - ``tty`` mode: the command runs in its own process group made the terminal's
   foreground group, so ``^C`` typed on the laptop reaches it as SIGINT through
   the PTY; a hang-up of the terminal stops the group the same way.
@@ -64,7 +65,7 @@ def _start(argv, tty):
             signal.signal(sig, signal.SIG_DFL)
         os.execvp(argv[0], argv)
     except OSError as exc:
-        os.write(2, ("fetchsync: cannot run %s: %s\n" % (argv[0], exc.strerror)).encode())
+        os.write(2, f"fetchsync: cannot run {argv[0]}: {exc.strerror}\n".encode())
     os._exit(127)
 
 
@@ -78,22 +79,32 @@ def _group_alive(pgid):
     return True
 
 
-def _stop_group(pid, status):
-    """Signal the group until it is gone; reap our child on the way."""
+def _stop_group(pid):
+    """Stop the command's group: SIGINT, SIGTERM once the command ended or after a grace, SIGKILL.
+
+    The command gets SIGINT and time to shut down as after Ctrl-C (roslaunch
+    stops its nodes); what is left then, such as the background jobs of a
+    non-interactive shell, which ignore SIGINT, gets SIGTERM and SIGKILL.
+    """
+    status = None
     for sig, grace in _GRACE:
         try:
             os.killpg(pid, sig)
+            if sig == signal.SIGTERM:
+                os.killpg(pid, signal.SIGCONT)  # a stopped process must run to die
         except ProcessLookupError:
-            return status
+            break
         deadline = time.monotonic() + grace
         while time.monotonic() < deadline:
             if status is None:
                 done, wait_status = os.waitpid(pid, os.WNOHANG)
                 if done:
                     status = _status(wait_status)
-            if status is not None and not _group_alive(pid):
-                return status
+            if status is not None and (sig == signal.SIGINT or not _group_alive(pid)):
+                break
             time.sleep(0.05)
+        if status is not None and not _group_alive(pid):
+            break
     return status
 
 
@@ -144,7 +155,7 @@ def main(argv):
         del caught[:]
         if hung_up or signal.SIGHUP in passed:
             # Nobody is left to read the status; the group just must not outlive us.
-            status = _stop_group(pid, None)
+            status = _stop_group(pid)
             return 128 + signal.SIGHUP if status is None else status
         for sig in passed:
             try:
@@ -154,4 +165,5 @@ def main(argv):
     return status
 
 
-sys.exit(main(sys.argv[1:]))
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,115 @@
+"""Command lines for the robot: its ROS environment, bash, and a reaper around them.
+
+Shared by ``run`` and the builds of ``push``/``pull``. Everything here is pure
+string construction (``shlex`` quoting); nothing talks to a robot.
+
+A command for the robot is built in three layers:
+
+1. a bash script that sources the ROS environment (:func:`ros_environment`)
+   and then runs the user's command line;
+2. ``bash -c SCRIPT``, since every ROS ``setup.bash`` needs bash whatever the
+   login shell is;
+3. :func:`wrap`: that under ``fetchsync/reaper.py`` (sent inline to the
+   robot's ``python3``), so the command runs in its own process group and
+   nothing of it outlives the channel. Where the robot has no such Python the
+   command still runs, without that guarantee.
+
+The last string is what the transport hands to the login shell of the robot
+user (a POSIX shell, as for the rest of fetchsync).
+"""
+
+from __future__ import annotations
+
+import functools
+import shlex
+from collections.abc import Sequence
+from pathlib import Path
+
+ROS_ROOT = "/opt/ros"
+"""Where ROS distributions are installed, one directory per distribution."""
+
+RUN_SPACES = ("devel", "install")
+"""Result spaces whose ``setup.bash`` a command on the robot runs under, first found wins."""
+
+
+def shell_path(path: str) -> str:
+    """``path`` quoted for a POSIX shell, with a leading ``~`` meaning ``$HOME`` there."""
+    if path == "~":
+        return '"$HOME"'
+    if path.startswith("~/"):
+        rest = path[2:]
+        return '"$HOME"' + ("/" + shlex.quote(rest) if rest else "/")
+    return shlex.quote(path)
+
+
+def command_line(argv: Sequence[str]) -> str:
+    """A shell command line that runs exactly ``argv`` (no expansion, no splitting)."""
+    if not argv:
+        raise ValueError("an empty argv is no command")
+    return shlex.join(argv)
+
+
+def ros_environment(workspace: str | None, *, spaces: Sequence[str] = RUN_SPACES,
+                    ros_root: str = ROS_ROOT) -> str:
+    """bash lines that source the ROS environment a command in ``workspace`` should see.
+
+    The first of ``<workspace>/<space>/setup.bash`` for ``spaces`` that exists;
+    else ``<ros_root>/$ROS_DISTRO/setup.bash`` of the machine the lines run
+    on, where ``$ROS_DISTRO`` defaults to the last distribution found under
+    ``ros_root`` (one generation's distributions sort in release order); else
+    nothing. ``workspace`` is a path on that machine (``~`` for its home).
+    """
+    distro = [
+        "__fetchsync_distro=${ROS_DISTRO:-}",
+        'if [ -z "$__fetchsync_distro" ]; then',
+        f"  for __fetchsync_dir in {shlex.quote(ros_root)}/*/; do",
+        '    if [ -f "${__fetchsync_dir}setup.bash" ]; then',
+        '      __fetchsync_distro=$(basename "$__fetchsync_dir")',
+        "    fi",
+        "  done",
+        "fi",
+        f'if [ -n "$__fetchsync_distro" ] && [ -f {shlex.quote(ros_root)}/"$__fetchsync_distro"/setup.bash ]; then',
+        f'  . {shlex.quote(ros_root)}/"$__fetchsync_distro"/setup.bash',
+        "fi",
+        "unset __fetchsync_distro __fetchsync_dir",
+    ]
+    lines: list[str] = []
+    if workspace is not None:
+        for i, space in enumerate(spaces):
+            setup = shell_path(f"{workspace.rstrip('/')}/{space}/setup.bash")
+            lines.append(f"{'if' if i == 0 else 'elif'} [ -f {setup} ]; then")
+            lines.append(f"  . {setup}")
+    if not lines:
+        return "\n".join(distro)
+    lines.append("else")
+    lines.extend("  " + line for line in distro)
+    lines.append("fi")
+    return "\n".join(lines)
+
+
+def script(command: str, *, environment: str, directory: str | None = None) -> str:
+    """A bash script: optionally ``cd`` to ``directory``, source ``environment``, run ``command``."""
+    parts = []
+    if directory is not None:
+        parts.append(f"cd {shell_path(directory)} || exit 1")
+    parts.append(environment)
+    parts.append(command)
+    return "\n".join(parts)
+
+
+@functools.cache
+def reaper_source() -> str:
+    """The source of :mod:`fetchsync.reaper`, as sent to the robot."""
+    return (Path(__file__).resolve().parent / "reaper.py").read_text(encoding="utf-8")
+
+
+def wrap(bash_script: str, *, tty: bool, python: str = "python3") -> str:
+    """The command line for the robot's login shell that runs ``bash_script`` reaped.
+
+    ``tty`` must say whether the channel has a PTY: the reaper then hands the
+    terminal to the command's process group so that ``^C`` reaches it.
+    """
+    bash = ["bash", "-c", bash_script]
+    reaped = [python, "-c", reaper_source(), "tty" if tty else "pipe", *bash]
+    return (f"if command -v {shlex.quote(python)} >/dev/null 2>&1; "
+            f"then exec {shlex.join(reaped)}; else exec {shlex.join(bash)}; fi")
