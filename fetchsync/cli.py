@@ -16,6 +16,7 @@ from typing import Any, Callable
 import click
 
 from fetchsync import __version__
+from fetchsync.commands.build_options import BuildCommand, build_options, build_request
 from fetchsync.commands.common import resolve as _resolve
 from fetchsync.commands.common import target_options
 from fetchsync.errors import FetchsyncError
@@ -146,20 +147,23 @@ def cli(verbose: int) -> None:
                             format="%(name)s: %(message)s")
 
 
-@cli.command()
+@cli.command(cls=BuildCommand)
 @target_options
 @sync_options
 @click.option("--strict", is_flag=True,
               help="Refuse to replace files changed on the robot since the last sync.")
 @click.option("--force", is_flag=True, help="Push even a missing or empty src/ (empties the robot's).")
+@build_options
 def push(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
          accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
-         strict: bool, force: bool) -> None:
+         strict: bool, force: bool, builds: tuple[str, ...], build_type: str, build_tool: str,
+         install_deps: bool) -> None:
     """Make the robot's <remote workspace>/src identical to the local src/.
 
     Files changed on the robot since the last sync are kept under
     <remote workspace>/.fetchsync/conflicts/ before being replaced (--strict
     refuses instead); deleted files go to a bounded .fetchsync/trash/.
+    With --build or --install-deps, then builds on the robot.
     """
     from fetchsync.errors import SyncError
     from fetchsync.session import connect, open_state
@@ -191,20 +195,28 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
     raise_for(report, strict=strict)
+    request = build_request(builds, build_type, build_tool, install_deps)
+    if request and not dry_run:
+        from fetchsync.build import build_on_robot
+        build_on_robot(target, request, src=src, accept_fingerprint=accept_host_key,
+                       quiet_stdout=as_json)
 
 
-@cli.command()
+@cli.command(cls=BuildCommand)
 @target_options
 @sync_options
 @click.option("--yes", "-y", "yes", is_flag=True, help="Do not ask for confirmation.")
 @click.option("--no-safety", "yes", is_flag=True, help="fetch_tools' name for --yes.")
+@build_options
 def pull(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
          accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
-         yes: bool) -> None:
+         yes: bool, builds: tuple[str, ...], build_type: str, build_tool: str,
+         install_deps: bool) -> None:
     """Make the local src/ identical to the robot's.
 
     Asks first (unless --yes). Local files it replaces or deletes are kept in
     <workspace>/.fetchsync/trash/ and .fetchsync/conflicts/.
+    With --build or --install-deps, then builds here.
     """
     from fetchsync.errors import UsageError
     from fetchsync.session import connect, open_state
@@ -240,6 +252,10 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
         target.remote_workspace + "/src"
     _print_report(report, as_json)
     raise_for(report, strict=False)
+    request = build_request(builds, build_type, build_tool, install_deps)
+    if request and not dry_run:
+        from fetchsync.build import build_locally
+        build_locally(target.workspace, request, quiet_stdout=as_json)
 
 
 def main() -> None:
