@@ -86,13 +86,7 @@ def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
     if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
         raise ProtocolError("unknown frame type %d" % ftype)
     if flags & FLAG_ZLIB:
-        try:
-            d = zlib.decompressobj()
-            body = d.decompress(body, MAX_BODY)
-            if d.unconsumed_tail or not d.eof:
-                raise ProtocolError("compressed frame is truncated or over %d bytes" % MAX_BODY)
-        except zlib.error as exc:
-            raise ProtocolError("corrupt compressed frame: %s" % exc)
+        body = inflate(body, MAX_BODY)
     if len(body) < 4:
         raise ProtocolError("frame body too short")
     (hlen,) = _U32.unpack_from(body)
