@@ -29,6 +29,7 @@ LAZY_COMMANDS: dict[str, str] = {
     "shell-init": "fetchsync.commands.shell_init:command",
     "snapshot": "fetchsync.commands.snapshot:command",
     "debug-snapshot": "fetchsync.commands.snapshot:command",
+    "workspace-status": "fetchsync.commands.workspace_status:command",
 }
 
 
