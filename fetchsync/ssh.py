@@ -52,6 +52,10 @@ from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostEr
 from fetchsync.transport import Channel
 
 log = logging.getLogger(__name__)
+# paramiko logs a dropped link as an ERROR ("Socket exception: ...") before we
+# report it as a LinkLostError; with no handler configured Python would print
+# it raw to stderr as a second line. -v still shows it through the root logger.
+logging.getLogger("paramiko").addHandler(logging.NullHandler())
 
 PasswordCallback = Callable[[str], "str | None"]
 """Asked for a password or a key's passphrase; gets the prompt, returns None to skip."""
