@@ -166,6 +166,64 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
     return LocalTree(items, stats, skipped, unhashed)
 
 
+def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str,
+                 paths: set[str], dirs: set[str]) -> tuple[LocalTree, Callable[[str], bool]]:
+    """The local tree restricted to ``paths``, the subtrees below ``dirs`` and their
+    ancestors, and the predicate saying which paths that scope covers."""
+    from fetchsync.protocol.paths import ancestors, is_within
+    from fetchsync.protocol.tree import stat_path
+
+    items: dict[str, M.Listed] = {}
+    stats: dict[str, Entry] = {}
+    skipped: list[tuple[str, str]] = []
+    singles = set(paths) | set(dirs)
+    for p in list(singles):
+        singles.update(ancestors(p))
+    for path in sorted(singles):
+        e = stat_path(os.path.join(root, path))
+        if e is None or rules.ignored_any(path, e.kind == "d"):
+            continue
+        _add_entry(root, path, e, synced, algorithm, items, stats, skipped)
+    # every touched directory bounds the scope, even one deleted since: its
+    # synced entries below must be in the plan's view
+    tops = sorted(d for d in dirs if not any(is_within(d, o) and d != o for o in dirs))
+    for top in tops:
+        e = stats.get(top)
+        if e is None or e.kind != "d":
+            continue
+        result = scan(root, rules, is_temp=is_temp, start=top)
+        skipped.extend(result.skipped)
+        for path, entry in result.entries.items():
+            _add_entry(root, path, entry, synced, algorithm, items, stats, skipped)
+
+    def scope(path: str) -> bool:
+        return path in singles or any(is_within(path, d) for d in tops)
+
+    return LocalTree(items, stats, skipped), scope
+
+
+def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algorithm: str,
+               items: dict[str, M.Listed], stats: dict[str, Entry], skipped: list[tuple[str, str]]) -> None:
+    if e.kind == "f":
+        s = synced.get(path)
+        if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
+                and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
+            digest = s.hash
+        else:
+            try:
+                with open(os.path.join(root, path), "rb") as fh:
+                    digest = hashing.file_digest(algorithm, fh).hex()
+            except OSError as exc:
+                skipped.append((path, f"cannot read: {exc.strerror}"))
+                return
+        items[path] = M.Listed(path, "f", e.mode, e.size, hash=digest)
+    elif e.kind == "l":
+        items[path] = M.Listed(path, "l", target=e.target)
+    else:
+        items[path] = M.Listed(path, "d", e.mode)
+    stats[path] = e
+
+
 def read_stable(full: str, *, tries: int = 3) -> tuple[bytes, Entry]:
     """Read a whole file, making sure it did not change while read."""
     for _ in range(tries):
@@ -340,18 +398,27 @@ class Syncer:
         self.algorithm = conn.algorithm
         self.opened: dict[str, Any] | None = None
         self._robot_sigs: dict[str, bytes] = {}
+        self._synced: dict[str, Synced] | None = None  # the state's entries, kept between calls
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
                 "create": create}
 
+    def _load_synced(self) -> dict[str, Synced]:
+        if self._synced is None:
+            synced = self.state.entries()
+            if self.state.get("algorithm") not in ("", self.algorithm):
+                synced = {}
+            self._synced = synced
+        return self._synced
+
     def push(self, *, dry_run: bool = False, progress: Progress | None = None) -> Report:
+        """Make the robot's tree identical to the local one, after asking it what changed there."""
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
-        synced = self.state.entries()
-        if self.state.get("algorithm") not in ("", self.algorithm):
-            synced = {}
+        self._synced = None  # reread: another process may have pushed since
+        synced = self._load_synced()
         fresh = bool(synced) and self.state.epoch != ""
         open_req = self.conn.send(self._open_header()) if self.opened is None else None
         epoch, gen = self.state.epoch, self.state.gen
@@ -366,7 +433,48 @@ class Syncer:
         epoch, gen = listing["epoch"], listing["gen"]
         local.hash_where_needed(self.local_root, remote, self.algorithm)
         report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
-        checked = True  # remote holds what the robot reported just now
+        self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run, progress=progress)
+        report.bytes_sent = self.conn.bytes_out - b_out
+        report.bytes_received = self.conn.bytes_in - b_in
+        report.seconds = time.monotonic() - t0
+        return report
+
+    def push_paths(self, paths: Iterable[str], dirs: Iterable[str] = ()) -> Report:
+        """Push only what changed at ``paths`` and below ``dirs`` (the watch agent's fast path).
+
+        No listing from the robot: the plan starts from the last-synced state,
+        and each operation's expectation is checked there. If another writer
+        is detected, this falls back to a full :meth:`push`.
+        """
+        t0 = time.monotonic()
+        report = Report("push")
+        b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
+        synced = self._load_synced()
+        if not synced or self.state.epoch == "" or self.opened is None:
+            return self.push()
+        paths, dirs = set(paths), set(dirs)
+        if "" in dirs:
+            return self.push()
+        paths.discard("")
+        if not paths and not dirs:
+            return report
+        local, scope = scan_touched(self.local_root, self.rules, synced, self.algorithm, paths, dirs)
+        remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
+        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
+        stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
+                               scope=scope)
+        if stale:
+            return self.push()
+        report.bytes_sent = self.conn.bytes_out - b_out
+        report.bytes_received = self.conn.bytes_in - b_in
+        report.seconds = time.monotonic() - t0
+        return report
+
+    def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
+                  epoch: str, gen: int, report: Report, *, dry_run: bool = False,
+                  progress: Progress | None = None, scope: Callable[[str], bool] | None = None) -> bool:
+        """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
+        then advance the state. Returns True if an incremental run met another writer."""
         signed = self.state.signed_paths()
         robot_sigs: dict[str, bytes] = {}
         self._robot_sigs = robot_sigs
@@ -392,7 +500,7 @@ class Syncer:
                     report.count(p)
                     report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
                 break
-            if not planned and (checked or report.rounds > 0):
+            if not planned:
                 break
             report.rounds += 1
             planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
@@ -411,18 +519,15 @@ class Syncer:
                 self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local, report,
                              now_ns)
             if stale:
+                if scope is not None:
+                    self._commit(upserts, deletes, new_synced, epoch, gen)
+                    return True
                 # another writer touched the robot: start again from what it holds now
                 listing = self.conn.request({"op": "list", "mode": "full"}).header
                 remote = self._apply_listing(listing, synced)
                 epoch, gen = listing["epoch"], listing["gen"]
                 continue
-            for entry in last.get("drift", []):
-                item = M.Listed.from_wire(entry)
-                remote[item.path] = item
-            for path in last.get("gone", []):
-                remote.pop(path, None)
-            if not last.get("drift") and not last.get("gone") and not any(
-                    not r.ok for _t, r in results):
+            if not any(not r.ok for _t, r in results):
                 break
         if not dry_run:
             left = [p for p in plan(local.items, remote, expect) if p.op.path not in
@@ -440,17 +545,20 @@ class Syncer:
                     upserts[path] = (s, None)
                     new_synced[path] = s
         for path in list(new_synced):
-            if path not in remote and path not in upserts:
+            if path not in remote and path not in upserts and (scope is None or scope(path)):
                 deletes.add(path)
+                del new_synced[path]
         if not dry_run:
-            self.state.commit(upserts=[(p, s, sig) for p, (s, sig) in upserts.items()],
-                              deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
-                                                     "algorithm": self.algorithm})
-            self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
-        report.bytes_sent = self.conn.bytes_out - b_out
-        report.bytes_received = self.conn.bytes_in - b_in
-        report.seconds = time.monotonic() - t0
-        return report
+            self._commit(upserts, deletes, new_synced, epoch, gen)
+        return False
+
+    def _commit(self, upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str],
+                new_synced: dict[str, Synced], epoch: str, gen: int) -> None:
+        self.state.commit(upserts=[(p, s, sig) for p, (s, sig) in upserts.items()],
+                          deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
+                                                 "algorithm": self.algorithm})
+        self._synced = new_synced
+        self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
 
     def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
                           robot_sigs: dict[str, bytes], whole_only: set[str]) -> list[Planned]:

@@ -66,15 +66,28 @@ class ScanResult(NamedTuple):
     skipped: List[Tuple[str, str]]   # (path, reason): sockets, FIFOs, unreadable dirs
 
 
-def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None) -> ScanResult:
+def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
+         start: str = "") -> ScanResult:
     """Stat every entry under ``root`` (not following symlinks), honouring ``rules``.
 
     ``rules`` is an ``IgnoreRules`` (or None); ``.fetchsyncignore`` files met on
     the way extend it for their subtree. Returns a flat map of wire paths.
+    ``start`` (a wire path of a directory under ``root``) scans only below it,
+    with the ignore files of its ancestors applied.
     """
     entries = {}  # type: Dict[str, Entry]
     skipped = []  # type: List[Tuple[str, str]]
-    stack = [("", rules)]
+    if start and rules is not None:
+        parts = start.split("/")
+        for depth in range(len(parts)):
+            anc = "/".join(parts[:depth])
+            try:
+                with open(os.path.join(root, anc, IGNORE_FILE), "r", encoding="utf-8",
+                          errors="surrogateescape") as fh:
+                    rules = rules.with_file(anc, fh.read())
+            except OSError:
+                pass
+    stack = [(start, rules)]
     while stack:
         rel, dir_rules = stack.pop()
         full = os.path.join(root, rel) if rel else root
