@@ -21,6 +21,8 @@ from fetchsync.transport import Channel, Transport
 log = logging.getLogger(__name__)
 
 DEFAULT_PYTHON = "python3"
+# seconds without a byte from the robot before a waiting request checks the link
+LIVENESS_INTERVAL = 5.0
 
 
 def remote_python() -> str:
@@ -164,12 +166,30 @@ class Connection:
         return req_id
 
     def wait(self, req_id: int) -> wire.Frame:
-        with self._arrived:
-            while req_id not in self._pending:
+        # A dead Wi-Fi link acks nothing but fails nothing either: the kernel's
+        # user timeout only fires while we have data in flight, so a client
+        # waiting for a response would wait forever. While no byte arrives,
+        # ask the transport (SSH keepalive with a reply) whether the robot is
+        # still there; a link that does not answer is closed and reported.
+        probe = getattr(self.transport, "is_alive", None)
+        seen = self.reader.bytes_in
+        while True:
+            with self._arrived:
+                if req_id in self._pending:
+                    frame = self._pending.pop(req_id)
+                    break
                 if self._failure is not None:
                     raise self._failure
-                self._arrived.wait()
-            frame = self._pending.pop(req_id)
+                if self._arrived.wait(LIVENESS_INTERVAL) or probe is None:
+                    continue
+            if self.reader.bytes_in != seen:
+                seen = self.reader.bytes_in
+                continue
+            if not probe():
+                with self._arrived:
+                    self._arrived.wait_for(lambda: self._failure is not None, timeout=5)
+                raise LinkLostError(f"the link to {self.transport.name} was lost: "
+                                    "the robot stopped answering keepalives")
         if frame.type == wire.T_ERROR:
             kind = frame.header.get("kind", "")
             message = str(frame.header.get("error", "unknown error"))

@@ -344,7 +344,8 @@ class SSHTransport:
             threading.Thread(target=probe, name="fetchsync-ssh-probe", daemon=True).start()
             if answered.wait(wait) and self._transport.is_active():
                 return True
-        log.warning("%s did not answer a keepalive in %.1f s; closing the link", self.name, wait)
+        # the caller reports the lost link; a warning here would be a second line on stderr
+        log.info("%s did not answer a keepalive in %.1f s; closing the link", self.name, wait)
         self.close()
         return False
 

@@ -108,3 +108,40 @@ def test_link_fault_mid_push_fails_cleanly_and_the_next_push_converges(env, faul
     fetchsync("push", env=env)
     assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
     assert temporaries(remote_dir) == []
+
+
+@pytest.mark.parametrize("fault", ["blackhole", "cut"])
+def test_link_fault_mid_pull_leaves_the_local_tree_consistent(env, fault_proxy, remote_dir, fault):
+    fetchsync("push", env=env)
+    before = tree_of(local_src(env))
+    # robot-side content the pull must fetch, big enough to take a while throttled
+    bulky_files(remote_dir / "src", count=40)
+    fault_proxy.throttle(bytes_per_second=200_000)
+    proc = start(["pull", "--yes"], env)
+    time.sleep(1.5)
+    getattr(fault_proxy, fault)()
+    assert_one_line_failure(finish(proc))
+    # whatever arrived is whole: every local file is either as before or the robot's
+    after = tree_of(local_src(env))
+    robot = tree_of(remote_dir / "src")
+    for path, entry in after.items():
+        assert entry == before.get(path) or entry == robot.get(path), path
+    assert temporaries(local_src(env).parent) == []
+    fault_proxy.throttle()
+    fault_proxy.pass_through()
+    fetchsync("pull", "--yes", env=env)
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+    assert temporaries(local_src(env).parent) == []
+
+
+def test_slow_link_push_is_correct(env, fault_proxy, remote_dir):
+    fault_proxy.throttle(bytes_per_second=400_000, latency=0.05)
+    fetchsync("push", env=env)
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+    data = local_src(env) / "my_pkg/data.txt"
+    data.write_text("// edited over a slow link\n" + data.read_text())
+    (local_src(env) / "my_pkg/package.xml").rename(local_src(env) / "my_pkg/package2.xml")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["ok"] and r["deltas"] == 1
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+    assert temporaries(remote_dir) == []
