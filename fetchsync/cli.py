@@ -30,6 +30,9 @@ LAZY_COMMANDS: dict[str, str] = {
     "snapshot": "fetchsync.commands.snapshot:command",
     "debug-snapshot": "fetchsync.commands.snapshot:command",
     "workspace-status": "fetchsync.commands.workspace_status:command",
+    "watch": "fetchsync.commands.watch:watch",
+    "status": "fetchsync.commands.watch:status",
+    "flush": "fetchsync.commands.watch:flush",
 }
 
 
@@ -74,6 +77,25 @@ class _Progress:
         if self.shown:
             sys.stderr.write("\r" + " " * 70 + "\r")
             sys.stderr.flush()
+
+
+def _push_via_agent(target: Any) -> Any:
+    """The report of a full push made by the running agent, or None if none runs."""
+    from fetchsync.agent.control import call
+    from fetchsync.agent.service import agent_paths
+    from fetchsync.errors import SyncError
+    from fetchsync.sync import Report
+
+    reply = call(agent_paths(target)[1], {"cmd": "push"}, timeout=3600)
+    if reply is None:
+        return None
+    if not reply.get("ok"):
+        raise SyncError(f"the watch agent could not push: {reply.get('error') or 'unknown error'}")
+    data = reply.get("report") or {}
+    fields = Report.__dataclass_fields__
+    report = Report(**{k: v for k, v in data.items() if k in fields})
+    report.connection = "agent"
+    return report
 
 
 def _connection_kind(conn: Any) -> str:
@@ -182,17 +204,21 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     else:
         src.mkdir(parents=True, exist_ok=True)
     rules = build_rules(excludes)
-    progress = _Progress(not as_json)
-    state = open_state(target)
-    try:
-        with connect(target, accept_fingerprint=accept_host_key) as conn:
-            syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
-                            rules=rules, policy="refuse" if strict else "preserve")
-            report = syncer.push(dry_run=dry_run, progress=progress)
-            report.connection = _connection_kind(conn)
-    finally:
-        progress.close()
-        state.close()
+    # a running watch agent for this robot and workspace already holds the
+    # connection and the state: a plain push goes through it
+    report = None if (dry_run or strict or excludes) else _push_via_agent(target)
+    if report is None:
+        progress = _Progress(not as_json)
+        state = open_state(target)
+        try:
+            with connect(target, accept_fingerprint=accept_host_key) as conn:
+                syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
+                                rules=rules, policy="refuse" if strict else "preserve")
+                report = syncer.push(dry_run=dry_run, progress=progress)
+                report.connection = _connection_kind(conn)
+        finally:
+            progress.close()
+            state.close()
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
     raise_for(report, strict=strict)

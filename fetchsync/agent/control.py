@@ -1,0 +1,123 @@
+"""The agent's control socket: ``status``, ``flush`` and ``push`` for other processes.
+
+One JSON object per line each way, over an owner-only unix socket in the
+user's runtime directory. :func:`call` is the client side used by the CLI;
+it returns None when no agent is running for the target.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import threading
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+MAX_REQUEST = 1 << 20
+
+
+class ControlServer:
+    def __init__(self, path: Path, agent: Any) -> None:
+        self.path = path
+        self.agent = agent
+        self.sock: socket.socket | None = None
+        self.thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass  # the agent lock is held: any socket file left is stale
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        os.chmod(self.path, 0o600)
+        sock.listen(16)
+        sock.settimeout(0.2)
+        self.sock = sock
+        self.thread = threading.Thread(target=self._serve, name="fetchsync-control", daemon=True)
+        self.thread.start()
+
+    def stop(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+    def _serve(self) -> None:
+        while self.sock is not None and not self.agent.stop_event.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                return
+            threading.Thread(target=self._client, args=(conn,), daemon=True).start()
+
+    def _client(self, conn: socket.socket) -> None:
+        try:
+            with conn, conn.makefile("rwb") as f:
+                line = f.readline(MAX_REQUEST)
+                try:
+                    req = json.loads(line)
+                    if not isinstance(req, dict):
+                        raise ValueError("not an object")
+                    reply = self.handle(req)
+                except (ValueError, TypeError, KeyError) as exc:
+                    reply = {"ok": False, "error": f"bad request: {exc}"}
+                f.write(json.dumps(reply).encode() + b"\n")
+                f.flush()
+        except OSError:
+            pass  # the client went away
+
+    def handle(self, req: dict[str, Any]) -> dict[str, Any]:
+        cmd = req.get("cmd")
+        timeout = float(req.get("timeout", 60))
+        if cmd == "status":
+            return {"ok": True, "status": self.agent.status()}
+        if cmd == "flush":
+            paths = req.get("paths") or []
+            if not isinstance(paths, list) or not all(isinstance(p, str) for p in paths):
+                raise ValueError("paths must be a list of strings")
+            seq = self.agent.request(paths=set(paths)) if paths else self.agent.request(full=True)
+            ok, why = self.agent.wait_for(seq, timeout)
+            return {"ok": ok, "error": why, "status": self.agent.status()}
+        if cmd == "push":
+            seq = self.agent.request(full=True)
+            ok, why = self.agent.wait_for(seq, timeout)
+            return {"ok": ok, "error": why, "report": self.agent.status().get("last_report")}
+        raise ValueError(f"unknown command {cmd!r}")
+
+
+def call(path: Path, payload: dict[str, Any], *, timeout: float = 60.0) -> dict[str, Any] | None:
+    """Send one request to the agent at ``path``; None if no agent answers there."""
+    if not path.exists():
+        return None
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(timeout + 5)
+    try:
+        sock.connect(str(path))
+    except OSError:
+        sock.close()
+        return None
+    try:
+        with sock, sock.makefile("rwb") as f:
+            f.write(json.dumps(dict(payload, timeout=timeout)).encode() + b"\n")
+            f.flush()
+            line = f.readline(MAX_REQUEST)
+    except OSError:
+        return None
+    if not line:
+        return None
+    reply = json.loads(line)
+    return reply if isinstance(reply, dict) else None

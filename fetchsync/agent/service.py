@@ -1,0 +1,366 @@
+"""The watch agent: keeps a robot's ``src/`` identical to the local one, live.
+
+Three threads share one :class:`Agent`:
+
+- the watcher (``fetchsync.agent.watcher.batches``) turns inotify events into
+  coalesced batches of touched paths and puts them in a queue;
+- the sync loop merges whatever is pending into one incremental push
+  (:meth:`fetchsync.sync.Syncer.push_paths`), or a full push after a rescan,
+  a reconnection or a request; when the link is lost it keeps collecting
+  changes, reconnects with a backoff capped at a few seconds and then pushes
+  everything that changed meanwhile;
+- the control server (``fetchsync.agent.control``) answers ``status``,
+  ``flush`` and ``push`` on an owner-only unix socket.
+
+One agent runs per (robot, remote workspace): a second one finds the lock
+taken and says where the first one is.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from fetchsync.config import Target
+from fetchsync.errors import FetchsyncError, TransportError, UsageError
+from fetchsync.protocol.errors import ProtocolError
+
+log = logging.getLogger(__name__)
+
+BACKOFF_FIRST = 0.25
+BACKOFF_CAP = 4.0
+PROBE_EVERY = 2.0  # seconds between link checks while idle
+
+
+def agent_paths(target: Target) -> tuple[Path, Path]:
+    """The lock file and the control socket of the agent for this target."""
+    from fetchsync.agent.mux import MAX_SOCKET_PATH, runtime_dir
+    from fetchsync.session import robot_id
+
+    key = hashlib.sha256(f"{robot_id(target)}\0{target.remote_workspace}".encode(
+        "utf-8", "surrogateescape")).hexdigest()[:20]
+    base = runtime_dir()
+    sock = base / f"agent-{key}.sock"
+    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
+        base = runtime_dir(short=True)
+        sock = base / f"agent-{key}.sock"
+    return base / f"agent-{key}.lock", sock
+
+
+@dataclass
+class Pending:
+    """Changes seen but not yet on the robot."""
+
+    paths: set[str] = field(default_factory=set)
+    dirs: set[str] = field(default_factory=set)
+    full: bool = False
+    first: int = 0  # the first request merged in
+    seq: int = 0    # the last request merged in
+
+    def empty(self) -> bool:
+        return not (self.paths or self.dirs or self.full)
+
+    def count(self) -> int:
+        return len(self.paths) + len(self.dirs) + (1 if self.full else 0)
+
+
+class Agent:
+    def __init__(self, target: Target, *, rules: Any, policy: str = "preserve",
+                 accept_fingerprint: str | None = None, quiet: float | None = None,
+                 cap: float | None = None, on_event: Callable[[str], None] | None = None) -> None:
+        self.target = target
+        self.rules = rules
+        self.policy = policy
+        self.accept_fingerprint = accept_fingerprint
+        self.quiet = quiet
+        self.cap = cap
+        self.say = on_event or (lambda line: log.info("%s", line))
+        self.src = str(target.workspace / "src")
+        self.stop_event = threading.Event()
+        self.cond = threading.Condition()
+        self.pending = Pending(full=True)  # the first sync checks everything
+        self.next_seq = 1
+        self.done_seq = 0       # every request up to this one is on the robot
+        self.failed: list[tuple[int, int, str]] = []  # (first, last request, why) of failed pushes
+        self.state = "starting"
+        self.offline_since: float | None = None
+        self.last_sync: float | None = None
+        self.last_error = ""
+        self.conflicts: list[dict[str, str]] = []
+        self.last_report: dict[str, Any] | None = None
+        self._conn: Any = None
+        self._transport: Any = None
+        self._syncer: Any = None
+        self._state: Any = None
+        self._lock_fd = -1
+
+    # ------------------------------------------------------------------ lifecycle
+    def acquire(self) -> None:
+        """Take the one-agent-per-target lock, or say where the running one is."""
+        lock, sock = agent_paths(self.target)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                owner = os.read(fd, 200).decode("utf-8", "replace").strip()
+            finally:
+                os.close(fd)
+            raise UsageError(f"an agent is already watching {self.src} for {self.target.robot} "
+                             f"({owner or 'pid unknown'}; socket {sock})",
+                             hint="stop it first, or use fetchsync status / flush")
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}".encode())
+        self._lock_fd = fd
+        self.socket_path = sock
+
+    def release(self) -> None:
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)
+            self._lock_fd = -1
+
+    def run(self) -> None:
+        """Watch and sync until :meth:`stop`; returns within a second or two of it."""
+        from fetchsync.agent.control import ControlServer
+
+        server = ControlServer(self.socket_path, self)
+        server.start()
+        watcher = threading.Thread(target=self._watch, name="fetchsync-watch", daemon=True)
+        watcher.start()
+        syncer = threading.Thread(target=self._sync_loop, name="fetchsync-sync", daemon=True)
+        syncer.start()
+        threading.Thread(target=self._monitor, name="fetchsync-monitor", daemon=True).start()
+        try:
+            while not self.stop_event.wait(0.2):
+                pass
+        finally:
+            with self.cond:
+                self.cond.notify_all()
+            syncer.join(1.5)
+            watcher.join(0.5)
+            server.stop()
+            self._disconnect()
+            if self._state is not None:
+                try:
+                    self._state.close()
+                except Exception:  # closing at exit: nothing left to protect
+                    pass
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        with self.cond:
+            self.cond.notify_all()
+
+    # ------------------------------------------------------------------ requests
+    def request(self, *, paths: set[str] | None = None, dirs: set[str] | None = None,
+                full: bool = False) -> int:
+        """Queue work; returns its sequence number for :meth:`wait_for`."""
+        with self.cond:
+            seq = self.next_seq
+            self.next_seq += 1
+            self.pending.paths |= paths or set()
+            self.pending.dirs |= dirs or set()
+            self.pending.full |= full
+            self.pending.first = self.pending.first or seq
+            self.pending.seq = seq
+            self.cond.notify_all()
+            return seq
+
+    def wait_for(self, seq: int, timeout: float) -> tuple[bool, str]:
+        """Wait until request ``seq`` is on the robot: (done, error)."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                for lo, hi, why in self.failed:
+                    if lo <= seq <= hi:
+                        return False, why
+                if self.done_seq >= seq:
+                    return True, ""
+                left = deadline - time.monotonic()
+                if left <= 0 or self.stop_event.is_set():
+                    why = (f"the robot is offline since {time.strftime('%H:%M:%S', time.localtime(self.offline_since))}"
+                           if self.offline_since else "timed out")
+                    return False, why
+                self.cond.wait(min(left, 0.5))
+
+    def status(self) -> dict[str, Any]:
+        with self.cond:
+            return {
+                "state": self.state,
+                "robot": self.target.robot,
+                "workspace": self.src,
+                "remote": self.target.remote_workspace + "/src",
+                "pid": os.getpid(),
+                "last_sync": self.last_sync,
+                "pending": self.pending.count(),
+                "offline_since": self.offline_since,
+                "conflicts": list(self.conflicts[-20:]),
+                "last_error": self.last_error,
+                "last_report": self.last_report,
+            }
+
+    # ------------------------------------------------------------------ threads
+    def _watch(self) -> None:
+        from fetchsync.agent.watcher import batches
+
+        kwargs: dict[str, Any] = {}
+        if self.quiet is not None:
+            kwargs["quiet"] = self.quiet
+        if self.cap is not None:
+            kwargs["cap"] = self.cap
+        try:
+            for batch in batches(self.src, rules=self.rules, stop_event=self.stop_event, **kwargs):
+                if batch.rescan:
+                    self.request(full=True)
+                else:
+                    self.request(paths=set(batch.paths), dirs=set(batch.dirs))
+        except Exception as exc:  # the agent cannot work without its watcher: say why and stop
+            self.last_error = f"watcher failed: {exc}"
+            self.say(f"error: {self.last_error}")
+            self.stop()
+
+    def _sync_loop(self) -> None:
+        backoff = BACKOFF_FIRST
+        while not self.stop_event.is_set():
+            with self.cond:
+                while self.pending.empty() and not self.stop_event.is_set():
+                    self.cond.wait(PROBE_EVERY)
+                if self.stop_event.is_set():
+                    return
+                work = self.pending
+                self.pending = Pending()
+            try:
+                self._ensure_connected()
+                self._set_state("syncing")
+                t0 = time.monotonic()
+                if work.full or self._syncer is None:
+                    report = self._syncer.push()
+                else:
+                    report = self._syncer.push_paths(work.paths, work.dirs)
+                self._settled(work, report, time.monotonic() - t0)
+                backoff = BACKOFF_FIRST
+            except (TransportError, ProtocolError, EOFError, OSError) as exc:
+                self._went_offline(work, exc)
+                if self.stop_event.wait(backoff):
+                    return
+                backoff = min(backoff * 2, BACKOFF_CAP)
+            except FetchsyncError as exc:
+                with self.cond:
+                    self.last_error = str(exc)
+                    self.failed = self.failed[-50:] + [(work.first, work.seq, str(exc))]
+                    self.done_seq = max(self.done_seq, work.seq)
+                    self.cond.notify_all()
+                self.say(f"error: {exc}")
+                self._set_state("live")
+
+    def _ensure_connected(self) -> None:
+        if self._syncer is not None:
+            return
+        from fetchsync.connection import Connection
+        from fetchsync.session import open_state, open_transport
+        from fetchsync.sync import Syncer
+
+        transport = open_transport(self.target, accept_fingerprint=self.accept_fingerprint,
+                                   persistent=False)
+        try:
+            conn = Connection.open(transport)
+        except BaseException:
+            transport.close()
+            raise
+        if self._state is None:
+            self._state = open_state(self.target)
+        self._transport, self._conn = transport, conn
+        self._syncer = Syncer(conn, self._state, local_root=self.src,
+                              remote_workspace=self.target.remote_workspace, rules=self.rules,
+                              policy=self.policy)
+        if self.offline_since is not None:
+            self.say(f"back online after {time.monotonic() - self._offline_mono:.1f}s")
+        with self.cond:
+            self.offline_since = None
+
+    def _disconnect(self) -> None:
+        conn, transport = self._conn, self._transport
+        self._conn = self._transport = self._syncer = None
+        if conn is not None:
+            try:
+                conn.channel.close()
+            except Exception:  # the link is already gone
+                pass
+        if transport is not None:
+            try:
+                transport.close()
+            except Exception:  # the link is already gone
+                pass
+
+    def _monitor(self) -> None:
+        """Notice a dead link within seconds, idle or mid-push.
+
+        A link whose packets stop (a robot out of Wi-Fi range) gives no error
+        by itself: a keepalive without an answer closes the transport, which
+        wakes a push blocked on it, and the sync loop goes offline.
+        """
+        while not self.stop_event.wait(PROBE_EVERY):
+            transport = self._transport
+            alive = getattr(transport, "is_alive", None)
+            if alive is None:
+                continue
+            try:
+                ok = alive(timeout=3.0)
+            except Exception:  # a probe that fails in any way means the same
+                ok = False
+            if not ok and transport is self._transport:
+                self._went_offline(None, TransportError("the robot stopped answering keepalives"))
+                self.request(full=True)
+
+    def _went_offline(self, work: Pending | None, exc: BaseException) -> None:
+        self._disconnect()
+        with self.cond:
+            if work is not None:
+                # keep what was not synced, and check everything once back
+                self.pending.paths |= work.paths
+                self.pending.dirs |= work.dirs
+                self.pending.full = True
+                self.pending.seq = max(self.pending.seq, work.seq)
+                self.pending.first = min(x for x in (self.pending.first, work.first) if x) \
+                    if (self.pending.first or work.first) else 0
+            if self.offline_since is None:
+                self.offline_since = time.time()
+                self._offline_mono = time.monotonic()
+                self.say(f"offline: {exc}; changes are kept and sent when the robot is back")
+            self.state = "offline"
+            self.last_error = str(exc)
+            self.cond.notify_all()
+
+    def _settled(self, work: Pending, report: Any, seconds: float) -> None:
+        with self.cond:
+            self.last_sync = time.time()
+            self.last_report = report.to_json()
+            self.conflicts.extend(report.conflicts)
+            if report.errors:
+                self.last_error = f"{report.errors[0]['path']}: {report.errors[0]['error']}"
+                self.failed = self.failed[-50:] + [(work.first, work.seq, self.last_error)]
+            self.done_seq = max(self.done_seq, work.seq)
+            self.state = "live" if self.pending.empty() else "syncing"
+            self.cond.notify_all()
+        if report.changed or report.conflicts or report.errors:
+            line = (f"pushed {report.files} files, {report.dirs} dirs, {report.deleted} deleted "
+                    f"in {seconds * 1000:.0f} ms")
+            self.say(line)
+            for c in report.conflicts:
+                self.say(f"conflict: {c['path']} was changed on the robot; kept in {c.get('kept', '')}")
+            for e in report.errors:
+                self.say(f"error: {e['path']}: {e['error']}")
+        if self.state == "live" and not getattr(self, "_announced", False):
+            self._announced = True
+            self.say(f"live: {self.src} -> {self.target.robot}:{self.target.remote_workspace}/src")
+
+    def _set_state(self, state: str) -> None:
+        with self.cond:
+            self.state = state

@@ -1,0 +1,136 @@
+"""``fetchsync watch``, ``status`` and ``flush``: the live agent and how to talk to it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from fetchsync.commands.common import resolve, target_options
+from fetchsync.errors import SyncError, UsageError
+
+
+def _stamp() -> str:
+    return time.strftime("%H:%M:%S")
+
+
+@click.command()
+@target_options
+@click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
+              help="Exclude paths matching PATTERN (gitignore syntax); repeatable.")
+@click.option("--strict", is_flag=True,
+              help="Refuse to replace files changed on the robot since the last sync.")
+def watch(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
+          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool) -> None:
+    """Keep the robot's src/ identical to the local one while you work.
+
+    Checks everything once, says it is live, then mirrors each change within
+    milliseconds. When the robot drops off the network, changes are kept and
+    sent when it is back. Stop with Ctrl-C. Talk to it with `fetchsync status`
+    and `fetchsync flush`; `fetchsync push` goes through it.
+    """
+    from fetchsync.agent.service import Agent
+    from fetchsync.sync import build_rules
+
+    target = resolve(robot, user, workspace, remote_workspace)
+    src = target.workspace / "src"
+    if not src.is_dir():
+        raise SyncError(f"{src} does not exist; nothing to watch", hint="check --workspace")
+
+    def say(line: str) -> None:
+        click.echo(f"{_stamp()} {line}", err=line.startswith(("error", "conflict", "offline")))
+
+    agent = Agent(target, rules=build_rules(excludes), policy="refuse" if strict else "preserve",
+                  accept_fingerprint=accept_host_key, on_event=say)
+    agent.acquire()
+
+    def on_signal(_signo: int, _frame: Any) -> None:
+        agent.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    click.echo(f"{_stamp()} watching {src} for {target.robot} (status: fetchsync status)", err=True)
+    try:
+        agent.run()
+    finally:
+        agent.release()
+    click.echo(f"{_stamp()} stopped", err=True)
+
+
+def _agent_socket(robot: str | None, user: str | None, workspace: str | None,
+                  remote_workspace: str | None) -> tuple[Any, Path]:
+    from fetchsync.agent.service import agent_paths
+
+    target = resolve(robot, user, workspace, remote_workspace)
+    return target, agent_paths(target)[1]
+
+
+@click.command()
+@target_options
+@click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
+def status(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
+           accept_host_key: str | None, as_json: bool) -> None:
+    """Show what the running agent is doing: live, syncing or offline."""
+    from fetchsync.agent.control import call
+
+    target, sock = _agent_socket(robot, user, workspace, remote_workspace)
+    reply = call(sock, {"cmd": "status"}, timeout=5)
+    if reply is None:
+        if as_json:
+            click.echo(json.dumps({"state": "stopped", "robot": target.robot}))
+        else:
+            click.echo(f"no agent is watching {target.workspace / 'src'} for {target.robot}")
+        sys.exit(3)
+    st = reply["status"]
+    if as_json:
+        click.echo(json.dumps(st, sort_keys=True))
+        return
+    when = time.strftime("%H:%M:%S", time.localtime(st["last_sync"])) if st.get("last_sync") else "never"
+    line = f"{st['state']}: {st['workspace']} -> {st['robot']}:{st['remote']}; last sync {when}"
+    if st.get("offline_since"):
+        line += f"; offline since {time.strftime('%H:%M:%S', time.localtime(st['offline_since']))}"
+    line += f"; {st['pending']} pending; {len(st.get('conflicts', []))} conflicts"
+    click.echo(line)
+    if st.get("last_error"):
+        click.echo(f"last error: {st['last_error']}")
+
+
+@click.command()
+@target_options
+@click.argument("paths", nargs=-1, type=click.Path())
+@click.option("--timeout", default=30.0, show_default=True, help="Seconds to wait.")
+def flush(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
+          accept_host_key: str | None, paths: tuple[str, ...], timeout: float) -> None:
+    """Return once the files saved before this call are on the robot.
+
+    The save hook for editors: give the saved file(s) and it returns as soon
+    as they are there (non-zero if they cannot be). With no agent running it
+    does a one-shot push instead.
+    """
+    from fetchsync.agent.control import call
+
+    target, sock = _agent_socket(robot, user, workspace, remote_workspace)
+    src = (target.workspace / "src").resolve()
+    rel: list[str] = []
+    for p in paths:
+        full = Path(os.path.abspath(p))
+        try:
+            rel.append(full.relative_to(src).as_posix() if full.is_relative_to(src) else
+                       Path(os.path.realpath(full)).relative_to(src).as_posix())
+        except ValueError:
+            raise UsageError(f"{p} is not under {src}") from None
+    reply = call(sock, {"cmd": "flush", "paths": rel}, timeout=timeout)
+    if reply is None:
+        ctx = click.get_current_context()
+        from fetchsync.cli import push
+        ctx.invoke(push, robot=robot, user=user, workspace=workspace, remote_workspace=remote_workspace,
+                   accept_host_key=accept_host_key)
+        return
+    if not reply.get("ok"):
+        raise SyncError(f"not on the robot yet: {reply.get('error') or 'unknown error'}")
