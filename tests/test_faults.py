@@ -145,3 +145,114 @@ def test_slow_link_push_is_correct(env, fault_proxy, remote_dir):
     assert r["ok"] and r["deltas"] == 1
     assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
     assert temporaries(remote_dir) == []
+
+
+def robot_scratch(remote_dir: Path) -> list[str]:
+    """Leftovers of an interrupted session in the robot's ``.fetchsync/tmp``."""
+    tmp = remote_dir / ".fetchsync" / "tmp"
+    return sorted(os.listdir(tmp)) if tmp.is_dir() else []
+
+
+def test_client_killed_mid_transfer_of_a_large_file(env, fault_proxy, remote_dir):
+    big = local_src(env) / "my_pkg" / "model.bin"
+    old = os.urandom(60 * 1024 * 1024)
+    big.write_bytes(old)
+    fetchsync("push", env=env)
+    robot_big = remote_dir / "src/my_pkg/model.bin"
+    assert robot_big.read_bytes() == old
+    big.write_bytes(os.urandom(60 * 1024 * 1024))   # nothing in common with the old one
+    fault_proxy.throttle(bytes_per_second=4_000_000)
+    proc = start(["push"], env)
+    # kill it once the robot has started receiving the new content
+    wait_for(lambda: robot_scratch(remote_dir) or temporaries(remote_dir / "src")
+             or proc.poll() is not None, timeout=FAULT_DEADLINE, what="the transfer to start")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    # the robot holds the whole old file, never a mix of the two
+    assert robot_big.read_bytes() == old
+    fault_proxy.throttle()
+    fetchsync("push", env=env)
+    assert robot_big.read_bytes() == big.read_bytes()
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+    assert temporaries(remote_dir) == [] and robot_scratch(remote_dir) == []
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid:
+            out.append(int(entry))
+    return out
+
+
+def endpoints_under(pid: int) -> list[int]:
+    """Robot-side endpoints started by our own sshd (never another test run's)."""
+    found, todo = [], [pid]
+    while todo:
+        for child in _children(todo.pop()):
+            todo.append(child)
+            try:
+                cmdline = Path(f"/proc/{child}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"fetchsync.protocol.server" in cmdline:
+                found.append(child)
+    return found
+
+
+def test_robot_endpoint_killed_mid_session(env, fault_proxy, remote_dir, sshd):
+    bulky_files(local_src(env))
+    sshd_pid = int((sshd.workdir / "sshd.pid").read_text())
+    fault_proxy.throttle(bytes_per_second=200_000)
+    proc = start(["push"], env)
+    wait_for(lambda: endpoints_under(sshd_pid) or proc.poll() is not None, what="the endpoint")
+    time.sleep(0.5)
+    for pid in endpoints_under(sshd_pid):
+        os.kill(pid, signal.SIGKILL)
+    line = assert_one_line_failure(finish(proc))
+    assert "robot" in line
+    fault_proxy.throttle()
+    fetchsync("push", env=env)
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+    assert temporaries(remote_dir) == [] and robot_scratch(remote_dir) == []
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    where = tmp_path / "tiny-robot-ws"
+    where.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(where)],
+                             capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    yield where
+    subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_robot_disk_full_keeps_what_was_synced(env, tiny_disk):
+    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(tiny_disk))
+    src = local_src(env)
+    (src / "my_pkg/data.txt").write_text("small now\n")
+    fetchsync("push", env=env)
+    synced = tree_of(tiny_disk / "src")
+    # edit every synced file, then add more than the robot's disk holds
+    for path, entry in synced.items():
+        if entry[0] == "f":
+            (src / path).write_bytes(entry[2] + b"# edited\n")
+    bulky_files(src, count=6, size=512 * 1024)
+    proc = fetchsync("push", env=env, check=False)
+    line = assert_one_line_failure(proc)
+    assert "no space" in line.lower(), line
+    after = tree_of(tiny_disk / "src")
+    for path, entry in synced.items():
+        assert after.get(path) in (entry, tree_of(src).get(path)), path
+    assert temporaries(tiny_disk) == [] and robot_scratch(tiny_disk) == []

@@ -65,6 +65,13 @@ class Server:
         }
 
     def serve(self) -> None:
+        try:
+            self._serve()
+        finally:
+            if self.store is not None:
+                self.store.discard_uploads()
+
+    def _serve(self) -> None:
         self.out.write(wire.encode_hello(self.hello()))
         self.out.flush()
         client = self.reader.read_hello()

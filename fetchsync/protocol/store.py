@@ -117,6 +117,9 @@ class Store:
         except OSError as exc:
             raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc))
         self._lock_fd = -1
+        # upload parts this session started: a client that goes away between
+        # the batches of a large file leaves them, with no batch marker to say so
+        self._uploads = set()  # type: set
         self._load_index()
 
     # ------------------------------------------------------------------ index
@@ -152,6 +155,15 @@ class Store:
         self.trash_log = data.get("trash", [])  # type: List[List[Any]]
         if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
             self._clean_temps()
+
+    def discard_uploads(self) -> None:
+        """Remove the upload parts this session started and never used (its client left)."""
+        for part in list(self._uploads):
+            try:
+                os.unlink(part)
+            except OSError:
+                pass
+        self._uploads.clear()
 
     def save_index(self) -> None:
         if not self._dirty:
@@ -563,6 +575,7 @@ class _Batch:
         s = self.s
         if op.kind == M.UPLOAD:
             part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
+            s._uploads.add(part)
             fd = os.open(part, os.O_WRONLY | os.O_CREAT, 0o600)
             try:
                 os.lseek(fd, op.size, os.SEEK_SET)
@@ -664,6 +677,7 @@ class _Batch:
                 os.unlink(part)
                 raise OSError(errno.EIO, "uploaded content does not match its hash")
             os.rename(part, tmp)
+            s._uploads.discard(part)
             return
         if op.source == M.SRC_DATA:
             data = self._blob(op)
