@@ -238,21 +238,42 @@ def tiny_disk(tmp_path):
     subprocess.run(["umount", "-l", str(where)], check=False)
 
 
-def test_robot_disk_full_keeps_what_was_synced(env, tiny_disk):
-    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(tiny_disk))
+def fill_tiny_disk(env: dict, disk: Path) -> tuple[dict, subprocess.CompletedProcess]:
+    """Sync a small tree onto ``disk``, then push edits plus more than it holds."""
     src = local_src(env)
     (src / "my_pkg/data.txt").write_text("small now\n")
     fetchsync("push", env=env)
-    synced = tree_of(tiny_disk / "src")
-    # edit every synced file, then add more than the robot's disk holds
+    synced = tree_of(disk / "src")
     for path, entry in synced.items():
         if entry[0] == "f":
             (src / path).write_bytes(entry[2] + b"# edited\n")
     bulky_files(src, count=6, size=512 * 1024)
-    proc = fetchsync("push", env=env, check=False)
-    line = assert_one_line_failure(proc)
-    assert "no space" in line.lower(), line
+    return synced, fetchsync("push", env=env, check=False)
+
+
+def test_robot_disk_full_keeps_what_was_synced(env, tiny_disk):
+    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(tiny_disk))
+    synced, proc = fill_tiny_disk(env, tiny_disk)
+    err = proc.stderr.decode()
+    assert proc.returncode != 0 and "Traceback" not in err
+    # the CLI lists each failed path, then ends on one line that names the cause
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("fetchsync: error:") and "no space" in last.lower(), err
     after = tree_of(tiny_disk / "src")
+    local = tree_of(local_src(env))
     for path, entry in synced.items():
-        assert after.get(path) in (entry, tree_of(src).get(path)), path
+        assert after.get(path) in (entry, local.get(path)), path
     assert temporaries(tiny_disk) == [] and robot_scratch(tiny_disk) == []
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "sync.py Syncer._converge starts another round whenever any result failed, so a "
+    "persistent per-file failure (ENOSPC, EACCES) is resent MAX_ROUNDS times and each "
+    "path is appended to report.errors once per round; only BASE_MISMATCH and stale "
+    "batches should be retried"))
+def test_robot_disk_full_reports_each_failed_path_once(env, tiny_disk):
+    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(tiny_disk))
+    _synced, proc = fill_tiny_disk(env, tiny_disk)
+    lines = [line.strip() for line in proc.stderr.decode().splitlines() if line.strip()]
+    per_path = [line for line in lines if line.startswith("error:")]
+    assert per_path and len(per_path) == len(set(per_path)), lines
