@@ -74,7 +74,8 @@ class Pending:
 class Agent:
     def __init__(self, target: Target, *, rules: Any, policy: str = "preserve",
                  accept_fingerprint: str | None = None, quiet: float | None = None,
-                 cap: float | None = None, on_event: Callable[[str], None] | None = None) -> None:
+                 cap: float | None = None, on_event: Callable[[str], None] | None = None,
+                 build: dict[str, Any] | None = None) -> None:
         self.target = target
         self.rules = rules
         self.policy = policy
@@ -100,6 +101,11 @@ class Agent:
         self._syncer: Any = None
         self._state: Any = None
         self._lock_fd = -1
+        self.builder: Any = None
+        if build is not None:
+            from fetchsync.agent.builder import Builder
+
+            self.builder = Builder(target, say=self.say, accept_fingerprint=accept_fingerprint, **build)
 
     # ------------------------------------------------------------------ lifecycle
     def acquire(self) -> None:
@@ -137,6 +143,8 @@ class Agent:
         syncer = threading.Thread(target=self._sync_loop, name="fetchsync-sync", daemon=True)
         syncer.start()
         threading.Thread(target=self._monitor, name="fetchsync-monitor", daemon=True).start()
+        if self.builder is not None:
+            self.builder.start()
         try:
             while not self.stop_event.wait(0.2):
                 pass
@@ -146,6 +154,8 @@ class Agent:
             syncer.join(1.5)
             watcher.join(0.5)
             server.stop()
+            if self.builder is not None:
+                self.builder.stop()
             self._disconnect()
             if self._state is not None:
                 try:
@@ -204,6 +214,7 @@ class Agent:
                 "conflicts": list(self.conflicts[-20:]),
                 "last_error": self.last_error,
                 "last_report": self.last_report,
+                "build": self.builder.status() if self.builder is not None else None,
             }
 
     # ------------------------------------------------------------------ threads
@@ -357,6 +368,10 @@ class Agent:
                 self.say(f"conflict: {c['path']} was changed on the robot; kept in {c.get('kept', '')}")
             for e in report.errors:
                 self.say(f"error: {e['path']}: {e['error']}")
+        if self.builder is not None and report.changed:
+            # what the batch touched; a full push of unknown changes (a rescan) builds everything
+            known = work.paths or work.dirs
+            self.builder.submit_paths(work.paths, work.dirs, whole=work.full and not known)
         if self.state == "live" and not getattr(self, "_announced", False):
             self._announced = True
             self.say(f"live: {self.src} -> {self.target.robot}:{self.target.remote_workspace}/src")

@@ -20,34 +20,93 @@ def _stamp() -> str:
     return time.strftime("%H:%M:%S")
 
 
+BUILD_TYPES = ("Debug", "Release", "RelWithDebInfo", "MinSizeRel", "default")
+TOOLS = ("auto", "catkin_make", "catkin", "colcon")
+
+
 @click.command()
 @target_options
 @click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
               help="Exclude paths matching PATTERN (gitignore syntax); repeatable.")
 @click.option("--strict", is_flag=True,
               help="Refuse to replace files changed on the robot since the last sync.")
+@click.option("--build", "build", is_flag=True,
+              help="After each batch, rebuild on the robot the packages it changed; a newer "
+                   "batch cancels a build in progress.")
+@click.option("--build-args", default="", metavar="ARGS",
+              help="Arguments for the build tool (shell text, e.g. '-j4'); implies --build.")
+@click.option("--build-type", type=click.Choice(BUILD_TYPES), default="default",
+              help="CMAKE_BUILD_TYPE of the builds ('default' passes none).")
+@click.option("--build-tool", type=click.Choice(TOOLS), default="auto",
+              help="catkin_make, catkin (catkin build) or colcon. Default: what the remote "
+                   "workspace is set up for.")
+@click.option("--install-service", is_flag=True,
+              help="Write a systemd user unit running this watch (with these options) and "
+                   "print how to enable it; does not start watching.")
+@click.option("--uninstall-service", is_flag=True,
+              help="Remove the systemd user unit of this workspace and robot.")
 def watch(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool) -> None:
+          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool, build: bool,
+          build_args: str, build_type: str, build_tool: str, install_service: bool,
+          uninstall_service: bool) -> None:
     """Keep the robot's src/ identical to the local one while you work.
 
     Checks everything once, says it is live, then mirrors each change within
     milliseconds. When the robot drops off the network, changes are kept and
     sent when it is back. Stop with Ctrl-C. Talk to it with `fetchsync status`
     and `fetchsync flush`; `fetchsync push` goes through it.
+
+    With --build, each batch that changed something is followed by a build on
+    the robot of the packages it touched (the nearest package.xml above each
+    path), its output streamed here.
     """
     from fetchsync.agent.service import Agent
     from fetchsync.sync import build_rules
 
     target = resolve(robot, user, workspace, remote_workspace)
+    build = build or bool(build_args.strip())
+    if not build and (build_type != "default" or build_tool != "auto"):
+        click.echo("fetchsync: warning: --build-type and --build-tool have no effect without --build",
+                   err=True)
+    if install_service and uninstall_service:
+        raise UsageError("--install-service and --uninstall-service do not go together")
+    if install_service or uninstall_service:
+        from fetchsync.agent import unit
+
+        if uninstall_service:
+            _path, notes = unit.uninstall(target)
+        else:
+            args: list[str] = []
+            for pattern in excludes:
+                args += ["--exclude", pattern]
+            if strict:
+                args.append("--strict")
+            if accept_host_key:
+                args += ["--accept-host-key", accept_host_key]
+            if build:
+                args.append("--build")
+                if build_args.strip():
+                    args.append(f"--build-args={build_args}")
+                if build_type != "default":
+                    args += ["--build-type", build_type]
+                if build_tool != "auto":
+                    args += ["--build-tool", build_tool]
+            _path, notes = unit.install(target, args)
+        for line in notes:
+            click.echo(line)
+        return
     src = target.workspace / "src"
     if not src.is_dir():
         raise SyncError(f"{src} does not exist; nothing to watch", hint="check --workspace")
 
     def say(line: str) -> None:
-        click.echo(f"{_stamp()} {line}", err=line.startswith(("error", "conflict", "offline")))
+        click.echo(f"{_stamp()} {line}",
+                   err=line.startswith(("error", "conflict", "offline", "build: error")))
 
+    build_options = ({"tool": build_tool, "build_type": build_type, "args": build_args}
+                     if build else None)
     agent = Agent(target, rules=build_rules(excludes), policy="refuse" if strict else "preserve",
-                  accept_fingerprint=accept_host_key, on_event=say)
+                  accept_fingerprint=accept_host_key, on_event=say, build=build_options)
     agent.acquire()
 
     def on_signal(_signo: int, _frame: Any) -> None:
@@ -96,6 +155,15 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
     if st.get("offline_since"):
         line += f"; offline since {time.strftime('%H:%M:%S', time.localtime(st['offline_since']))}"
     line += f"; {st['pending']} pending; {len(st.get('conflicts', []))} conflicts"
+    b = st.get("build")
+    if b:
+        line += f"; build {b['state']}"
+        if b.get("building"):
+            line += f" ({' '.join(b['building']) or 'everything'})"
+        elif b.get("last"):
+            last = b["last"]
+            pk = last["packages"] if isinstance(last["packages"], str) else " ".join(last["packages"])
+            line += f", last {last['result']} ({pk})"
     click.echo(line)
     if st.get("last_error"):
         click.echo(f"last error: {st['last_error']}")
