@@ -112,3 +112,177 @@ def test_pull_refuses_content_that_does_not_match_the_listing(robot, tmp_path):
     after = snapshot(ws)
     assert "my_pkg/lie.txt" not in after["src"]
     assert after == before
+
+
+# --------------------------------------------------------------------------- fuzzing
+# Whatever a robot (or a laptop) sends, the parsers and the store answer with
+# ProtocolError or per-operation failure results: never another exception, a
+# hang or a huge allocation. FETCHSYNC_FUZZ_EXAMPLES=1000000 runs far more.
+
+import io  # noqa: E402
+import resource  # noqa: E402
+import struct  # noqa: E402
+import tempfile  # noqa: E402
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from fetchsync.protocol import delta as D  # noqa: E402
+from fetchsync.protocol import hashing, wire  # noqa: E402
+from fetchsync.protocol import messages as M  # noqa: E402
+from fetchsync.protocol.errors import ProtocolError  # noqa: E402
+from fetchsync.protocol.store import Store, is_temp  # noqa: E402
+
+FUZZ = int(os.environ.get("FETCHSYNC_FUZZ_EXAMPLES", "0"))
+
+
+def fuzz(default: int):
+    return settings(max_examples=FUZZ or default, deadline=None, database=None,
+                    suppress_health_check=list(HealthCheck))
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+@pytest.fixture(autouse=False)
+def bounded_memory():
+    before = _peak_rss_mb()
+    yield
+    assert _peak_rss_mb() - before < 512, "a fuzz case allocated hundreds of MiB"
+
+
+json_leaf = st.one_of(st.none(), st.booleans(), st.integers(-(1 << 70), 1 << 70),
+                      st.text(max_size=20), st.sampled_from(["", ".", "..", "/", "a/../b", "\x00",
+                                                             "f:00", "l:x", "-", "d"]))
+json_value = st.one_of(json_leaf, st.lists(json_leaf, max_size=3),
+                       st.dictionaries(st.text(max_size=3), json_leaf, max_size=3))
+op_keys = st.sampled_from(["k", "p", "e", "m", "t", "h", "s", "src", "b", "fp", "bl", "u", "z"])
+op_like = st.dictionaries(op_keys, json_value, max_size=13) | st.fixed_dictionaries(
+    {"k": st.sampled_from(M.OP_KINDS), "p": json_leaf}, optional={"e": json_leaf, "bl": json_value,
+    "src": st.sampled_from(M.SOURCES), "m": json_leaf, "s": json_leaf, "u": json_leaf}) | json_value
+
+frame_bytes = st.one_of(
+    st.binary(max_size=300),
+    st.builds(lambda blen, t, f, body: struct.pack(">IBBI", blen, t, f, 1) + body,
+              st.integers(0, (1 << 32) - 1), st.integers(0, 5), st.integers(0, 5),
+              st.binary(max_size=200)),
+    st.builds(lambda hdr, blob, comp: wire.encode_frame(wire.Frame(1, 1, hdr, blob), compress=comp),
+              st.dictionaries(st.text(max_size=5), json_leaf, max_size=4), st.binary(max_size=600),
+              st.booleans()).map(lambda b: b[:-1] if len(b) % 3 == 0 else b),
+)
+
+
+@fuzz(2500)
+@given(data=frame_bytes)
+def test_fuzz_reader_read_frame(data, bounded_memory):
+    reader = wire.Reader(io.BytesIO(data).read)
+    try:
+        for _ in range(4):
+            if reader.read_frame() is None:
+                break
+    except (ProtocolError, EOFError):
+        pass
+
+
+@fuzz(1500)
+@given(ftype=st.integers(0, 255), flags=st.integers(0, 255), body=st.binary(max_size=300)
+       | st.binary(max_size=200).map(lambda b: __import__("zlib").compress(b)))
+def test_fuzz_decode_body(ftype, flags, body, bounded_memory):
+    try:
+        wire.decode_body(ftype, flags, 1, body)
+    except ProtocolError:
+        pass
+
+
+@fuzz(2000)
+@given(obj=op_like)
+def test_fuzz_op_from_wire(obj):
+    try:
+        M.Op.from_wire(obj)
+    except ProtocolError:
+        pass
+
+
+@fuzz(1500)
+@given(obj=st.lists(json_leaf, min_size=5, max_size=5) | st.tuples(
+    st.sampled_from(["a", "a/b", "..", "/x", "a\x00"]), st.sampled_from(["f", "d", "l", "x"]),
+    json_leaf, json_leaf, json_leaf).map(list) | json_value)
+def test_fuzz_listed_from_wire(obj):
+    try:
+        M.Listed.from_wire(obj)
+    except ProtocolError:
+        pass
+
+
+def _mutations(good: bytes) -> st.SearchStrategy[bytes]:
+    return st.one_of(
+        st.binary(max_size=200),
+        st.tuples(st.integers(0, max(len(good) - 1, 0)), st.binary(min_size=1, max_size=8)).map(
+            lambda t: good[:t[0]] + t[1] + good[t[0] + len(t[1]):]),
+        st.integers(0, len(good)).map(lambda n: good[:n]),
+    )
+
+
+_BASE = b"".join(b"line %d of the base file\n" % i for i in range(400))
+_NEW = b"a new first line\n" + _BASE[:5000] + b"inserted\n" + _BASE[5000:]
+_SIG = D.signature(_BASE)
+_DELTA_BYTES = D.encode_delta(D.delta(_NEW, _SIG))
+
+
+@fuzz(1500)
+@given(data=_mutations(_DELTA_BYTES))
+def test_fuzz_decode_delta(data, bounded_memory):
+    try:
+        d = D.decode_delta(data, max_size=1 << 20)
+        D.patch(_BASE, d)
+    except ProtocolError:
+        pass
+
+
+@fuzz(1500)
+@given(data=_mutations(_SIG.to_bytes()))
+def test_fuzz_signature_from_bytes(data, bounded_memory):
+    try:
+        D.Signature.from_bytes(data)
+    except ProtocolError:
+        pass
+
+
+_names = st.sampled_from(["a", "b", "a/b", "a/b/c", "d", "d/x", "../x", "/abs", "a//b", "lnk",
+                          "lnk/in", ".fetchsync-tmp-x", ""])
+_expects = st.sampled_from([None, "-", "d", "f:" + "0" * 32, "l:a", "l:/etc", "x"])
+fuzz_op = st.builds(
+    lambda kind, path, expect, mode, target, src, size, blob, z, upload, fp: {
+        "k": kind, "p": path, "e": expect, "m": mode, "t": target, "h": "ab" * 16, "s": size,
+        "src": src, "b": "ab" * 16, "fp": fp, "bl": blob, "u": upload, "z": z},
+    st.sampled_from(M.OP_KINDS), _names, _expects, st.integers(0, 0o7777),
+    st.sampled_from(["", "a", "/etc", "../..", "lnk"]), st.sampled_from(M.SOURCES + ("",)),
+    st.integers(0, 1 << 40), st.lists(st.integers(0, 1 << 40), min_size=2, max_size=2),
+    st.integers(0, 1), st.sampled_from(["", "u1", "u2"]), _names)
+
+
+@fuzz(300)
+@given(raw_ops=st.lists(fuzz_op, max_size=8), blob=st.binary(max_size=256),
+       zpart=st.none() | st.lists(st.integers(0, 1 << 30), min_size=2, max_size=2))
+def test_fuzz_store_apply(raw_ops, blob, zpart, bounded_memory):
+    with tempfile.TemporaryDirectory() as tmp:
+        outside = Path(tmp) / "outside"
+        outside.mkdir()
+        store = Store(os.path.join(tmp, "ws"), algorithm=hashing.FALLBACK)
+        os.makedirs(os.path.join(store.root, "d"))
+        os.symlink(str(outside), os.path.join(store.root, "lnk"))
+        ops = []
+        for raw in raw_ops:
+            try:
+                ops.append(M.Op.from_wire({k: v for k, v in raw.items() if v is not None}))
+            except ProtocolError:
+                pass
+        try:
+            results = store.apply(ops, blob, zpart=zpart)
+            assert len(results) == len(ops)
+        except ProtocolError:
+            pass
+        store.discard_uploads()
+        assert os.listdir(outside) == []
+        assert not [n for _d, _s, files in os.walk(store.root) for n in files if is_temp(n)]
