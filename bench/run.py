@@ -26,8 +26,8 @@ ratio fetchsync/rsync and each target marked PASS or MISS. ``--json`` writes
 the raw samples. ``--profile`` adds where a no-op ``fetchsync push`` spends
 its time (``-X importtime`` and cProfile).
 
-lsyncd belongs to the watch agent's comparison (``fetchsync watch``, a later
-issue): see :data:`WATCH_TOOLS` for where it plugs in.
+lsyncd belongs to the watch agent's comparison (``fetchsync watch``):
+``bench/watch.py``, which reuses this module's verification.
 """
 
 from __future__ import annotations
@@ -80,11 +80,9 @@ TIME_TARGETS = {"initial": 1.0, "noop": 0.5, "edit": 0.5}
 BYTE_TARGETS = {"insert": 2 * KiB, "rename": 4 * KiB}
 
 # The watch agent (``fetchsync watch``) is compared with lsyncd (rsync over ssh
-# on inotify events) in a separate set of scenarios: latency from a save to the
-# file on the robot, bytes per save, CPU while idle. Each would be a class like
-# FetchsyncPush/RsyncPush below, started once and fed edits instead of being run
-# per push. Not implemented until the watch agent exists.
-WATCH_TOOLS: tuple[str, ...] = ()
+# on inotify events) in bench/watch.py: latency from a save to the file on the
+# robot, a burst of new files, CPU and memory while idle. The tools it runs:
+WATCH_TOOLS: tuple[str, ...] = ("fetchsync watch", "lsyncd")
 
 
 # --------------------------------------------------------------------------- samples

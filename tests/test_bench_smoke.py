@@ -53,3 +53,38 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert {s["tool"] for s in raw["samples"]} == {"fetchsync", "rsync"}
     # both went through the counting proxy
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
+
+
+@pytest.mark.ssh
+def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
+    """``bench/watch.py --quick``: fetchsync watch and lsyncd each mirror every save and the burst."""
+    if find_sshd() is None or shutil.which("rsync") is None or shutil.which("lsyncd") is None:
+        if os.environ.get("CI"):
+            pytest.fail("sshd, rsync and lsyncd are installed by .ci/run; one is missing")
+        pytest.skip("needs sshd (openssh-server), rsync and lsyncd")
+    out_json = tmp_path / "watch.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "bench" / "watch.py"),
+            "--quick",
+            "--json",
+            str(out_json),
+            "--workdir",
+            str(tmp_path / "work"),
+        ],
+        cwd=REPO,
+        check=False,
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-5000:]}"
+    assert "| tool | median | p90 | min | max | lost | start-up to live |" in proc.stdout
+    assert "verification: PASS" in proc.stdout
+    raw = json.loads(out_json.read_text())
+    for tool in ("fetchsync", "lsyncd"):
+        assert raw["latency"][tool] and all(x is not None for x in raw["latency"][tool])
+        assert raw["burst"][tool]["missing"] == 0
+    assert not any(raw["verification"].values())
