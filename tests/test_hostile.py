@@ -286,3 +286,86 @@ def test_fuzz_store_apply(raw_ops, blob, zpart, bounded_memory):
         store.discard_uploads()
         assert os.listdir(outside) == []
         assert not [n for _d, _s, files in os.walk(store.root) for n in files if is_temp(n)]
+
+
+# --------------------------------------------------------------------------- awkward files
+SPARSE_SIZE = "2G" if os.environ.get("FETCHSYNC_TEST_2G_SPARSE") else "64M"
+
+
+@pytest.fixture
+def local_env(tmp_path: Path) -> dict:
+    ws = tmp_path / "ws"
+    (ws / "src").mkdir(parents=True)
+    env = dict(os.environ)
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        env.pop(k, None)
+    env.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+               XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
+               FETCHSYNC_WORKSPACE=str(ws), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    return env
+
+
+def _bytes_tree(root: Path) -> dict:
+    """Like tree_of, with bytes names (non-UTF-8 names compare exactly)."""
+    out = {}
+    broot = os.fsencode(root)
+    for dirpath, dirs, files in os.walk(broot):
+        for name in dirs + files:
+            full = os.path.join(dirpath, name)
+            rel = os.path.relpath(full, broot)
+            st_ = os.lstat(full)
+            if os.path.islink(full):
+                out[rel] = ("l", os.readlink(full))
+            elif os.path.isdir(full):
+                out[rel] = ("d",)
+            elif not os.path.isfile(full):
+                out[rel] = ("special",)   # never open a FIFO: it would block
+            else:
+                with open(full, "rb") as fh:
+                    out[rel] = ("f", st_.st_mode & 0o777, hashing.digest(hashing.FALLBACK, fh.read()))
+    return out
+
+
+def test_awkward_files_round_trip(local_env, tmp_path):
+    import socket
+    import unicodedata
+
+    src = Path(local_env["FETCHSYNC_WORKSPACE"]) / "src"
+    (src / "with space.txt").write_text("space\n")
+    (src / "new\nline.txt").write_text("newline\n")
+    with open(os.path.join(os.fsencode(src), b"latin1-\xe9.txt"), "wb") as fh:
+        fh.write(b"not utf-8 name\n")
+    nfc, nfd = unicodedata.normalize("NFC", "caf\u00e9"), unicodedata.normalize("NFD", "caf\u00e9")
+    (src / (nfc + ".txt")).write_text("nfc\n")
+    (src / (nfd + ".txt")).write_text("nfd\n")
+    (src / "loop_a").symlink_to("loop_b")
+    (src / "loop_b").symlink_to("loop_a")
+    (src / "hard1.txt").write_text("same inode\n")
+    os.link(src / "hard1.txt", src / "hard2.txt")
+    os.mkfifo(src / "a.fifo")
+    sock = socket.socket(socket.AF_UNIX)
+    sock_path = src / "a.sock"
+    sock.bind(str(sock_path))
+    subprocess_run = __import__("subprocess").run
+    subprocess_run(["truncate", "-s", SPARSE_SIZE, str(src / "sparse.img")], check=True)
+    try:
+        proc = fetchsync("push", "--json", env=local_env)
+        robot = Path(local_env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws" / "src"
+        want = _bytes_tree(src)
+        want.pop(b"a.fifo")
+        want.pop(b"a.sock")
+        assert _bytes_tree(robot) == want
+        assert not (robot / "a.fifo").exists() and not (robot / "a.sock").exists()
+        # and back: wipe the local copy of everything but the special files, pull
+        for name in os.listdir(os.fsencode(src)):
+            if name not in (b"a.fifo", b"a.sock"):
+                os.unlink(os.path.join(os.fsencode(src), name))
+        fetchsync("pull", "--yes", env=local_env)
+        got = _bytes_tree(src)
+        got.pop(b"a.fifo", None)
+        got.pop(b"a.sock", None)
+        assert got == want
+        assert (src / "hard1.txt").read_text() == (src / "hard2.txt").read_text() == "same inode\n"
+        assert proc.returncode == 0
+    finally:
+        sock.close()
