@@ -20,6 +20,7 @@ from fetchsync.commands.build_options import BuildCommand, build_options, build_
 from fetchsync.commands.common import resolve as _resolve
 from fetchsync.commands.common import target_options
 from fetchsync.errors import FetchsyncError
+from fetchsync.protocol.errors import ProtocolError
 
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
@@ -151,7 +152,9 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
-        except FetchsyncError as exc:
+        except (FetchsyncError, ProtocolError) as exc:
+            # ProtocolError also comes from the robot-side tree, which cannot
+            # depend on fetchsync.errors: a malformed answer is one line too
             click.echo(f"fetchsync: error: {exc}", err=True)
             sys.exit(exc.exit_code)
         except KeyboardInterrupt:

@@ -167,9 +167,12 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
 
 
 def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str,
-                 paths: set[str], dirs: set[str]) -> tuple[LocalTree, Callable[[str], bool]]:
+                 paths: set[str], dirs: set[str]
+                 ) -> tuple[LocalTree, Callable[[str], bool], set[str] | None]:
     """The local tree restricted to ``paths``, the subtrees below ``dirs`` and their
-    ancestors, and the predicate saying which paths that scope covers."""
+    ancestors, the predicate saying which paths that scope covers and, when no
+    directory is involved, the set of those paths (so callers need not test
+    every path of the state against the predicate)."""
     from fetchsync.protocol.paths import ancestors, is_within
     from fetchsync.protocol.tree import stat_path
 
@@ -196,10 +199,13 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
         for path, entry in result.entries.items():
             _add_entry(root, path, entry, synced, algorithm, items, stats, skipped)
 
-    def scope(path: str) -> bool:
-        return path in singles or any(is_within(path, d) for d in tops)
-
-    return LocalTree(items, stats, skipped), scope
+    scope: Callable[[str], bool]
+    if tops:
+        def scope(path: str) -> bool:
+            return path in singles or any(is_within(path, d) for d in tops)
+    else:
+        scope = singles.__contains__
+    return LocalTree(items, stats, skipped), scope, (None if tops else singles)
 
 
 def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algorithm: str,
@@ -399,6 +405,7 @@ class Syncer:
         self.opened: dict[str, Any] | None = None
         self._robot_sigs: dict[str, bytes] = {}
         self._synced: dict[str, Synced] | None = None  # the state's entries, kept between calls
+        self._signed: set[str] | None = None  # paths whose state entry holds a signature
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -417,7 +424,7 @@ class Syncer:
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
-        self._synced = None  # reread: another process may have pushed since
+        self._synced = self._signed = None  # reread: another process may have pushed since
         synced = self._load_synced()
         fresh = bool(synced) and self.state.epoch != ""
         open_req = self.conn.send(self._open_header()) if self.opened is None else None
@@ -458,11 +465,15 @@ class Syncer:
         paths.discard("")
         if not paths and not dirs:
             return report
-        local, scope = scan_touched(self.local_root, self.rules, synced, self.algorithm, paths, dirs)
-        remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
+        local, scope, only = scan_touched(self.local_root, self.rules, synced, self.algorithm,
+                                          paths, dirs)
+        if only is not None:
+            remote = {p: synced[p].listed(p) for p in only if p in synced}
+        else:
+            remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
         report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
         stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
-                               scope=scope)
+                               scope=scope, scope_paths=only)
         if stale:
             return self.push()
         report.bytes_sent = self.conn.bytes_out - b_out
@@ -472,10 +483,13 @@ class Syncer:
 
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
-                  progress: Progress | None = None, scope: Callable[[str], bool] | None = None) -> bool:
+                  progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
+                  scope_paths: set[str] | None = None) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer."""
-        signed = self.state.signed_paths()
+        if self._signed is None:
+            self._signed = self.state.signed_paths()
+        signed = self._signed
         robot_sigs: dict[str, bytes] = {}
         self._robot_sigs = robot_sigs
         whole_only: set[str] = set()
@@ -527,7 +541,9 @@ class Syncer:
                 remote = self._apply_listing(listing, synced)
                 epoch, gen = listing["epoch"], listing["gen"]
                 continue
-            if not any(not r.ok for _t, r in results):
+            # only a base mismatch is worth another round (it goes whole next
+            # time); a lasting failure (no space, permission) is reported once
+            if not any(r.code == M.BASE_MISMATCH for _t, r in results):
                 break
         if not dry_run:
             left = [p for p in plan(local.items, remote, expect) if p.op.path not in
@@ -544,7 +560,9 @@ class Syncer:
                 if new_synced.get(path) != s:
                     upserts[path] = (s, None)
                     new_synced[path] = s
-        for path in list(new_synced):
+        candidates = list(new_synced) if scope_paths is None else \
+            [p for p in scope_paths if p in new_synced]
+        for path in candidates:
             if path not in remote and path not in upserts and (scope is None or scope(path)):
                 deletes.add(path)
                 del new_synced[path]
@@ -554,6 +572,15 @@ class Syncer:
 
     def _commit(self, upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str],
                 new_synced: dict[str, Synced], epoch: str, gen: int) -> None:
+        if self._signed is not None and self._synced is not None:
+            for path, (s, sig) in upserts.items():
+                old = self._synced.get(path)
+                # State.commit keeps a stored signature only while the content is the same
+                if sig is None and (old is None or old.hash != s.hash):
+                    self._signed.discard(path)
+                elif sig is not None:
+                    self._signed.add(path)
+            self._signed.difference_update(deletes)
         self.state.commit(upserts=[(p, s, sig) for p, (s, sig) in upserts.items()],
                           deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
                                                  "algorithm": self.algorithm})

@@ -266,11 +266,6 @@ def test_robot_disk_full_keeps_what_was_synced(env, tiny_disk):
     assert temporaries(tiny_disk) == [] and robot_scratch(tiny_disk) == []
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "sync.py Syncer._converge starts another round whenever any result failed, so a "
-    "persistent per-file failure (ENOSPC, EACCES) is resent MAX_ROUNDS times and each "
-    "path is appended to report.errors once per round; only BASE_MISMATCH and stale "
-    "batches should be retried"))
 def test_robot_disk_full_reports_each_failed_path_once(env, tiny_disk):
     env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(tiny_disk))
     _synced, proc = fill_tiny_disk(env, tiny_disk)

@@ -71,11 +71,6 @@ def test_pull_refuses_a_forged_listing_or_frame(robot, tmp_path, mode):
     assert snapshot(ws) == before
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "cli.py _Group.invoke catches only FetchsyncError; fetchsync.protocol.errors."
-    "ProtocolError (raised by Listed.from_wire in sync.pull for a forged path, and by "
-    "wire.Reader via Connection.wait for a bad frame) is not one, so the CLI prints a "
-    "traceback; it should also catch ProtocolError and exit with its exit_code 7"))
 @pytest.mark.parametrize("mode", REFUSED)
 def test_pull_refusal_is_one_line(robot, tmp_path, mode):
     env, ws, canary = robot
