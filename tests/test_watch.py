@@ -62,14 +62,23 @@ def runtime():
     yield d
 
 
-@pytest.fixture
-def local_env(tmp_path: Path, runtime: Path) -> dict:
+@pytest.fixture(params=["local", pytest.param("sshd", marks=pytest.mark.ssh)])
+def local_env(request, tmp_path: Path, runtime: Path) -> dict:
+    """The agent's environment, against the local robot and against the real sshd."""
     e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
         e.pop(k, None)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
-             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(XDG_STATE_HOME=str(tmp_path / "state"), XDG_RUNTIME_DIR=str(runtime),
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"))
+    if request.param == "local":
+        e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), FETCHSYNC_ROBOT="local",
+                 FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    else:
+        home = request.getfixturevalue("ssh_home")
+        remote = tmp_path / "robot-home" / "robot_ws"
+        remote.parent.mkdir()
+        e.update(HOME=str(home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_REMOTE_WORKSPACE=str(remote),
+                 FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"))
     make_workspace(tmp_path / "ws")
     return e
 
@@ -121,7 +130,7 @@ def test_flush_returns_once_the_file_is_there(watch, local_env):
 
 def test_status_push_and_a_second_agent(watch, local_env):
     st = watch.status()
-    assert st["state"] == "live" and st["robot"] == "local" and st["pending"] == 0
+    assert st["state"] == "live" and st["robot"] == local_env["FETCHSYNC_ROBOT"] and st["pending"] == 0
     out = fetchsync("push", "--json", env=local_env)
     assert json.loads(out.stdout)["connection"] == "agent"
     second = fetchsync("watch", env=local_env, check=False)
