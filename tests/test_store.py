@@ -167,3 +167,8 @@ def test_a_rename_copies_before_the_source_is_deleted(store):
         results = store.apply([copy, M.Op(M.DELETE, old, expect=M.expect_file(h(data)))], b"")
         assert [r.code for r in results] == [M.OK, M.OK]
         assert (src(store) / new).read_bytes() == data and not (src(store) / old).exists()
+
+
+def test_names_reserved_for_temporaries_are_refused(store):
+    [r] = store.apply([write(".x.fetchsync-tmp-abc", b"x")], b"x")
+    assert r.code == M.PATH_ERROR and not list(src(store).iterdir())

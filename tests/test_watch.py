@@ -62,8 +62,21 @@ def runtime():
     yield d
 
 
+@pytest.fixture
+def local_env(tmp_path: Path, runtime: Path) -> dict:
+    """The agent's environment against the local robot (other test files use it too)."""
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
+             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    make_workspace(tmp_path / "ws")
+    return e
+
+
 @pytest.fixture(params=["local", pytest.param("sshd", marks=pytest.mark.ssh)])
-def local_env(request, tmp_path: Path, runtime: Path) -> dict:
+def robot_env(request, tmp_path: Path, runtime: Path) -> dict:
     """The agent's environment, against the local robot and against the real sshd."""
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
@@ -84,8 +97,8 @@ def local_env(request, tmp_path: Path, runtime: Path) -> dict:
 
 
 @pytest.fixture
-def watch(local_env, tmp_path):
-    w = Watch(local_env, tmp_path / "watch.log")
+def watch(robot_env, tmp_path):
+    w = Watch(robot_env, tmp_path / "watch.log")
     wait_for(lambda: w.status().get("state") == "live", what="the agent to be live")
     yield w
     w.stop()
@@ -95,8 +108,8 @@ def paths(env):
     return Path(env["FETCHSYNC_WORKSPACE"]) / "src", Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws" / "src"
 
 
-def test_changes_are_mirrored_as_they_happen(watch, local_env):
-    src, robot = paths(local_env)
+def test_changes_are_mirrored_as_they_happen(watch, robot_env):
+    src, robot = paths(robot_env)
     assert same(src, robot)  # the start reconciles
     (src / "my_pkg/src/node.cpp").write_text("int main() { return 3; }\n")      # in place
     tmp = src / "my_pkg/.config.yaml.tmp"                                      # write temp, rename
@@ -110,37 +123,37 @@ def test_changes_are_mirrored_as_they_happen(watch, local_env):
     assert not list(robot.rglob("*.tmp"))
 
 
-def test_a_burst_of_files_arrives_whole(watch, local_env):
-    src, robot = paths(local_env)
+def test_a_burst_of_files_arrives_whole(watch, robot_env):
+    src, robot = paths(robot_env)
     (src / "burst").mkdir()
     for i in range(500):
         (src / "burst" / f"f{i}.txt").write_text(f"file {i}\n")
     wait_for(lambda: same(src, robot), 30, what="the burst to arrive")
 
 
-def test_flush_returns_once_the_file_is_there(watch, local_env):
-    src, robot = paths(local_env)
+def test_flush_returns_once_the_file_is_there(watch, robot_env):
+    src, robot = paths(robot_env)
     f = src / "my_pkg/saved.txt"
     f.write_text("saved by an editor\n")
-    fetchsync("flush", str(f), env=local_env)
+    fetchsync("flush", str(f), env=robot_env)
     assert (robot / "my_pkg/saved.txt").read_text() == "saved by an editor\n"
-    fetchsync("flush", env=local_env)  # no path: everything
+    fetchsync("flush", env=robot_env)  # no path: everything
     assert same(src, robot)
 
 
-def test_status_push_and_a_second_agent(watch, local_env):
+def test_status_push_and_a_second_agent(watch, robot_env):
     st = watch.status()
-    assert st["state"] == "live" and st["robot"] == local_env["FETCHSYNC_ROBOT"] and st["pending"] == 0
-    out = fetchsync("push", "--json", env=local_env)
+    assert st["state"] == "live" and st["robot"] == robot_env["FETCHSYNC_ROBOT"] and st["pending"] == 0
+    out = fetchsync("push", "--json", env=robot_env)
     assert json.loads(out.stdout)["connection"] == "agent"
-    second = fetchsync("watch", env=local_env, check=False)
+    second = fetchsync("watch", env=robot_env, check=False)
     assert second.returncode == 2
     assert b"already watching" in second.stderr and len(second.stderr.strip().splitlines()) == 1
 
 
-def test_sigterm_stops_it_promptly_and_status_says_so(watch, local_env):
+def test_sigterm_stops_it_promptly_and_status_says_so(watch, robot_env):
     assert watch.stop() < 3.0
-    out = fetchsync("status", "--json", env=local_env, check=False)
+    out = fetchsync("status", "--json", env=robot_env, check=False)
     assert out.returncode == 3 and json.loads(out.stdout)["state"] == "stopped"
 
 

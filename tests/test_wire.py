@@ -87,3 +87,20 @@ def test_header_must_be_an_object():
     data = struct.pack(">IBBI", len(body), 1, 0, 1) + body
     with pytest.raises(ProtocolError, match="object"):
         reader_for(data).read_frame()
+
+
+@pytest.mark.parametrize("ftype,flags", [(9, 0), (1, 0x80), (1, wire.FLAG_ZLIB | wire.FLAG_ZHEAD)])
+def test_a_bad_header_fails_before_its_body_is_awaited(ftype, flags):
+    # garbage from a broken robot: a plausible length must not make us wait
+    # for a body that never comes
+    header = struct.pack(">IBBI", 1000, ftype, flags, 1)
+    calls = []
+
+    def recv(n):
+        calls.append(n)
+        if len(calls) > 1:
+            raise AssertionError("read past the header")
+        return header
+
+    with pytest.raises(ProtocolError):
+        wire.Reader(recv).read_frame()

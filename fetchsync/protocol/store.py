@@ -583,6 +583,9 @@ class _Batch:
             finally:
                 os.close(fd)
             return M.Result()
+        if any(is_temp(part) for part in op.path.split("/")):
+            # our temporaries' names: never synced, and removed by the cleanup
+            raise PathError("%r uses a name reserved for fetchsync's temporaries" % op.path)
         s._resolver.check_parents(op.path)
         try:
             cur, preserved = self._check(op)
@@ -635,12 +638,12 @@ class _Batch:
         return M.Result(preserved=preserved)
 
     def _set_aside(self, path: str, where: str) -> str:
-        """Store._set_aside, once no pending writer still reads below ``path``
-        (a copy's source, a delta's base)."""
-        if any(paths.is_within(r, path) for r in self.reading):
-            for fut, _idx, _op, _tmp in self.writes:
-                fut.exception()
-            self.reading = set()
+        """Store._set_aside, once no writer is pending: a pending one may read
+        below ``path`` (a copy's source, a delta's base) or be creating its
+        temporary there. Deletes come last in a batch, so this waits once."""
+        for fut, _idx, _op, _tmp in self.writes:
+            fut.exception()
+        self.reading = set()
         return self.s._set_aside(path, where)
 
     def finish_writes(self, results: List[M.Result]) -> None:

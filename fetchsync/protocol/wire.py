@@ -184,8 +184,14 @@ class Reader:
         if not self._buf and not self._fill(1):
             return None
         blen, ftype, flags, req_id = _FRAME.unpack(self._take(_FRAME.size))
+        # every header field is checked before the body is waited for: garbage
+        # must end in an error, not in waiting for bytes that never come
         if blen > MAX_FRAME:
             raise ProtocolError("frame of %d bytes announced, over the cap of %d" % (blen, MAX_FRAME))
+        if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
+            raise ProtocolError("unknown frame type %d" % ftype)
+        if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
+            raise ProtocolError("unknown frame flags 0x%02x" % flags)
         return decode_body(ftype, flags, req_id, self._take(blen))
 
 
