@@ -142,27 +142,8 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
     skipped = list(result.skipped)
     unhashed: set[str] = set()
     for path, e in result.entries.items():
-        if e.kind == "f":
-            s = synced.get(path)
-            if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
-                    and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
-                digest = s.hash
-            elif lazy:
-                digest = ""
-                unhashed.add(path)
-            else:
-                try:
-                    with open(os.path.join(root, path), "rb") as fh:
-                        digest = hashing.file_digest(algorithm, fh).hex()
-                except OSError as exc:
-                    skipped.append((path, f"cannot read: {exc.strerror}"))
-                    continue
-            items[path] = M.Listed(path, "f", e.mode, e.size, hash=digest)
-        elif e.kind == "l":
-            items[path] = M.Listed(path, "l", target=e.target)
-        else:
-            items[path] = M.Listed(path, "d", e.mode)
-        stats[path] = e
+        _add_entry(root, path, e, synced, algorithm, items, stats, skipped,
+                   unhashed if lazy else None)
     return LocalTree(items, stats, skipped, unhashed)
 
 
@@ -209,12 +190,18 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
 
 
 def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algorithm: str,
-               items: dict[str, M.Listed], stats: dict[str, Entry], skipped: list[tuple[str, str]]) -> None:
+               items: dict[str, M.Listed], stats: dict[str, Entry], skipped: list[tuple[str, str]],
+               unhashed: set[str] | None = None) -> None:
+    """Add one scanned entry; a file the state cannot vouch for is hashed now, or,
+    given ``unhashed``, left for later with hash ``""``."""
     if e.kind == "f":
         s = synced.get(path)
         if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
                 and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
             digest = s.hash
+        elif unhashed is not None:
+            digest = ""
+            unhashed.add(path)
         else:
             try:
                 with open(os.path.join(root, path), "rb") as fh:
