@@ -21,6 +21,7 @@ from fetchsync.transport import Channel, Transport
 log = logging.getLogger(__name__)
 
 DEFAULT_PYTHON = "python3"
+SEND_PIECE = 256 * 1024
 # seconds without a byte from the robot before a waiting request checks the link
 LIVENESS_INTERVAL = 5.0
 
@@ -161,9 +162,25 @@ class Connection:
             self._next_id += 1
         data = wire.encode_frame(wire.Frame(wire.T_REQUEST, req_id, header, blob),
                                  compress=self.compress, compress_blob=not packed_blob)
-        self.channel.send_all(data)
-        self.bytes_out += len(data)
+        # in pieces, so bytes_out shows progress during a long frame on a slow
+        # link (check_link's callers tell a slow link from a dead one by it)
+        for start in range(0, len(data), SEND_PIECE):
+            piece = data[start:start + SEND_PIECE]
+            self.channel.send_all(piece)
+            self.bytes_out += len(piece)
         return req_id
+
+    def check_link(self) -> None:
+        """Raise LinkLostError if the robot does not answer a keepalive.
+
+        For callers blocked on something other than :meth:`wait` (a sender
+        waiting for SSH window space on a link that silently died): a link
+        that does not answer is closed, which wakes whatever is blocked on it.
+        """
+        probe = getattr(self.transport, "is_alive", None)
+        if probe is not None and not probe():
+            raise LinkLostError(f"the link to {self.transport.name} was lost: "
+                                "the robot stopped answering keepalives")
 
     def wait(self, req_id: int) -> wire.Frame:
         # A dead Wi-Fi link acks nothing but fails nothing either: the kernel's

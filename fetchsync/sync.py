@@ -18,7 +18,7 @@ import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
 
-from fetchsync.connection import Connection
+from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
 from fetchsync.protocol import delta as delta_mod
@@ -283,6 +283,7 @@ class _Batcher:
             = queue.Queue(maxsize=2)
         self._sender: threading.Thread | None = None
         self._failure: BaseException | None = None
+        self._mark: tuple[int, int] = (-1, -1)
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
         z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.pack(
@@ -305,8 +306,23 @@ class _Batcher:
             self._sender = threading.Thread(target=self._send_loop, name="fetchsync-sender", daemon=True)
             self._sender.start()
         if self._failure is None:
-            self._queue.put((header, self.items, self.tags))
+            job = (header, self.items, self.tags)
+            while True:
+                try:
+                    self._queue.put(job, timeout=LIVENESS_INTERVAL)
+                    break
+                except queue.Full:
+                    self._stalled()
         self.items, self.tags, self.raw_len = [], [], 0
+
+    def _stalled(self) -> None:
+        """Called every few seconds while waiting on the sender: if nothing moved
+        either way meanwhile, make sure the link is alive (raises if not)."""
+        mark = (self.conn.bytes_out, self.conn.bytes_in)
+        if mark != self._mark:
+            self._mark = mark
+            return
+        self.conn.check_link()
 
     def _send_loop(self) -> None:
         while True:
@@ -350,8 +366,16 @@ class _Batcher:
 
     def _drain(self) -> None:
         if self._sender is not None:
-            self._queue.put(None)
-            self._sender.join()
+            while True:
+                try:
+                    self._queue.put(None, timeout=LIVENESS_INTERVAL)
+                    break
+                except queue.Full:
+                    self._stalled()
+            while self._sender.is_alive():
+                self._sender.join(LIVENESS_INTERVAL)
+                if self._sender.is_alive() and self._failure is None:
+                    self._stalled()
             self._sender = None
         if self._failure is not None:
             raise self._failure
