@@ -9,6 +9,19 @@ import sys
 from pathlib import Path
 
 
+# a minimal catkin package.xml, for the build tests
+CATKIN_PACKAGE_XML = """<?xml version="1.0"?>
+<package format="2">
+  <name>{name}</name>
+  <version>0.0.1</version>
+  <description>A package for fetchsync's tests.</description>
+  <maintainer email="dev@example.com">dev</maintainer>
+  <license>BSD</license>
+  <buildtool_depend>catkin</buildtool_depend>
+</package>
+"""
+
+
 def make_workspace(root: Path) -> Path:
     """A small ROS-like workspace with the shapes a push must handle."""
     src = root / "src"

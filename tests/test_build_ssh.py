@@ -9,7 +9,7 @@ import stat
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, report
+from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML, fetchsync, report
 from terminal import Terminal
 
 pytestmark = [
@@ -21,16 +21,6 @@ pytestmark = [
 # PATH (CI, and the robot's login shell here) has not, and CMake would find that one.
 SYSTEM_PYTHON = "--build=-DPYTHON_EXECUTABLE=/usr/bin/python3"
 
-PACKAGE_XML = """<?xml version="1.0"?>
-<package format="2">
-  <name>{name}</name>
-  <version>0.0.1</version>
-  <description>A package for fetchsync's tests.</description>
-  <maintainer email="dev@example.com">dev</maintainer>
-  <license>BSD</license>
-  <buildtool_depend>catkin</buildtool_depend>
-</package>
-"""
 
 CMAKELISTS = """cmake_minimum_required(VERSION 3.0.2)
 project({name})

@@ -13,22 +13,12 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync
+from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML, fetchsync
 
 from fetchsync.agent.builder import package_command, packages_of
 
 SYSTEM_PYTHON = "--build-args=-DPYTHON_EXECUTABLE=/usr/bin/python3"  # see test_build_ssh.py
 
-PACKAGE_XML = """<?xml version="1.0"?>
-<package format="2">
-  <name>{name}</name>
-  <version>0.0.1</version>
-  <description>A package for fetchsync's tests.</description>
-  <maintainer email="dev@example.com">dev</maintainer>
-  <license>BSD</license>
-  <buildtool_depend>catkin</buildtool_depend>
-</package>
-"""
 
 # each build of a package appends to its log on the robot (this machine); "slow" takes seconds
 CMAKELISTS = """cmake_minimum_required(VERSION 3.0.2)
