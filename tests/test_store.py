@@ -172,3 +172,36 @@ def test_a_rename_copies_before_the_source_is_deleted(store):
 def test_names_reserved_for_temporaries_are_refused(store):
     [r] = store.apply([write(".x.fetchsync-tmp-abc", b"x")], b"x")
     assert r.code == M.PATH_ERROR and not list(src(store).iterdir())
+
+
+@pytest.mark.parametrize("damage", [b"", b"\x00garbage", None])
+def test_a_damaged_index_costs_a_new_epoch_not_the_files(tmp_path, damage):
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    s.apply([write("a.txt", b"v1")], b"v1")
+    s.save_index()
+    s.unlock()
+    index = Path(s.meta) / "index"
+    if damage is None:  # a valid marshal stream of the wrong shape
+        import marshal
+        index.write_bytes(marshal.dumps({"v": 2, "algorithm": ALG, "synced": [], "cache": {}}))
+    else:
+        index.write_bytes(damage)
+    again = Store(str(tmp_path / "ws"), algorithm=ALG)
+    assert again.epoch != s.epoch and again.synced == {}
+    assert (src(again) / "a.txt").read_bytes() == b"v1"
+
+
+def test_the_index_survives_a_reopen_and_an_old_format_is_dropped(tmp_path):
+    meta = tmp_path / "ws" / ".fetchsync"
+    meta.mkdir(parents=True)
+    (meta / "index.json").write_text("{}")
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    s.apply([write("caf\udce9.txt", b"v1")], b"v1")
+    s.save_index()
+    s.unlock()
+    again = Store(str(tmp_path / "ws"), algorithm=ALG)
+    assert (again.epoch, again.gen) == (s.epoch, s.gen)
+    assert again.synced == s.synced and "caf\udce9.txt" in again.synced
+    assert not (meta / "index.json").exists()

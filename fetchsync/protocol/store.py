@@ -16,7 +16,8 @@ Rules it keeps:
   (policy ``preserve``) or the operation is refused (policy ``refuse``).
   Deleted paths go to a bounded ``.fetchsync/trash/``. Nothing is lost.
 - Nothing is written outside the root, nor through a symlink.
-- The index (``.fetchsync/index.json``) records what was last synced at each
+- The index (``.fetchsync/index``, in :mod:`marshal` format: rewritten after
+  every batch, so it must be cheap to write) records what was last synced at each
   path, a stat cache for content hashes, an epoch and a generation, so the
   sender can learn in one round trip what changed here since its last sync.
 """
@@ -26,7 +27,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import fcntl
-import json
+import marshal
 import os
 import shutil
 import stat as stat_mod
@@ -44,7 +45,10 @@ META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
 TRASH_KEEP_BATCHES = 50
 TRASH_KEEP_BYTES = 512 * 1024 * 1024
-INDEX_VERSION = 1
+INDEX_VERSION = 2
+INDEX = "index"
+OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists in full)
+_INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list))
 READ_BLOCK = 1 << 20
 
 
@@ -125,24 +129,29 @@ class Store:
     # ------------------------------------------------------------------ index
     def _index_stamp(self) -> Any:
         try:
-            st = os.stat(os.path.join(self.meta, "index.json"))
+            st = os.stat(os.path.join(self.meta, INDEX))
         except OSError:
             return None
         return (st.st_ino, st.st_size, st.st_mtime_ns)
 
     def _load_index(self) -> None:
-        path = os.path.join(self.meta, "index.json")
+        path = os.path.join(self.meta, INDEX)
         self._loaded_stamp = self._index_stamp()
         data = None  # type: Any
         try:
             with open(path, "rb") as fh:
-                data = json.loads(fh.read().decode("utf-8", "surrogateescape"))
+                data = marshal.loads(fh.read())
         except FileNotFoundError:
-            pass
-        except (OSError, ValueError):
+            for old in OLD_INDEXES:
+                try:
+                    os.unlink(os.path.join(self.meta, old))
+                except OSError:
+                    pass
+        except (OSError, ValueError, EOFError, TypeError):
             data = None  # a damaged index only costs a full listing
         if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
-                or data.get("algorithm") != self.algorithm):
+                or data.get("algorithm") != self.algorithm
+                or not all(isinstance(data.get(k), t) for k, t in _INDEX_TYPES)):
             data = {"v": INDEX_VERSION, "epoch": uuid.uuid4().hex, "gen": 0,
                     "algorithm": self.algorithm, "synced": {}, "cache": {}, "trash": []}
             self._dirty = True
@@ -170,10 +179,10 @@ class Store:
             return
         data = {"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen, "algorithm": self.algorithm,
                 "synced": self.synced, "cache": self.cache, "trash": self.trash_log}
-        path = os.path.join(self.meta, "index.json")
+        path = os.path.join(self.meta, INDEX)
         tmp = path + ".tmp"
         with open(tmp, "wb") as fh:
-            fh.write(json.dumps(data, separators=(",", ":")).encode("utf-8", "surrogateescape"))
+            fh.write(marshal.dumps(data))
         os.replace(tmp, path)
         self._dirty = False
         self._loaded_stamp = self._index_stamp()
