@@ -1,7 +1,9 @@
 """Delivery of the robot-side endpoint over the connection itself.
 
 The client runs a short loader with ``python3 -c`` on the robot. The loader
-looks for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
+refuses a Python older than 3.8 with a message that says so (the endpoint
+itself would fail with a SyntaxError that says nothing useful), then looks
+for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
 reads exactly that many bytes from stdin, checks their hash and caches them.
 Nothing is installed with root and nothing is downloaded by the robot.
@@ -20,6 +22,8 @@ NEED = b"FSYNC-NEED\n"
 
 LOADER = r"""
 import sys, os, hashlib
+if sys.version_info < (3, 8):
+    sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.8: install one (apt install python3.8) and set FETCHSYNC_REMOTE_PYTHON=python3.8" % tuple(sys.version_info[:3]))
 h, n = sys.argv[1], int(sys.argv[2])
 d = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "fetchsync")
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
