@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
@@ -23,6 +23,35 @@ def robot_id(target: Target) -> str:
     if target.is_local:
         return f"local:{local_robot_home()}"
     return f"{target.user or ''}@{target.host}"
+
+
+def terminal_prompt() -> Callable[[str], str | None] | None:
+    """Ask for a password or passphrase on the controlling terminal, as ssh does.
+
+    None when there is no terminal (CI, cron, a service): the connection then
+    fails with one line instead of waiting for an answer nobody can give. The
+    answer is read without echo and goes only to the SSH server: never to a
+    log, a command line or the environment.
+    """
+    try:
+        fd = os.open("/dev/tty", os.O_RDWR | os.O_NOCTTY)
+    except OSError:
+        return None
+    os.close(fd)
+
+    def ask(prompt: str) -> str | None:
+        import getpass
+        import warnings
+
+        with warnings.catch_warnings():
+            # without echo control getpass warns and reads anyway; refuse instead
+            warnings.simplefilter("error", getpass.GetPassWarning)
+            try:
+                return getpass.getpass(prompt)
+            except (EOFError, getpass.GetPassWarning):
+                return None
+
+    return ask
 
 
 def open_transport(target: Target, *, accept_fingerprint: str | None = None,
@@ -51,8 +80,11 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         if attached is not None:
             return attached
     from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
-    transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint)
-    if path is not None:
+    transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint,
+                                     password_callback=terminal_prompt())
+    # a master authenticates on its own, without a terminal: after a password
+    # login it would only add a failed login to the robot's log
+    if path is not None and transport.auth_method != "password":
         # this call paid for the handshake; leave a master behind for the next ones
         mux.spawn_master(target.host, target.user, path, warm=loader_command(remote_python())[0])
     return transport

@@ -290,6 +290,11 @@ class SSHTransport:
     def host_key(self) -> paramiko.PKey:
         return self._transport.get_remote_server_key()
 
+    @property
+    def auth_method(self) -> str | None:
+        """How this connection logged in (``publickey``, ``password``), None if unknown."""
+        return getattr(self._transport, "auth_method", None)
+
     def exec(
         self, command: str, *, env: dict[str, str] | None = None, pty: bool = False
     ) -> Channel:
@@ -417,7 +422,7 @@ class _Opener:
         host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint)
         sock = self._sock(settings, depth)
         try:
-            transport = paramiko.Transport(sock)
+            transport = _Transport(sock)
         except Exception:
             sock.close()
             raise
@@ -482,11 +487,7 @@ class _Opener:
         try:
             transport.start_client(timeout=self.timeout)
         except IncompatiblePeer as exc:
-            what = re.search(r"\((.*)\)", str(exc))
-            raise ConnectError(
-                f"cannot agree on algorithms with {settings.display}: "
-                f"{what.group(1) if what else exc}"
-            ) from exc
+            raise _incompatible(transport, settings, exc) from exc
         except ProxyCommandFailure as exc:
             raise ConnectError(_proxy_message(settings, sock, str(exc))) from exc
         except (SSHException, EOFError, OSError) as exc:
@@ -507,6 +508,56 @@ class _Opener:
             raise ConnectError(
                 f"timed out after {self.timeout:g} s in the SSH handshake with {settings.display}"
             )
+
+
+class _Transport(paramiko.Transport):
+    """paramiko's Transport, keeping what the peer offered in its KEXINIT for error messages."""
+
+    peer_offer: dict[str, list[str]] | None = None
+    auth_method: str | None = None
+    """How we logged in: ``publickey``, ``password`` or ``none``."""
+
+    def _really_parse_kex_init(self, m: Any, ignore_first_byte: bool = False) -> Any:
+        parsed = super()._really_parse_kex_init(m, ignore_first_byte)  # type: ignore[misc]
+        if not ignore_first_byte:  # the peer's message; True re-reads our own
+            self.peer_offer = parsed
+        return parsed
+
+
+# what paramiko names in "no acceptable X" -> (the peer's list, our list, the sshd_config keyword)
+_ALGORITHM_KINDS = {
+    "kex algorithm": ("kex_algo_list", "preferred_kex", "KexAlgorithms"),
+    "host key": ("server_key_algo_list", "preferred_keys", "HostKeyAlgorithms"),
+    "client encrypt algorithm": ("server_encrypt_algo_list", "preferred_ciphers", "Ciphers"),
+    "server encrypt algorithm": ("server_encrypt_algo_list", "preferred_ciphers", "Ciphers"),
+    "client mac algorithm": ("server_mac_algo_list", "preferred_macs", "MACs"),
+    "server mac algorithm": ("server_mac_algo_list", "preferred_macs", "MACs"),
+    "compression algorithm": ("server_compress_algo_list", "preferred_compression", "Compression"),
+}
+
+
+def _incompatible(transport: paramiko.Transport, settings: HostSettings,
+                  exc: IncompatiblePeer) -> ConnectError:
+    """No algorithm both ends know: name both lists and the sshd_config keyword that would fix it."""
+    found = re.search(r"no acceptable (.*?)\)", str(exc))
+    what = found.group(1) if found else str(exc)
+    kind = _ALGORITHM_KINDS.get(what)
+    offer = getattr(transport, "peer_offer", None)
+    if kind is None or not offer:
+        return ConnectError(f"cannot agree on algorithms with {settings.display}: {what}")
+    theirs_key, ours_attr, keyword = kind
+    theirs = [a for a in offer.get(theirs_key, []) if not a.startswith(("ext-info-", "kex-strict-"))]
+    ours = list(getattr(transport, ours_attr, ()))
+    if keyword == "HostKeyAlgorithms":
+        hint = "give the robot's sshd a host key of one of our types (HostKey in its sshd_config)"
+    else:
+        hint = f"add one of ours to {keyword} in the robot's sshd_config"
+    return ConnectError(
+        f"cannot agree on algorithms with {settings.display}: no acceptable {what}: "
+        f"it offers {', '.join(theirs) or 'none'}; fetchsync (paramiko {paramiko.__version__}) "
+        f"knows {', '.join(ours)}",
+        hint=hint,
+    )
 
 
 def _tcp_connect(settings: HostSettings, *, timeout: float, keepalive: float) -> socket.socket:
@@ -790,20 +841,60 @@ class _Auth:
         self.tried: list[str] = []
         self.allowed: set[str] | None = None  # methods the server still accepts, once known
         self.offered: set[bytes] = set()
+        self.wrong_passwords = 0
 
     def run(self) -> None:
         try:
             if self._agent() or self._files() or self._password():
                 return
+            if self.allowed is None:
+                self._ask_methods()
         except (SSHException, EOFError, OSError) as exc:
             raise ConnectError(
                 f"the connection to {self.s.display} failed while authenticating: {exc}"
             ) from exc
+        if self.t.is_authenticated():  # the robot lets this user in without credentials
+            self._succeeded("none")
+            return
+        raise self._denied()
+
+    def _denied(self) -> ConnectError:
+        who = f"{self.s.user}@{self.s.display}"
+        copy_id = f"ssh-copy-id {self.s.user}@{self.s.alias}"
         tried = ", ".join(self.tried) or "nothing: no agent, no key files, no password prompt"
-        raise ConnectError(
-            f"permission denied for {self.s.user}@{self.s.display} (tried: {tried})",
-            hint=f"ssh-copy-id {self.s.user}@{self.s.alias} installs your public key on the robot",
+        if self.wrong_passwords:
+            tries = "try" if self.wrong_passwords == 1 else "tries"
+            return ConnectError(
+                f"permission denied for {who}: wrong password ({self.wrong_passwords} {tries}; "
+                f"tried: {tried})",
+                hint=f"check the password, or install your public key once with {copy_id}",
+            )
+        wants_password = self.allowed is not None and bool(
+            self.allowed & {"password", "keyboard-interactive"}
         )
+        if wants_password and self.password_callback is None:
+            return ConnectError(
+                f"permission denied for {who} (tried: {tried}): the robot asks for a password "
+                "and there is no terminal to ask it on",
+                hint=f"run fetchsync in a terminal, or install your public key once with {copy_id}",
+            )
+        return ConnectError(
+            f"permission denied for {who} (tried: {tried})",
+            hint=f"{copy_id} installs your public key on the robot",
+        )
+
+    def _ask_methods(self) -> None:
+        """Learn the methods the robot accepts, as ssh does first: a "none" request."""
+        try:
+            self.t.auth_none(self.s.user)
+        except BadAuthenticationType as exc:
+            self.allowed = set(exc.allowed_types)
+        except AuthenticationException:
+            pass
+
+    def _succeeded(self, method: str) -> None:
+        if isinstance(self.t, _Transport):
+            self.t.auth_method = method
 
     def _agent(self) -> bool:
         if not os.environ.get("SSH_AUTH_SOCK"):
@@ -850,18 +941,22 @@ class _Auth:
             return False
         prompt = f"{self.s.user}@{self.s.alias}'s password: "
         self.tried.append("password")
-        for _ in range(_PASSWORD_TRIES):
-            password = self.password_callback(prompt)
+        for attempt in range(_PASSWORD_TRIES):
+            again = "Permission denied, please try again.\n" if attempt else ""
+            password = self.password_callback(again + prompt)
             if not password:
                 return False
             try:
                 # fallback: keyboard-interactive answered with the same password.
                 remaining = self.t.auth_password(self.s.user, password)
-            except BadAuthenticationType:
+            except BadAuthenticationType as exc:
+                self.allowed = set(exc.allowed_types)
                 return False
             except AuthenticationException:
+                self.wrong_passwords += 1
                 continue
             if self.t.is_authenticated():
+                self._succeeded("password")
                 return True
             self.allowed = set(remaining)
             return False
@@ -879,6 +974,7 @@ class _Auth:
         except AuthenticationException:
             return False
         if self.t.is_authenticated():
+            self._succeeded("publickey")
             return True
         self.allowed = set(remaining)  # partial success: another method must follow
         return False
