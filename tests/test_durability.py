@@ -25,7 +25,12 @@ pipes) is checked two ways:
   push, which shows the simulation can fail. (device-mapper's dm-flakey or
   dm-log-writes would drop writes at the block layer; this kernel has no
   device-mapper, and the copy-at-success is the same cut for a disk without a
-  volatile cache.)
+  volatile cache.) The same disk, with the journal committing every second,
+  checks that the endpoint the loader caches in ``~/.cache/fetchsync``
+  survives a cut after the robot's first connection.
+
+Known gaps are marked xfail: strict for the syscall order (deterministic), not
+strict after a simulated cut (someone else's sync(2) may flush for us).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ import os
 import re
 import shutil
 import subprocess
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -49,9 +55,12 @@ MAGIC = b"\x89FSYNC"
 POWERCUT = bool(os.environ.get("FETCHSYNC_TEST_POWERCUT"))
 # a batch of only these is not made durable before its reply: a store.py fix
 # is reported (commit() returns before any syncfs when nothing was renamed)
-KNOWN_GAP = pytest.mark.xfail(
-    strict=True, reason="Store.apply makes a batch with no write durable only by chance: "
-                        "_Batch.commit returns before syncfs when nothing is renamed")
+_GAP = ("Store.apply makes a batch with no write durable only by chance: "
+        "_Batch.commit returns before syncfs when nothing is renamed")
+KNOWN_GAP = pytest.mark.xfail(strict=True, reason=_GAP)
+# Not strict after a simulated power cut: anyone's sync(2) meanwhile (bench/run.py
+# calls os.sync() before each push) makes durable what the endpoint did not.
+KNOWN_GAP_CUT = pytest.mark.xfail(strict=False, reason=_GAP)
 
 TRACED = ("write,pwrite64,writev,openat,fchmod,ftruncate,rename,renameat,renameat2,unlink,unlinkat,"
           "rmdir,mkdir,mkdirat,symlink,symlinkat,link,linkat,chmod,fchmodat,syncfs,sync,fsync,fdatasync")
@@ -428,13 +437,21 @@ def loop_ext4(image: Path, mount: Path, *, options: str = "") -> Iterator[str]:
         try:
             yield device
         finally:
-            _sh("umount", str(mount))
+            for _ in range(50):  # a process that had a file there may still be exiting
+                res = _sh("umount", str(mount))
+                if res.returncode == 0:
+                    break
+                time.sleep(0.1)
+            else:
+                _sh("umount", "-l", str(mount))
+                pytest.fail(f"cannot unmount {mount}: {res.stderr.strip()}")
     finally:
         _sh(_need("losetup"), "-d", device)
 
 
-@pytest.fixture
-def disk(tmp_path: Path) -> Iterator[Disk]:
+@contextlib.contextmanager
+def robot_disk(tmp_path: Path, options: str) -> Iterator[Disk]:
+    """A fresh ext4 filesystem on a loop device, mounted with ``options``."""
     if os.geteuid() != 0:
         _unavailable("loop devices and mount need root")
     size_mb = 256 if POWERCUT else 64
@@ -444,11 +461,17 @@ def disk(tmp_path: Path) -> Iterator[Disk]:
     # every table written now: no lazy init thread writing to the device later
     res = _sh(_need("mkfs.ext4"), "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0", str(image))
     assert res.returncode == 0, res.stderr
+    with loop_ext4(image, tmp_path / "robot-disk", options=options) as device:
+        yield Disk(image, device, tmp_path / "robot-disk")
+
+
+@pytest.fixture
+def disk(tmp_path: Path) -> Iterator[Disk]:
     # commit=600: the journal commits only when someone syncs, within a test;
     # noauto_da_alloc: no flush of a file's data when a rename replaces
     # another, so nothing reaches the device by the side of a sync
-    with loop_ext4(image, tmp_path / "robot-disk", options="commit=600,noauto_da_alloc") as device:
-        yield Disk(image, device, tmp_path / "robot-disk")
+    with robot_disk(tmp_path, "commit=600,noauto_da_alloc") as d:
+        yield d
 
 
 def cut_power(d: Disk, tmp_path: Path, name: str) -> dict:
@@ -515,8 +538,8 @@ def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
 
 
 @pytest.mark.parametrize("change", [
-    pytest.param(_only_deletes, id="deletes", marks=KNOWN_GAP),
-    pytest.param(_only_mkdir, id="mkdir", marks=KNOWN_GAP),
+    pytest.param(_only_deletes, id="deletes", marks=KNOWN_GAP_CUT),
+    pytest.param(_only_mkdir, id="mkdir", marks=KNOWN_GAP_CUT),
 ])
 def test_power_cut_after_a_batch_without_writes(tmp_path, disk, change):
     env = make_env(tmp_path, disk.mount / "robot")
@@ -526,3 +549,49 @@ def test_power_cut_after_a_batch_without_writes(tmp_path, disk, change):
     disk.settle()
     push(env)
     assert cut_power(disk, tmp_path, "cut") == tree_of(src)
+
+
+def _start_endpoint(home: Path) -> bytes:
+    """Run the loader as the client does, on a robot without fetchsync installed; its first bytes."""
+    from fetchsync.protocol.loader import NEED, loader_command
+
+    cmd, archive = loader_command("python3 -S")  # -S: no installed fetchsync to fall back on
+    env = {"HOME": str(home), "PATH": os.environ.get("PATH", "/usr/bin:/bin")}
+    proc = subprocess.Popen(["/bin/sh", "-c", cmd], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env, cwd=str(home))
+    assert proc.stdin is not None and proc.stdout is not None
+    first = proc.stdout.read(len(NEED))
+    if first == NEED:
+        proc.stdin.write(archive)
+        proc.stdin.flush()
+        first = proc.stdout.read(len(MAGIC))
+    proc.stdin.close()  # the endpoint ends at end of input
+    proc.stdout.read()
+    proc.wait(timeout=30)
+    return first
+
+
+@pytest.mark.xfail(strict=False, reason="the loader caches the endpoint with no fsync: a power cut "
+                                        "after the journal commits leaves it empty, and every later "
+                                        "connection fails to import it")
+def test_power_cut_after_the_endpoint_is_cached_leaves_a_working_robot(tmp_path):
+    # commit=1: the journal commits on its own within a second, as ext4's
+    # default 5 s would between a robot's first connection and a power cut
+    with robot_disk(tmp_path, "commit=1") as d:
+        home = d.mount / "robot"
+        home.mkdir()
+        d.settle()
+        assert _start_endpoint(home) == MAGIC
+        cached = list((home / ".cache/fetchsync").glob("endpoint-*.pyz"))
+        assert len(cached) == 1 and cached[0].stat().st_size > 0
+        before = d.writes()
+        for _ in range(50):  # until the journal has committed the new file
+            time.sleep(0.1)
+            if d.writes() != before:
+                break
+        time.sleep(0.3)
+        snap = tmp_path / "cut.img"
+        shutil.copyfile(d.image, snap)
+        with loop_ext4(snap, tmp_path / "cut-mnt"):
+            home_after = tmp_path / "cut-mnt" / "robot"
+            assert _start_endpoint(home_after) == MAGIC, "the robot cannot start the endpoint after the cut"
