@@ -9,6 +9,7 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import queue
@@ -25,6 +26,7 @@ from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.ignore import IgnoreRules
+from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
 from fetchsync.protocol.tree import Entry, entry_from_stat, scan
 from fetchsync.state import State, Synced
@@ -38,6 +40,13 @@ BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
+READ_TRIES = 5                 # reads of a file that changes while read, before giving up on it
+VANISHED = "vanished while pushing; treated as deleted"
+
+# A test seam: when set, called as ``read_hook(full_path, event)`` where a push
+# reads a local file, with event "open" (about to open it) or "read" (a chunk
+# was read), so a test can change or remove the file at that exact moment.
+read_hook: Callable[[str, str], None] | None = None
 
 Progress = Callable[[int, int], None]
 
@@ -103,6 +112,14 @@ class LocalTree:
     skipped: list[tuple[str, str]]
     unhashed: set[str] = field(default_factory=set)   # new files whose hash nobody needed yet
 
+    def guarded(self) -> Callable[[str], bool]:
+        """Whether a path is one the laptop could not read, or lies below one: the robot's
+        copy must be left as it is (to this scan the path looks deleted, but it is not)."""
+        unreadable = {p for p, reason in self.skipped if _unreadable(reason)}
+        if not unreadable:
+            return lambda path: False
+        return lambda path: path in unreadable or any(a in unreadable for a in ancestors(path))
+
     def hash_where_needed(self, root: str, remote: dict[str, M.Listed], algorithm: str) -> None:
         """Hash the new files the robot could hold already: at the same path, or the same size
         elsewhere (content to reuse). The others are hashed as they are read to be sent."""
@@ -114,15 +131,30 @@ class LocalTree:
             if path not in remote and item.size not in sizes:
                 continue
             try:
-                with open(os.path.join(root, path), "rb") as fh:
-                    digest = hashing.file_digest(algorithm, fh).hex()
+                digest = _hash_file(os.path.join(root, path), algorithm)
             except OSError as exc:
-                self.skipped.append((path, f"cannot read: {exc.strerror}"))
+                self.skipped.append((path, VANISHED if _gone(exc) else f"cannot read: {exc.strerror}"))
                 del self.items[path]
                 self.stats.pop(path, None)
             else:
                 self.items[path] = M.Listed(path, "f", item.mode, item.size, hash=digest)
             self.unhashed.discard(path)
+
+
+def _unreadable(reason: str) -> bool:
+    """Whether a skipped path's reason says the laptop could not read it (not: it is a FIFO)."""
+    return reason.startswith(("cannot read", "cannot list"))
+
+
+def _gone(exc: OSError) -> bool:
+    return isinstance(exc, (FileNotFoundError, NotADirectoryError))
+
+
+def _hash_file(full: str, algorithm: str) -> str:
+    if read_hook is not None:
+        read_hook(full, "open")
+    with open(full, "rb") as fh:
+        return hashing.file_digest(algorithm, fh).hex()
 
 
 def _racy(entry: Entry, now_ns: int) -> bool:
@@ -136,7 +168,10 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
     With ``lazy``, files the state does not know are left unhashed (hash ``""``,
     listed in ``unhashed``) for :meth:`LocalTree.hash_where_needed`.
     """
-    result = scan(root, rules, is_temp=is_temp)
+    try:
+        result = scan(root, rules, is_temp=is_temp)
+    except OSError as exc:
+        raise SyncError(f"cannot list {root}: {exc.strerror or exc}") from exc
     items: dict[str, M.Listed] = {}
     stats: dict[str, Entry] = {}
     skipped = list(result.skipped)
@@ -204,10 +239,9 @@ def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algori
             unhashed.add(path)
         else:
             try:
-                with open(os.path.join(root, path), "rb") as fh:
-                    digest = hashing.file_digest(algorithm, fh).hex()
+                digest = _hash_file(os.path.join(root, path), algorithm)
             except OSError as exc:
-                skipped.append((path, f"cannot read: {exc.strerror}"))
+                skipped.append((path, VANISHED if _gone(exc) else f"cannot read: {exc.strerror}"))
                 return
         items[path] = M.Listed(path, "f", e.mode, e.size, hash=digest)
     elif e.kind == "l":
@@ -217,29 +251,57 @@ def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algori
     stats[path] = e
 
 
-def read_stable(full: str, *, tries: int = 3) -> tuple[bytes, Entry]:
-    """Read a whole file, making sure it did not change while read."""
-    for _ in range(tries):
+def _same_file(a: os.stat_result, b: os.stat_result) -> bool:
+    return (a.st_ino, a.st_dev, a.st_size, a.st_mtime_ns, a.st_ctime_ns) == \
+        (b.st_ino, b.st_dev, b.st_size, b.st_mtime_ns, b.st_ctime_ns)
+
+
+def _still_there(full: str, st: os.stat_result) -> bool:
+    """Whether ``full`` still names the file ``st`` describes, unchanged (not replaced by a
+    rename, not written). Raises FileNotFoundError if it is gone."""
+    return _same_file(os.stat(full, follow_symlinks=False), st)
+
+
+def _pause(attempt: int) -> None:
+    if attempt:
+        time.sleep(0.025 * (1 << attempt))   # 0.05, 0.1, 0.2, 0.4 s: bounded, lets a save finish
+
+
+def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
+    """Read a whole file that did not change while read and is still the file at ``full``.
+
+    A file that changed (or was replaced) meanwhile is read again, up to ``tries``
+    times, then ``OSError(EBUSY)``; one that is gone raises FileNotFoundError.
+    The read stops at the size the file had when opened, so a file appended to
+    faster than it is read does not keep it reading.
+    """
+    for attempt in range(tries):
+        _pause(attempt)
+        if read_hook is not None:
+            read_hook(full, "open")
         fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
         try:
             before = os.fstat(fd)
             chunks = []
-            while True:
-                chunk = os.read(fd, 1 << 20)
+            left = before.st_size
+            while left > 0:
+                chunk = os.read(fd, min(left, 1 << 20))
                 if not chunk:
                     break
                 chunks.append(chunk)
+                left -= len(chunk)
+                if read_hook is not None:
+                    read_hook(full, "read")
             after = os.fstat(fd)
         finally:
             os.close(fd)
         data = b"".join(chunks)
-        if (before.st_size == after.st_size == len(data) and before.st_mtime_ns == after.st_mtime_ns
-                and before.st_ctime_ns == after.st_ctime_ns):
+        if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
             entry = entry_from_stat(after)
             assert entry is not None
             return data, entry
-        time.sleep(0.05)
-    raise OSError(16, "the file kept changing while it was read", full)
+    raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
+                  "the robot keeps its previous version", full)
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
@@ -450,7 +512,7 @@ class Syncer:
         remote = self._apply_listing(listing, synced)
         epoch, gen = listing["epoch"], listing["gen"]
         local.hash_where_needed(self.local_root, remote, self.algorithm)
-        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
+        _report_skipped(local, report)
         self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run, progress=progress)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
@@ -482,7 +544,7 @@ class Syncer:
             remote = {p: synced[p].listed(p) for p in only if p in synced}
         else:
             remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
-        report.skipped = [{"path": p, "reason": r} for p, r in local.skipped]
+        _report_skipped(local, report)
         stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
                                scope=scope, scope_paths=only)
         if stale:
@@ -513,13 +575,17 @@ class Syncer:
             s = new_synced.get(path)
             return s.expectation() if s is not None else M.ABSENT
 
+        guarded = local.guarded()
+
         def has_sig(path: str, dst: M.Listed) -> bool:
             s = new_synced.get(path)
             return (path in signed and path not in whole_only and s is not None and s.kind == "f"
                     and s.hash == dst.hash and dst.size >= SIG_MIN)
 
         for _round in range(MAX_ROUNDS):
-            planned = plan(local.items, remote, expect, has_signature=has_sig)
+            # what the laptop could not read is left as the robot has it
+            planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
+                       if not guarded(p.op.path)]
             if dry_run:
                 for p in planned:
                     report.count(p)
@@ -532,8 +598,9 @@ class Syncer:
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how == WHOLE))
+            vanished = False
             for p in planned:
-                self._send_op(batcher, p, local, report)
+                vanished |= self._send_op(batcher, p, local, report)
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
             batcher.flush()
@@ -552,13 +619,14 @@ class Syncer:
                 remote = self._apply_listing(listing, synced)
                 epoch, gen = listing["epoch"], listing["gen"]
                 continue
-            # only a base mismatch is worth another round (it goes whole next
-            # time); a lasting failure (no space, permission) is reported once
-            if not any(r.code == M.BASE_MISMATCH for _t, r in results):
+            # only a base mismatch (it goes whole next time) or a file that
+            # vanished (its delete) is worth another round; a lasting failure
+            # (no space, permission) is reported once
+            if not vanished and not any(r.code == M.BASE_MISMATCH for _t, r in results):
                 break
         if not dry_run:
             left = [p for p in plan(local.items, remote, expect) if p.op.path not in
-                    {e["path"] for e in report.errors}]
+                    {e["path"] for e in report.errors} and not guarded(p.op.path)]
             if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
                 report.errors.append({"path": left[0].op.path, "error":
                                       f"{len(left)} path(s) still differ on the robot after "
@@ -633,21 +701,31 @@ class Syncer:
             remote.pop(path, None)
         return remote
 
-    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report) -> None:
+    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report) -> bool:
+        """Add one planned operation, reading its content now. Returns True if the local
+        file vanished meanwhile (it is then dropped from ``local``: a delete to plan)."""
         op = p.op
         if op.kind != M.WRITE or p.how == COPY:
             sig = self.state.signature(op.from_path) if p.how == COPY and op.size >= SIG_MIN else None
             batcher.add(op, tag=(p, sig))
-            return
+            return False
         full = os.path.join(self.local_root, op.path)
-        if op.size > BIG:
-            self._send_big(batcher, p, full, report, local)
-            return
         try:
+            if op.size > BIG:
+                self._send_big(batcher, p, full, report, local)
+                return False
             data, entry = read_stable(full)
         except OSError as exc:
-            report.errors.append({"path": op.path, "error": f"cannot read: {exc.strerror or exc}"})
-            return
+            if _gone(exc):
+                # a mirror of the laptop as it is now: the robot loses it too (into
+                # its trash), as the next push would do anyway
+                local.items.pop(op.path, None)
+                local.stats.pop(op.path, None)
+                report.skipped.append({"path": op.path, "reason": VANISHED})
+                return True
+            what = "" if exc.errno == errno.EBUSY else "cannot read: "
+            report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
+            return False
         digest = hashing.digest(self.algorithm, data).hex()
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
@@ -663,37 +741,57 @@ class Syncer:
                 d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
                 if len(d) < len(data):
                     batcher.add(op, d, tag=(p, sig))
-                    return
+                    return False
             op = M.Op(**{**op.__dict__, "source": M.SRC_DATA, "base": ""})
             p = Planned(op, WHOLE, p.item)
         batcher.add(op, data, tag=(p, sig))
+        return False
 
     def _send_big(self, batcher: _Batcher, p: Planned, full: str, report: Report,
                   local: LocalTree) -> None:
-        """A large file travels in pieces to the robot's upload area, then is renamed into place."""
+        """A large file travels in pieces to the robot's upload area, then is renamed into place.
+
+        The robot renames the upload only if it matches the hash of what was read, and it
+        is sent only if the file did not change while read (nor was replaced), so the
+        robot never holds half of one version and half of another. A file that changed
+        is read and uploaded again, up to READ_TRIES times; the pieces of an attempt
+        overwrite the last one's in the same upload. Raises OSError as :func:`read_stable`.
+        """
         upload = os.urandom(8).hex()
-        h = hashing.new(self.algorithm)
-        try:
+        uploaded = 0   # how far the robot's upload part may reach already
+        for attempt in range(READ_TRIES):
+            _pause(attempt)
+            if read_hook is not None:
+                read_hook(full, "open")
             fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-        except OSError as exc:
-            report.errors.append({"path": p.op.path, "error": f"cannot read: {exc.strerror}"})
-            return
-        try:
-            before = os.fstat(fd)
-            offset = 0
-            while True:
-                piece = os.read(fd, PIECE)
-                if not piece:
-                    break
-                h.update(piece)
-                batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
-                offset += len(piece)
-            after = os.fstat(fd)
-        finally:
-            os.close(fd)
-        if (before.st_mtime_ns, before.st_size) != (after.st_mtime_ns, after.st_size) or offset != after.st_size:
-            report.errors.append({"path": p.op.path, "error": "changed while it was read; run again"})
-            return
+            try:
+                before = os.fstat(fd)
+                if before.st_size < uploaded:
+                    # an older attempt's tail would stay past the end: start a new upload
+                    # (the robot drops the unused one when this session ends)
+                    upload, uploaded = os.urandom(8).hex(), 0
+                h = hashing.new(self.algorithm)
+                offset = 0
+                while offset < before.st_size:
+                    piece = os.read(fd, min(PIECE, before.st_size - offset))
+                    if not piece:
+                        break
+                    if read_hook is not None:
+                        read_hook(full, "read")
+                    if not _same_file(before, os.fstat(fd)):
+                        break  # changed under us: stop sending this attempt now
+                    h.update(piece)
+                    batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
+                    offset += len(piece)
+                    uploaded = max(uploaded, offset)
+                after = os.fstat(fd)
+            finally:
+                os.close(fd)
+            if offset == after.st_size and _same_file(before, after) and _still_there(full, after):
+                break
+        else:
+            raise OSError(errno.EBUSY, f"it kept changing while it was read ({READ_TRIES} tries); "
+                          "the robot keeps its previous version", full)
         op = M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": "",
                      "hash": h.digest().hex(), "size": offset})
         entry = entry_from_stat(after)
@@ -930,6 +1028,16 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
     return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
+
+
+def _report_skipped(local: LocalTree, report: Report) -> None:
+    """What the scan left out: unreadable paths are failures (the push is incomplete),
+    the rest (FIFOs, sockets, vanished files) notes."""
+    for path, reason in local.skipped:
+        if _unreadable(reason):
+            report.errors.append({"path": path, "error": reason})
+        else:
+            report.skipped.append({"path": path, "reason": reason})
 
 
 def raise_for(report: Report, *, strict: bool) -> None:

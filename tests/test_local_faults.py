@@ -1,0 +1,301 @@
+"""Local files that cannot be read, vanish, or change while a push reads them.
+
+The robot must never lose its copy of a file the laptop cannot read, never
+hold a file that is half the old and half the new content, and never keep
+upload temporaries; the other files still sync and the problem is named.
+
+End to end over the real sshd: a file and a directory root cannot read (the
+CLI runs under ``setpriv`` without CAP_DAC_OVERRIDE/CAP_DAC_READ_SEARCH), and
+a large file a real writer keeps appending to. In process over the ``local``
+robot, at the read seam ``sync.read_hook``: a file that changes once (read
+again), keeps changing (reported, the robot's version kept), shrinks, is
+replaced, or vanishes (treated as deleted).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from helpers import make_workspace, report, tree_of
+
+from fetchsync import sync
+from fetchsync.connection import Connection
+from fetchsync.state import State
+from fetchsync.transport import LocalTransport
+
+SETPRIV = shutil.which("setpriv")
+
+
+def leftovers(workspace: Path) -> list[str]:
+    """Temporaries of a write, and upload parts, anywhere in a robot workspace."""
+    out = []
+    for dirpath, dirs, files in os.walk(workspace):
+        for name in dirs + files:
+            if "fetchsync-tmp" in name or name.startswith("upload-"):
+                out.append(os.path.join(dirpath, name))
+    return out
+
+
+# --------------------------------------------------------------------------- end to end, real sshd
+@pytest.fixture
+def env(ssh_home, remote_dir, tmp_path):
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
+        e.pop(k, None)
+    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+             XDG_STATE_HOME=str(tmp_path / "state"))
+    make_workspace(tmp_path / "ws")
+    return e
+
+
+def run(*args: str, env: dict, unprivileged: bool = False) -> subprocess.CompletedProcess:
+    """The real CLI; ``unprivileged`` takes root's power to read anything away."""
+    cmd = [sys.executable, "-m", "fetchsync", *args]
+    if unprivileged and os.geteuid() == 0:
+        cmd = [SETPRIV, "--bounding-set", "-dac_override,-dac_read_search", "--", *cmd]
+    return subprocess.run(cmd, check=False, capture_output=True, env=env, timeout=120)
+
+
+@pytest.mark.ssh
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    robot = remote_dir / "src"
+    assert report(run("push", "--json", env=env))["ok"]
+    before = tree_of(robot)
+    (local / "my_pkg/package.xml").write_text("<package>edited, then locked</package>\n")
+    (local / "my_pkg/package.xml").chmod(0)
+    (local / "my_pkg/src").chmod(0)          # a directory nobody can list
+    (local / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
+    (local / "my_pkg/new.txt").write_text("new\n")
+    try:
+        proc = run("push", "--json", env=env, unprivileged=True)
+        assert proc.returncode == 5, proc.stderr.decode()   # SyncError: some paths failed
+        assert b"Traceback" not in proc.stderr
+        r = report(proc)
+        assert not r["ok"]
+        failed = {e["path"]: e["error"] for e in r["errors"]}
+        assert "cannot read" in failed["my_pkg/package.xml"], failed
+        assert "cannot list" in failed["my_pkg/src"], failed
+        assert r["deleted"] == 0
+        # the robot's copies are untouched: no delete, no chmod of the directory
+        assert tree_of(robot)["my_pkg/package.xml"] == before["my_pkg/package.xml"]
+        assert tree_of(robot)["my_pkg/src"] == before["my_pkg/src"]
+        assert tree_of(robot)["my_pkg/src/node.cpp"] == before["my_pkg/src/node.cpp"]
+        # the others went
+        assert (robot / "my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
+        assert (robot / "my_pkg/new.txt").read_text() == "new\n"
+        # the text report names the path; one summary line ends it
+        proc = run("push", env=env, unprivileged=True)
+        err = proc.stderr.decode()
+        assert proc.returncode == 5 and "Traceback" not in err
+        assert "error: my_pkg/package.xml: cannot read" in err
+        assert err.strip().splitlines()[-1].startswith("fetchsync: error: 2 path(s) failed")
+        assert not (remote_dir / ".fetchsync/trash").exists() or \
+            not any("package.xml" in n for _d, _s, f in os.walk(remote_dir / ".fetchsync/trash") for n in f)
+    finally:
+        (local / "my_pkg/package.xml").chmod(0o644)
+        (local / "my_pkg/src").chmod(0o755)
+    # readable again: it goes, and nothing on the robot was set aside as a conflict
+    r = report(run("push", "--json", env=env, unprivileged=True))
+    assert r["ok"] and r["conflicts"] == []
+    assert tree_of(local) == tree_of(robot)
+    assert leftovers(remote_dir) == []
+
+
+@pytest.mark.ssh
+def test_a_big_file_that_keeps_changing_keeps_the_robots_version(env, remote_dir):
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    robot = remote_dir / "src"
+    log = local / "my_pkg/recording.bag"
+    log.write_bytes(os.urandom(sync.BIG + 1024 * 1024))
+    assert report(run("push", "--json", env=env))["ok"]
+    old = hashlib.sha256(log.read_bytes()).hexdigest()
+    (local / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
+    stop = threading.Event()
+
+    def writer() -> None:  # a recorder appending as it goes
+        with open(log, "ab") as fh:
+            while not stop.is_set():
+                fh.write(os.urandom(512))
+                fh.flush()
+                time.sleep(0.002)
+
+    t = threading.Thread(target=writer, daemon=True)
+    t.start()
+    try:
+        proc = run("push", "--json", env=env)
+    finally:
+        stop.set()
+        t.join()
+    assert proc.returncode == 5, proc.stderr.decode()
+    assert b"Traceback" not in proc.stderr
+    r = report(proc)
+    assert [e["path"] for e in r["errors"]] == ["my_pkg/recording.bag"], r["errors"]
+    assert "kept changing" in r["errors"][0]["error"]
+    assert hashlib.sha256((robot / "my_pkg/recording.bag").read_bytes()).hexdigest() == old
+    assert (robot / "my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
+    assert leftovers(remote_dir) == []
+    # once the recorder stopped, it goes
+    r = report(run("push", "--json", env=env))
+    assert r["ok"]
+    assert tree_of(local) == tree_of(robot)
+
+
+# --------------------------------------------------------------------------- in process, at the read seam
+@pytest.fixture
+def robot(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """A pushed workspace, its Syncer over the local robot, and the robot's workspace."""
+    monkeypatch.setattr(sync, "BIG", 512 * 1024)     # big files are sent in pieces ...
+    monkeypatch.setattr(sync, "PIECE", 128 * 1024)   # ... of this size
+    make_workspace(tmp_path / "ws")
+    src = tmp_path / "ws/src"
+    (src / "my_pkg/data.txt").write_bytes(b"".join(b"line %d\n" % i for i in range(12000)))  # ~100 KB
+    (src / "my_pkg/big.bin").write_bytes(os.urandom(1024 * 1024))
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    state = State(tmp_path / "state.sqlite")
+    s = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules())
+    assert s.push().errors == []
+    yield s, src, tmp_path / "robot-home/ws"
+    conn.close()
+    state.close()
+
+
+def hook_on(monkeypatch: pytest.MonkeyPatch, name: str, event: str, action, times: int = 1,
+            skip: int = 0) -> list[int]:
+    """Run ``action(path)`` at ``times`` ``event``s ("open" or "read" of a chunk) of the file
+    ``name``, after letting ``skip`` of them pass."""
+    calls = [0]
+    seen = [0]
+
+    def hook(full: str, what: str) -> None:
+        if os.path.basename(full) != name or what != event:
+            return
+        seen[0] += 1
+        if seen[0] > skip and calls[0] < times:
+            calls[0] += 1
+            action(Path(full))
+
+    monkeypatch.setattr(sync, "read_hook", hook)
+    return calls
+
+
+def size(name: str) -> int:
+    """A size that keeps ``name`` on its path: small files read whole, big ones in pieces."""
+    return 100 * 1024 if name == "data.txt" else 700 * 1024
+
+
+def append(path: Path) -> None:
+    with open(path, "ab") as fh:
+        fh.write(b"appended while it was read\n")
+
+
+# data.txt is read in one chunk; big.bin has two pieces on the robot when it changes
+@pytest.mark.parametrize(("name", "skip"), [("data.txt", 0), ("big.bin", 2)])
+def test_a_file_changed_while_read_is_read_again(robot, monkeypatch, name, skip):
+    s, src, ws = robot
+    f = src / "my_pkg" / name
+    f.write_bytes(f.read_bytes()[:-10] + b"0123456789")   # what the scan sees
+    calls = hook_on(monkeypatch, name, "read", append, skip=skip)  # changes under the first read
+    r = s.push()
+    assert calls[0] == 1
+    assert r.errors == [] and r.files == 1
+    assert (ws / "src/my_pkg" / name).read_bytes() == f.read_bytes()
+    assert f.read_bytes().endswith(b"appended while it was read\n")
+    assert leftovers(ws) == []          # the first attempt's upload was overwritten, not left
+    monkeypatch.setattr(sync, "read_hook", None)
+    assert s.push().changed == 0       # and the state knows it is there
+
+
+def test_a_big_file_that_shrinks_while_read_is_sent_whole(robot, monkeypatch):
+    s, src, ws = robot
+    f = src / "my_pkg/big.bin"
+    f.write_bytes(os.urandom(900 * 1024))
+    # two pieces are on the robot when it shrinks below them
+    hook_on(monkeypatch, "big.bin", "read", lambda p: p.write_bytes(os.urandom(100 * 1024)), skip=2)
+    r = s.push()
+    assert r.errors == []
+    assert (ws / "src/my_pkg/big.bin").read_bytes() == f.read_bytes()
+    assert len(f.read_bytes()) == 100 * 1024
+    # the first attempt's upload, too long to reuse, goes when the session ends
+    s.conn.close()
+    assert leftovers(ws) == []
+
+
+@pytest.mark.parametrize("name", ["data.txt", "big.bin"])
+def test_a_file_that_keeps_changing_keeps_the_robots_version(robot, monkeypatch, name):
+    s, src, ws = robot
+    old = (ws / "src/my_pkg" / name).read_bytes()
+    f = src / "my_pkg" / name
+    f.write_bytes(os.urandom(size(name)))
+    (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
+    calls = hook_on(monkeypatch, name, "read", append, times=1000)
+    r = s.push()
+    assert 1 < calls[0] <= 10                  # read again, a bounded number of times
+    assert [e["path"] for e in r.errors] == [f"my_pkg/{name}"]
+    assert "kept changing" in r.errors[0]["error"]
+    assert (ws / "src/my_pkg" / name).read_bytes() == old
+    assert (ws / "src/my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
+    assert not list(ws.rglob("*fetchsync-tmp*"))
+    monkeypatch.setattr(sync, "read_hook", None)
+    r = s.push()
+    assert r.errors == [] and (ws / "src/my_pkg" / name).read_bytes() == f.read_bytes()
+
+
+@pytest.mark.parametrize("name", ["data.txt", "big.bin"])
+def test_a_file_replaced_while_read_sends_the_new_one(robot, monkeypatch, name):
+    s, src, ws = robot
+    f = src / "my_pkg" / name
+    f.write_bytes(os.urandom(size(name)))
+    new = os.urandom(size(name) - 1000)
+
+    def replace(p: Path) -> None:   # an editor's atomic save: write aside, rename over
+        (p.parent / "tmp-save").write_bytes(new)
+        os.rename(p.parent / "tmp-save", p)
+
+    hook_on(monkeypatch, name, "read", replace)
+    r = s.push()
+    assert r.errors == []
+    assert (ws / "src/my_pkg" / name).read_bytes() == new
+    assert leftovers(ws) == []
+
+
+@pytest.mark.parametrize("event", ["open", "read"])
+@pytest.mark.parametrize("name", ["data.txt", "big.bin", "package.xml"])
+def test_a_file_that_vanishes_is_treated_as_deleted(robot, monkeypatch, name, event):
+    s, src, ws = robot
+    f = src / "my_pkg" / name
+    f.write_bytes(os.urandom(size(name)) if name != "package.xml" else b"<package/>\n")
+    (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
+    calls = hook_on(monkeypatch, name, event, lambda p: p.unlink())
+    r = s.push()
+    assert calls[0] == 1
+    assert r.errors == []
+    assert [x["path"] for x in r.skipped] == [f"my_pkg/{name}"]
+    assert "vanished" in r.skipped[0]["reason"]
+    assert r.deleted == 1
+    assert not (ws / "src/my_pkg" / name).exists()      # mirrored: gone (into the trash)
+    assert list((ws / ".fetchsync/trash").rglob(name))
+    assert (ws / "src/my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
+    assert leftovers(ws) == []
+    monkeypatch.setattr(sync, "read_hook", None)
+    assert s.push().changed == 0
+
+
+def test_a_new_file_that_vanishes_leaves_nothing(robot, monkeypatch):
+    s, src, ws = robot
+    (src / "my_pkg/fresh.txt").write_text("fresh\n")
+    hook_on(monkeypatch, "fresh.txt", "open", lambda p: p.unlink())
+    r = s.push()
+    assert r.errors == [] and r.deleted == 0 and r.files == 0
+    assert not (ws / "src/my_pkg/fresh.txt").exists()
+    assert tree_of(src) == tree_of(ws / "src")
