@@ -937,6 +937,8 @@ class _Auth:
     def _password(self) -> bool:
         if self.password_callback is None:
             return False
+        if self.allowed is None:
+            self._ask_methods()  # no prompt for a robot that takes keys only
         if self.allowed is not None and not self.allowed & {"password", "keyboard-interactive"}:
             return False
         prompt = f"{self.s.user}@{self.s.alias}'s password: "

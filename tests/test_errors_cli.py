@@ -98,8 +98,9 @@ def other_sshd(sshd: SSHD, workdir: Path, extra: list[str]) -> Iterator[int]:
         s.bind((sshd.host, 0))
         port = s.getsockname()[1]
     base = (sshd.workdir / "sshd_config").read_text().splitlines()
-    lines = [line for line in base if not line.startswith(("Port ", "PidFile "))]
-    lines += [f"Port {port}", f"PidFile {workdir / 'sshd.pid'}", *extra]
+    # first: for each keyword sshd keeps the first value it reads
+    lines = [*extra, f"Port {port}", f"PidFile {workdir / 'sshd.pid'}"]
+    lines += [line for line in base if not line.startswith(("Port ", "PidFile "))]
     config = workdir / "sshd_config"
     config.write_text("\n".join(lines) + "\n")
     log = open(workdir / "sshd.log", "ab")  # noqa: SIM115 - closed below
@@ -210,6 +211,35 @@ def test_key_refused(env, ssh_home, tmp_path) -> None:
         # the fixture's robot also takes passwords; without a terminal none is asked
         assert "there is no terminal" in line
         assert f"ssh-copy-id {user}@robot" in line
+
+
+@pytest.fixture(scope="module")
+def keys_only_robot(sshd: SSHD, tmp_path_factory) -> Iterator[int]:
+    """A robot whose sshd takes keys only, as many are set up."""
+    with other_sshd(sshd, tmp_path_factory.mktemp("sshd-keys-only"),
+                    ["PasswordAuthentication no", "KbdInteractiveAuthentication no"]) as port:
+        yield port
+
+
+def test_key_refused_by_a_robot_without_passwords(keys_only_robot, sshd, remote_dir,
+                                                  tmp_path) -> None:
+    home = make_ssh_home(tmp_path / "keys-home", sshd=sshd, port=keys_only_robot)
+    subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(tmp_path / "k")],
+                   check=True)
+    shutil.copyfile(tmp_path / "k", home.identity)
+    env = make_env(home.home, str(remote_dir), tmp_path)
+    # on a terminal too: no password prompt for a robot that would refuse any password
+    term = Terminal(["push"], env)
+    try:
+        code = term.wait()
+    finally:
+        term.close()
+    text = term.output.decode("utf-8", "replace")
+    lines = [line for line in text.replace("\r", "").splitlines() if line.strip()]
+    assert code == CONNECT_EXIT and len(lines) == 1, text
+    assert "password" not in lines[0] and "terminal" not in lines[0]
+    assert lines[0].startswith(f"fetchsync: error: permission denied for {sshd.user}@robot")
+    assert f"ssh-copy-id {sshd.user}@robot installs your public key" in lines[0]
 
 
 @pytest.fixture(scope="module")
