@@ -129,13 +129,18 @@ def test_bad_compressed_part_references_are_refused(store, zpart):
         store.apply([], b"abc", zpart=zpart)
 
 
-def test_an_interrupted_batch_is_cleaned_up_on_next_open(tmp_path):
+def test_an_interrupted_batch_is_cleaned_up_by_the_next_writer_only(tmp_path):
     s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()  # a writer mid-batch
     tmp = Path(s.root) / ".x.fetchsync-tmp-abcdef012345"
     tmp.write_bytes(b"half")
     (Path(s.meta) / "batch-in-progress").write_bytes(b"")
-    Store(str(tmp_path / "ws"), algorithm=ALG)
-    assert not tmp.exists()
+    other = Store(str(tmp_path / "ws"), algorithm=ALG)
+    assert tmp.exists()  # opening must not take a live batch's temporaries away
+    s.unlock()  # ... and it dies without cleaning up
+    other.lock()
+    assert not tmp.exists() and not (Path(s.meta) / "batch-in-progress").exists()
+    other.unlock()
 
 
 def test_drift_reports_edits_made_here_since_the_last_sync(store):

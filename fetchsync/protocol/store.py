@@ -162,8 +162,6 @@ class Store:
         self.synced = data["synced"]  # type: Dict[str, List[Any]]  # path -> [kind, mode, hash|target]
         self.cache = data["cache"]    # type: Dict[str, List[Any]]  # path -> [size, mtime, ctime, ino, hash]
         self.trash_log = data.get("trash", [])  # type: List[List[Any]]
-        if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
-            self._clean_temps()
 
     def discard_uploads(self) -> None:
         """Remove the upload parts this session started and never used (its client left)."""
@@ -225,6 +223,10 @@ class Store:
                     raise StoreError("another fetchsync is writing to %s" % self.workspace)
                 time.sleep(0.05)
         self._lock_fd = fd
+        if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
+            # left by a writer that died mid-batch (a live one would hold the
+            # lock): its temporaries are garbage now, and only now
+            self._clean_temps()
         if self._index_stamp() != self._loaded_stamp:
             self._load_index()  # someone else wrote since we loaded
 
