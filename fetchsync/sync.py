@@ -866,14 +866,18 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     local_root = os.path.join(local_workspace, "src")
     os.makedirs(local_root, exist_ok=True)
     local = scan_local(local_root, rules, synced, algorithm)
-    report.skipped = [{"path": p, "reason": r} for p, r in local.skipped + [tuple(x) for x in listing.get("skipped", [])]]
+    _report_skipped(local, report)
+    report.skipped += [{"path": p, "reason": r} for p, r in listing.get("skipped", [])]
 
     def expect(path: str) -> str:
         s = synced.get(path)
         return s.expectation() if s is not None else M.ABSENT
 
-    planned = plan(remote, local.items, expect,
-                   has_signature=lambda path, dst: dst.size >= SIG_MIN)
+    # a local path we could not read is left as it is, not replaced
+    guarded = local.guarded()
+    planned = [p for p in plan(remote, local.items, expect,
+                               has_signature=lambda path, dst: dst.size >= SIG_MIN)
+               if not guarded(p.op.path)]
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
@@ -918,6 +922,11 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
         if r is not None and r == item and path not in failed:
             upserts.append((path, _synced_from(item, final.stats.get(path), now_ns), None))
             adopted.append(item.to_wire())
+    for path, s in synced.items():
+        if guarded(path) and path not in final.items:
+            # untouched: what was last synced there still holds
+            upserts.append((path, s, None))
+            adopted.append(s.listed(path).to_wire())
     ad = conn.request({"op": "adopt", "entries": adopted}).header
     state.commit(upserts=upserts, replace_all=True,
                  meta={"epoch": ad["epoch"], "gen": str(ad["gen"]), "algorithm": algorithm})

@@ -15,6 +15,7 @@ replaced, or vanishes (treated as deleted).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -110,6 +111,79 @@ def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
     assert r["ok"] and r["conflicts"] == []
     assert tree_of(local) == tree_of(robot)
     assert leftovers(remote_dir) == []
+
+
+INCREMENTAL = """
+import json, os, sys
+from pathlib import Path
+from fetchsync import sync
+from fetchsync.connection import Connection
+from fetchsync.state import State
+from fetchsync.transport import LocalTransport
+base, src = sys.argv[1], sys.argv[1] + "/ws/src"
+conn = Connection.open(LocalTransport(Path(base) / "robot-home"))
+state = State(Path(base) / "state.sqlite")
+s = sync.Syncer(conn, state, local_root=src, remote_workspace="~/ws", rules=sync.build_rules())
+assert s.push().errors == []
+os.chmod(src + "/my_pkg/package.xml", 0)   # its owner may, without CAP_FOWNER
+os.chmod(src + "/my_pkg/src", 0)
+with open(src + "/my_pkg/CMakeLists.txt", "a") as fh:
+    fh.write("# edited\\n")
+r = s.push_paths({"my_pkg/package.xml", "my_pkg/CMakeLists.txt"}, {"my_pkg/src"})
+print(json.dumps({"errors": r.errors, "deleted": r.deleted, "files": r.files}))
+"""
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+def test_the_watch_agents_incremental_push_leaves_unreadable_paths_too(tmp_path):
+    make_workspace(tmp_path / "ws")
+    cmd = [sys.executable, "-c", INCREMENTAL, str(tmp_path)]
+    if os.geteuid() == 0:
+        cmd = [SETPRIV, "--bounding-set", "-dac_override,-dac_read_search", "--", *cmd]
+    proc = subprocess.run(cmd, check=False, capture_output=True, timeout=60)
+    try:
+        assert proc.returncode == 0, proc.stderr.decode()
+        r = json.loads(proc.stdout.decode().splitlines()[-1])
+        assert {e["path"] for e in r["errors"]} == {"my_pkg/package.xml", "my_pkg/src"}
+        assert (r["deleted"], r["files"]) == (0, 1)
+        robot = tmp_path / "robot-home/ws/src/my_pkg"
+        assert (robot / "package.xml").exists() and (robot / "src/node.cpp").exists()
+        assert (robot / "src").stat().st_mode & 0o777 == 0o755
+        assert (robot / "CMakeLists.txt").read_text().endswith("# edited\n")
+    finally:
+        (tmp_path / "ws/src/my_pkg/package.xml").chmod(0o644)
+        (tmp_path / "ws/src/my_pkg/src").chmod(0o755)
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+def test_pull_leaves_unreadable_local_paths_alone(tmp_path):
+    make_workspace(tmp_path / "ws")
+    e = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+             XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    local, robot = tmp_path / "ws/src/my_pkg", tmp_path / "robot-home/robot_ws/src/my_pkg"
+    assert report(run("push", "--json", env=e))["ok"]
+    (robot / "package.xml").write_text("edited on the robot\n")
+    (robot / "src/node.cpp").write_text("edited on the robot\n")
+    (local / "package.xml").chmod(0)
+    (local / "src").chmod(0)
+    try:
+        proc = run("pull", "--yes", "--json", env=e, unprivileged=True)
+        assert proc.returncode == 5 and b"Traceback" not in proc.stderr, proc.stderr.decode()
+        r = report(proc)
+        assert {x["path"] for x in r["errors"]} == {"my_pkg/package.xml", "my_pkg/src"}
+        assert r["files"] == 0 and r["conflicts"] == []
+    finally:
+        (local / "package.xml").chmod(0o644)
+        (local / "src").chmod(0o755)
+    assert (local / "package.xml").read_text() != "edited on the robot\n"
+    assert not (tmp_path / "ws/.fetchsync/conflicts").exists()
+    # readable again: the robot's edits come, replacing what was last synced (no conflict)
+    r = report(run("pull", "--yes", "--json", env=e))
+    assert r["ok"] and r["files"] == 2 and r["conflicts"] == []
+    assert (local / "src/node.cpp").read_text() == "edited on the robot\n"
 
 
 @pytest.mark.ssh
