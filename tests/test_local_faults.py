@@ -197,12 +197,12 @@ def test_a_big_file_that_keeps_changing_keeps_the_robots_version(env, remote_dir
     (local / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
     stop = threading.Event()
 
-    def writer() -> None:  # a recorder appending as it goes
-        with open(log, "ab") as fh:
+    def writer() -> None:  # a recorder appending as it goes (every attempt to send it
+        with open(log, "ab") as fh:  # takes far longer than a few of its writes)
             while not stop.is_set():
-                fh.write(os.urandom(512))
+                fh.write(os.urandom(256))
                 fh.flush()
-                time.sleep(0.002)
+                time.sleep(0.001)
 
     t = threading.Thread(target=writer, daemon=True)
     t.start()
