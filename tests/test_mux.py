@@ -86,3 +86,45 @@ def test_master_exits_when_idle(env):
     assert wait_for(lambda: bool(masters(runtime)), 10)
     assert wait_for(lambda: not masters(runtime), 15)
     assert not list((runtime / "fetchsync").glob("mux-*.sock"))
+
+
+def prewarmed_endpoints() -> list[int]:
+    """Robot endpoints (this machine's) holding an inotify instance: scanned ahead of need."""
+    out = subprocess.run(["pgrep", "-f", "fetchsync.protocol.server"], check=False,
+                         capture_output=True)
+    found = []
+    for pid in out.stdout.split():
+        try:
+            fds = os.listdir(f"/proc/{int(pid)}/fd")
+            if any(os.readlink(f"/proc/{int(pid)}/fd/{fd}") == "anon_inode:inotify" for fd in fds):
+                found.append(int(pid))
+        except OSError:
+            continue
+    return found
+
+
+def test_robot_changes_after_a_warm_endpoint_scanned_are_still_seen(env, remote_dir):
+    """A spare endpoint scans the workspace ahead of the next call and keeps that scan
+    current with inotify: what someone does on the robot meanwhile must not be missed."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    fetchsync("push", env=env)
+    assert wait_for(lambda: masters(runtime))
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
+    assert wait_for(lambda: len(prewarmed_endpoints()) >= 1)
+    time.sleep(0.5)  # its scan (of a few files) is done: what follows is only in its events
+    robot = remote_dir / "src"
+    (robot / "my_pkg/src/node.cpp").write_text("int main() { return 1; }  // fixed on the robot\n")
+    (robot / "my_pkg/launch/robot_only.launch").write_text("<launch/>\n")
+    (robot / "my_pkg/robot_dir/deep").mkdir(parents=True)
+    (robot / "my_pkg/robot_dir/deep/x.yaml").write_text("a: 1\n")
+    (robot / "my_pkg/package.xml").unlink()
+    (robot / "my_pkg/scripts/run.py").chmod(0o644)
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "master"
+    assert tree_of(local) == tree_of(robot)
+    kept = {c["path"] for c in r["conflicts"]}
+    assert {"my_pkg/src/node.cpp", "my_pkg/launch/robot_only.launch"} <= kept
+    # and the robot's version of the edited file is in .fetchsync/conflicts
+    copies = list((remote_dir / ".fetchsync" / "conflicts").rglob("node.cpp"))
+    assert copies and "fixed on the robot" in copies[0].read_text()

@@ -10,9 +10,12 @@ stream ends the endpoint.
 
 from __future__ import annotations
 
+import json
 import os
+import select
 import socket
 import sys
+import threading
 import traceback
 from typing import Any, BinaryIO, Dict, List, Optional, Tuple
 
@@ -22,6 +25,57 @@ from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import Store, StoreError
 
 MAX_WORKSPACE = 4096
+# A client that has not spoken this long after our hello is not waiting for us:
+# we are a connection master's spare endpoint, with time to prepare.
+PREWARM_AFTER = 0.2
+LAST_OPEN = "last-open.json"
+
+
+def _cache_dir() -> str:
+    """Where the loader caches the endpoint (and we remember the last workspace opened)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "fetchsync")
+
+
+def _open_key(h: Dict[str, Any], algorithm: str) -> str:
+    return json.dumps([h.get("workspace"), h.get("rules"), bool(h.get("create", True)), algorithm],
+                      sort_keys=True)
+
+
+class _Prewarm:
+    """The store of the workspace opened last, opened and watched ahead of the next client.
+
+    Only the scan is done ahead; what the client is told is computed when it
+    asks, from the scan as inotify kept it current since.
+    """
+
+    def __init__(self, spec: Dict[str, Any]) -> None:
+        self.key = spec["key"]
+        self.spec = spec
+        self.store = None  # type: Optional[Store]
+        self.thread = threading.Thread(target=self._run, name="prewarm", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        from fetchsync.protocol.ignore import IgnoreRules
+        try:
+            rules = self.spec["rules"]
+            store = Store(self.spec["workspace"], algorithm=self.spec["algorithm"],
+                          rules=IgnoreRules.from_wire(rules) if rules is not None else None,
+                          create=False)
+            if store.watch():
+                self.store = store
+        except Exception:  # an optimisation only: the client's open starts afresh
+            self.store = None
+
+    def take(self, key: str) -> Optional[Store]:
+        self.thread.join()
+        store, self.store = self.store, None
+        if store is not None and key != self.key:
+            if store.watched is not None:
+                store.watched.close()
+            return None
+        return store
 
 
 def expand_workspace(spec: str) -> str:
@@ -46,6 +100,7 @@ class Server:
         self.store = None  # type: Optional[Store]
         self.compress = False
         self.algorithm = ""
+        self.prewarm = None  # type: Optional[_Prewarm]
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
@@ -74,6 +129,7 @@ class Server:
     def _serve(self) -> None:
         self.out.write(wire.encode_hello(self.hello()))
         self.out.flush()
+        self._maybe_prewarm()
         client = self.reader.read_hello()
         self.algorithm = client.get("algorithm", "")
         if self.algorithm not in hashing.available():
@@ -88,6 +144,45 @@ class Server:
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
+
+    def _maybe_prewarm(self) -> None:
+        """While no client talks to us, open and watch the workspace opened last."""
+        try:
+            ready, _, _ = select.select([self.inp.fileno()], [], [], PREWARM_AFTER)
+        except (OSError, ValueError, AttributeError):
+            return
+        if ready:
+            return
+        try:
+            with open(os.path.join(_cache_dir(), LAST_OPEN), "r", encoding="utf-8") as fh:
+                spec = json.load(fh)
+            if not (isinstance(spec, dict) and isinstance(spec.get("workspace"), str)
+                    and isinstance(spec.get("key"), str)
+                    and spec.get("algorithm") in hashing.available()):
+                return
+        except (OSError, ValueError):
+            return
+        self.prewarm = _Prewarm(spec)
+
+    def _remember_open(self, key: str, workspace: str, h: Dict[str, Any]) -> None:
+        path = os.path.join(_cache_dir(), LAST_OPEN)
+        spec = {"key": key, "workspace": workspace, "rules": h.get("rules"),
+                "algorithm": self.algorithm}
+        text = json.dumps(spec, sort_keys=True)
+        try:
+            with open(path, "r", encoding="utf-8") as fh:
+                if fh.read() == text:
+                    return
+        except (OSError, ValueError):
+            pass
+        try:
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            tmp = "%s.%d.tmp" % (path, os.getpid())
+            with open(tmp, "w", encoding="utf-8") as fh:
+                fh.write(text)
+            os.replace(tmp, path)
+        except OSError:
+            pass  # an optimisation only
 
     def dispatch(self, frame: wire.Frame) -> wire.Frame:
         op = frame.header.get("op")
@@ -120,10 +215,19 @@ class Server:
     def do_open(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         from fetchsync.protocol.ignore import IgnoreRules
         workspace = expand_workspace(h.get("workspace", ""))
-        rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
-        self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
-                           create=bool(h.get("create", True)))
+        key = _open_key(h, self.algorithm)
+        warm = self.prewarm.take(key) if self.prewarm is not None else None
+        self.prewarm = None
+        if self.store is not None and self.store.watched is not None:
+            self.store.watched.close()
+        if warm is not None and warm.workspace == workspace:
+            self.store = warm
+        else:
+            rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
+            self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
+                               create=bool(h.get("create", True)))
         store = self._store()
+        self._remember_open(key, workspace, h)
         store.save_index()
         return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen}, b""
 

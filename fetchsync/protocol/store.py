@@ -124,6 +124,7 @@ class Store:
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: set
+        self.watched = None  # type: Any  # a WatchedTree, see watch()
         self._load_index()
 
     # ------------------------------------------------------------------ index
@@ -305,11 +306,11 @@ class Store:
         This runs on every push, so unchanged entries cost a stat comparison
         against the cache and nothing more.
         """
-        result = scan(self.root, self.rules, is_temp=is_temp)
+        entries = self._current_entries()
         racy_before = time.time_ns() - 2_000_000_000
         synced, cache = self.synced, self.cache
         changed = []
-        for path, e in result.entries.items():
+        for path, e in entries.items():
             rec = synced.get(path)
             if e.kind == FILE:
                 c = cache.get(path)
@@ -332,9 +333,26 @@ class Store:
                 if rec is not None and rec[0] == DIR and rec[1] == e.mode:
                     continue
                 changed.append(M.Listed(path, DIR, e.mode))
-        entries = result.entries
         gone = [p for p in synced if p not in entries]
         return changed, gone
+
+    def watch(self) -> bool:
+        """Scan now and keep the scan current with inotify, for a later :meth:`drift`."""
+        from fetchsync.protocol.watched import Unavailable, WatchedTree
+        try:
+            self.watched = WatchedTree(self.root, self.rules, is_temp)
+        except (Unavailable, OSError):
+            return False
+        return True
+
+    def _current_entries(self) -> Dict[str, Entry]:
+        tree = self.watched
+        if tree is not None:
+            if tree.refresh():
+                return tree.entries
+            tree.close()
+            self.watched = None
+        return scan(self.root, self.rules, is_temp=is_temp).entries
 
     @staticmethod
     def _matches(item: M.Listed, rec: List[Any]) -> bool:

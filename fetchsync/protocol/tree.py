@@ -67,13 +67,16 @@ class ScanResult(NamedTuple):
 
 
 def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
-         start: str = "") -> ScanResult:
+         start: str = "", on_dir: Optional[Callable[[str, str], None]] = None,
+         rules_out: Optional[Dict[str, object]] = None) -> ScanResult:
     """Stat every entry under ``root`` (not following symlinks), honouring ``rules``.
 
     ``rules`` is an ``IgnoreRules`` (or None); ``.fetchsyncignore`` files met on
     the way extend it for their subtree. Returns a flat map of wire paths.
     ``start`` (a wire path of a directory under ``root``) scans only below it,
-    with the ignore files of its ancestors applied.
+    with the ignore files of its ancestors applied. ``on_dir(full, rel)`` is
+    called for each directory before it is listed (to watch it), and
+    ``rules_out`` receives the rules in force below each listed directory.
     """
     entries = {}  # type: Dict[str, Entry]
     skipped = []  # type: List[Tuple[str, str]]
@@ -92,6 +95,8 @@ def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = No
         rel, dir_rules = stack.pop()
         full = os.path.join(root, rel) if rel else root
         try:
+            if on_dir is not None:
+                on_dir(full, rel)
             it = os.scandir(full)
         except OSError as exc:
             if rel:
@@ -111,6 +116,8 @@ def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = No
                         skipped.append((rel + "/" + IGNORE_FILE if rel else IGNORE_FILE,
                                         "cannot read: %s" % exc.strerror))
                     break
+        if rules_out is not None:
+            rules_out[rel] = dir_rules
         for de in items:
             name = de.name
             if is_temp is not None and is_temp(name):
