@@ -330,6 +330,7 @@ def test_no_python3_on_the_robot(no_python_robot, sshd, password_user, tmp_path)
     env["FETCHSYNC_USER"] = password_user[0]
     line = one_line(cli("push", env=env), CONNECT_EXIT)
     assert "python3 was not found on robot" in line and ">= 3.8" in line
+    assert "install it (sudo apt install python3)" in line
     # run needs no python3 on the robot (it only loses the reaper)
     ran = cli("run", "echo", "ran", env=env)
     assert ran.returncode == 0 and ran.stdout == b"ran\n", ran
@@ -357,6 +358,7 @@ def test_remote_workspace_not_writable(env, remote_dir) -> None:
     try:
         line = one_line(cli("push", env=env), 4)  # fetchsync.errors.RemoteError
         assert str(remote_dir) in line and "Operation not permitted" in line
+        assert "not writable" in line and f"check the permissions of {remote_dir} on the robot" in line
     finally:
         subprocess.run(["chattr", "-i", str(remote_dir)], check=True)
     assert not (remote_dir / "src").exists()

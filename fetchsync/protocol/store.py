@@ -119,7 +119,13 @@ class Store:
                 raise StoreError("%s is not a directory (a symlink?)" % self.root)
             os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
         except OSError as exc:
-            raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc))
+            if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+                where = exc.filename or self.root
+                raise StoreError("the remote workspace is not writable: cannot create %s: %s; "
+                                 "check the permissions of %s on the robot, or pass another "
+                                 "--remote-workspace"
+                                 % (where, exc.strerror, os.path.dirname(where))) from None
+            raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc)) from None
         self._lock_fd = -1
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
