@@ -1,24 +1,31 @@
 #!/usr/bin/env python3
 """What durability costs a push: the robot's syncfs calls, as a share of the push.
 
-    python3 bench/durability.py [--files 7000 --size-mb 150] [--quick] [--json out.json]
+    python3 bench/durability.py [--files 7000 --size-mb 150] [--quick] [--strace] [--json out.json]
 
 Per batch the robot-side endpoint writes the temporaries, calls ``syncfs`` on
 the workspace's filesystem, renames them into place and calls ``syncfs``
 again before it replies (``fetchsync/protocol/store.py``, ``_Batch.commit``).
-This measures what those calls cost, two ways, on the built-in ``local``
-robot (the real endpoint as a local subprocess: no SSH time in the push, so
-the share is an upper bound of what a push over a network sees):
+This measures what those calls cost on the built-in ``local`` robot (the real
+endpoint as a local subprocess: no SSH time in the push, so the share is an
+upper bound of what a push over a network sees). Two LD_PRELOAD shims,
+compiled here with gcc, stand in for libc's ``syncfs`` in the endpoint
+(which calls it through ctypes):
 
-- **in syncfs**: the endpoint runs under ``strace -f -T --seccomp-bpf -e
-  trace=syncfs,fsync,fdatasync,sync`` (only those calls stop the process, so
-  the trace costs next to nothing); the time spent inside them is summed and
-  divided by that push's wall time.
-- **A/B**: the same push with ``syncfs`` made a no-op by an ``LD_PRELOAD``
-  shim (compiled here with gcc); the difference of the medians is what a user
-  waits for durability. It can be smaller than the time in syncfs: without
-  it the kernel writes the data back anyway, later, and part of a flush
-  overlaps other work.
+- **timed**: calls the real ``syncfs`` and appends how long it took to a log
+  (``CLOCK_MONOTONIC`` around the call; no ptrace, so the rest of the push
+  runs at full speed). The sum over a push, divided by that push's wall
+  time, is the share.
+- **no-op**: returns 0 at once. The difference of the medians (timed minus
+  no-op) is what a user waits for durability, all effects included; it is
+  noisy on a shared machine, and can be smaller than the time in syncfs
+  (without it the kernel writes the data back anyway, later, partly
+  overlapping other work).
+- ``--strace`` adds a cross-check at the syscall level: the endpoint under
+  ``strace -f -T --seccomp-bpf -e trace=syncfs,fsync,fdatasync,sync``, the
+  time inside those calls summed. Its wall times are not used: the endpoint's
+  writer threads run many times slower under strace -f here (a 4-thread
+  Python loop of stat() calls: 1.6 s alone, 67 s traced).
 
 Scenarios: an **initial** push of the generated workspace
 (``bench/workspace.py``, 7,000 files / 150 MiB by default) into an empty
@@ -63,8 +70,43 @@ for _p in (str(BENCH), str(REPO / "tests")):
 from run import Edits, _workdir, differences, snapshot
 from workspace import Workspace, generate
 
-VARIANTS = ("syncfs", "traced", "no-op")
-SHIM_C = "int syncfs(int fd) { (void)fd; return 0; }\n"
+VARIANTS = ("timed", "no-op")
+NOOP_C = "int syncfs(int fd) { (void)fd; return 0; }\n"
+TIMED_C = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <fcntl.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include <unistd.h>
+
+/* the real syncfs, timed; each duration (seconds) appended to $FETCHSYNC_SYNCFS_LOG */
+int syncfs(int fd)
+{
+    static int (*real)(int);
+    struct timespec a, b;
+    if (!real)
+        real = (int (*)(int))dlsym(RTLD_NEXT, "syncfs");
+    clock_gettime(CLOCK_MONOTONIC, &a);
+    int r = real(fd);
+    clock_gettime(CLOCK_MONOTONIC, &b);
+    const char *log = getenv("FETCHSYNC_SYNCFS_LOG");
+    if (log) {
+        char line[64];
+        int n = snprintf(line, sizeof line, "%.6f\n",
+                         (double)(b.tv_sec - a.tv_sec) + (double)(b.tv_nsec - a.tv_nsec) / 1e9);
+        int out = open(log, O_WRONLY | O_APPEND | O_CREAT, 0644);
+        if (out >= 0) {
+            if (write(out, line, (size_t)n) < 0) {
+                /* a lost sample, not a failed syncfs */
+            }
+            close(out);
+        }
+    }
+    return r;
+}
+"""
 SYNC_CALLS = "syncfs,fsync,fdatasync,sync"
 _DURATION = re.compile(r"^\d+\s+[\d.]+\s+(?:(syncfs|fsync|fdatasync|sync)\(.*|<\.\.\. (\w+) resumed>.*)"
                        r"= 0 <([\d.]+)>$")
@@ -77,7 +119,7 @@ class Sample:
     variant: str
     rep: int
     wall: float
-    in_sync: float | None = None  # seconds inside sync calls (traced variant)
+    in_sync: float | None = None  # seconds inside sync calls (timed and traced variants)
     sync_calls: int | None = None
     files: int = 0
 
@@ -127,10 +169,12 @@ def loop_disk(workdir: Path, size_mb: int) -> Iterator[Path]:
 
 
 class Runner:
-    def __init__(self, *, workdir: Path, ws: Workspace, shim: Path, log: Any) -> None:
+    def __init__(self, *, workdir: Path, ws: Workspace, shims: dict[str, Path], strace: bool,
+                 log: Any) -> None:
         self.workdir = workdir
         self.ws = ws
-        self.shim = shim
+        self.shims = shims
+        self.variants = VARIANTS + (("traced",) if strace else ())
         self.log = log
         self.edits = Edits(ws)
         self.revision = 0
@@ -148,8 +192,9 @@ class Runner:
             strace = shutil.which("strace")
             env["FETCHSYNC_REMOTE_PYTHON"] = (f"{strace} -f -ttt -T --seccomp-bpf -e trace={SYNC_CALLS} "
                                               f"-o {trace} python3")
-        elif variant == "no-op":
-            env["FETCHSYNC_REMOTE_PYTHON"] = f"env LD_PRELOAD={self.shim} python3"
+        else:
+            env["FETCHSYNC_REMOTE_PYTHON"] = f"env LD_PRELOAD={self.shims[variant]} python3"
+            env["FETCHSYNC_SYNCFS_LOG"] = str(trace)
         return env
 
     def push(self, disk: str, home: Path, scenario: str, variant: str, rep: int) -> None:
@@ -169,6 +214,9 @@ class Runner:
         s = Sample(disk, scenario, variant, rep, wall, files=report.get("files", 0))
         if variant == "traced":
             s.in_sync, s.sync_calls = sync_time(trace)
+        elif variant == "timed":
+            times = [float(x) for x in trace.read_text().split()] if trace.exists() else []
+            s.in_sync, s.sync_calls = sum(times), len(times)
         self.samples.append(s)
         diffs = differences(snapshot(self.ws.src), snapshot(home / "robot_ws" / "src"))
         if diffs:
@@ -176,54 +224,79 @@ class Runner:
         self.log(f"  {disk} {scenario:8} {variant:7} rep {rep}: {wall:.3f} s"
                  + (f", {s.in_sync:.3f} s in {s.sync_calls} sync calls" if s.in_sync is not None else ""))
 
+    def order(self, rep: int) -> tuple[str, ...]:
+        k = rep % len(self.variants)
+        return self.variants[k:] + self.variants[:k]
+
     def run(self, disk: str, home: Path, *, reps_initial: int, reps: int) -> None:
         for rep in range(reps_initial):
-            for variant in VARIANTS[rep % 3:] + VARIANTS[:rep % 3]:
+            for variant in self.order(rep):
                 shutil.rmtree(home / "robot_ws", ignore_errors=True)
                 shutil.rmtree(self.workdir / "state" / home.name, ignore_errors=True)
                 self.push(disk, home, "initial", variant, rep)
         for rep in range(reps):
-            for variant in VARIANTS[rep % 3:] + VARIANTS[:rep % 3]:
+            for variant in self.order(rep):
                 self.revision += 1
                 self.edits.one_edit(self.revision)
                 self.push(disk, home, "one edit", variant, rep)
+
+
+def _med(xs: list[float]) -> tuple[float, float, float]:
+    return statistics.median(xs), min(xs), max(xs)
 
 
 def summarise(samples: list[Sample]) -> list[dict[str, Any]]:
     rows = []
     keys = list(dict.fromkeys((s.disk, s.scenario) for s in samples))  # in the order measured
     for disk, scenario in keys:
-        real, traced, noop = ([s for s in samples if (s.disk, s.scenario, s.variant) == (disk, scenario, v)]
-                              for v in VARIANTS)
-        if not (real and traced and noop):
+        def pick(variant: str, disk: str = disk, scenario: str = scenario) -> list[Sample]:
+            return [s for s in samples if (s.disk, s.scenario, s.variant) == (disk, scenario, variant)]
+
+        timed, noop, traced = pick("timed"), pick("no-op"), pick("traced")
+        if not (timed and noop):
             continue
-        wall = statistics.median(s.wall for s in real)
-        wall_noop = statistics.median(s.wall for s in noop)
-        in_sync = statistics.median(s.in_sync or 0.0 for s in traced)
-        share = statistics.median((s.in_sync or 0.0) / s.wall for s in traced)
-        rows.append({
-            "disk": disk, "scenario": scenario, "runs": len(real), "files": real[0].files,
-            "wall": wall, "wall_range": (min(s.wall for s in real), max(s.wall for s in real)),
-            "wall_noop": wall_noop, "difference": wall - wall_noop,
-            "in_sync": in_sync, "sync_calls": traced[0].sync_calls, "share": share,
-            "wall_traced": statistics.median(s.wall for s in traced),
-        })
+        wall, noop_wall = _med([s.wall for s in timed]), _med([s.wall for s in noop])
+        row: dict[str, Any] = {
+            "disk": disk, "scenario": scenario, "runs": len(timed), "files": timed[0].files,
+            "wall": wall, "wall_noop": noop_wall, "difference": wall[0] - noop_wall[0],
+            "in_sync": _med([s.in_sync or 0.0 for s in timed]),
+            "sync_calls": timed[0].sync_calls,
+            # each push's own share, then the median over the pushes
+            "share": _med([(s.in_sync or 0.0) / s.wall for s in timed]),
+        }
+        if traced:
+            row["in_sync_strace"] = _med([s.in_sync or 0.0 for s in traced])
+        rows.append(row)
     return rows
 
 
+def _ms(x: tuple[float, float, float]) -> str:
+    return f"{x[0] * 1000:.0f} ms ({x[1] * 1000:.0f}–{x[2] * 1000:.0f})"
+
+
+def _s(x: tuple[float, float, float]) -> str:
+    return f"{x[0]:.2f} s ({x[1]:.2f}–{x[2]:.2f})"
+
+
 def render(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
+    strace = any("in_sync_strace" in r for r in rows)
     out = [f"Machine: {info['machine']}", "", f"Workspace: {info['workspace']}", "",
-           ("| robot disk | push | wall, syncfs as is | wall, syncfs a no-op | difference | "
-            "in sync calls (strace -T) | calls | share of the push |"),
-           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+           "| robot disk | push | wall | in syncfs | calls | share of the push | wall, syncfs a no-op "
+           "| difference |" + (" in syncfs, strace -T |" if strace else ""),
+           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |" + (" ---: |" if strace else "")]
     for r in rows:
-        lo, hi = r["wall_range"]
-        out.append(
-            f"| {r['disk']} | {r['scenario']} ({r['files']} file{'s' if r['files'] != 1 else ''}) | {r['wall']:.3f} s ({lo:.2f}–{hi:.2f}) "
-            f"| {r['wall_noop']:.3f} s | {r['difference'] * 1000:+.0f} ms ({r['difference'] / r['wall']:.1%}) "
-            f"| {r['in_sync'] * 1000:.0f} ms | {r['sync_calls']} | {r['share']:.1%} |")
-    out += ["", ("medians; wall = the whole `fetchsync push` process; share = time in sync calls / wall "
-                 "time of the same (traced) push; difference = wall with syncfs minus wall with it a no-op.")]
+        share = r["share"]
+        line = (f"| {r['disk']} | {r['scenario']} ({r['files']} file{'s' if r['files'] != 1 else ''}) "
+                f"| {_s(r['wall'])} | {_ms(r['in_sync'])} | {r['sync_calls']} "
+                f"| {share[0]:.1%} ({share[1]:.1%}–{share[2]:.1%}) | {_s(r['wall_noop'])} "
+                f"| {r['difference'] * 1000:+.0f} ms |")
+        if strace:
+            line += f" {_ms(r['in_sync_strace'])} |" if "in_sync_strace" in r else " — |"
+        out.append(line)
+    out += ["", ("Medians (min–max) over the pushes. wall: the whole `fetchsync push` process, "
+                 "the endpoint's syncfs timed by the LD_PRELOAD shim; in syncfs: the time inside its "
+                 "calls in that push; share: in syncfs / wall of the same push; wall, syncfs a no-op: "
+                 "the same push with the no-op shim; difference: the two medians' difference.")]
     return "\n".join(out)
 
 
@@ -253,10 +326,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--disk", default="same,loop",
                     help="robot home: same (the work dir's disk), loop (an ext4 loop device; root), "
                          "comma-separated (default: same,loop; loop is skipped when not root)")
+    ap.add_argument("--strace", action="store_true",
+                    help="also time the syncfs calls with strace -T (a cross-check; slow)")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 300 files, 5 MiB, few repetitions")
     ap.add_argument("--json", help="also write every sample here")
     ap.add_argument("--workdir", help="keep everything here (default: a temporary directory)")
+    ap.add_argument("--report", metavar="JSON", help="print the tables of an earlier --json run and exit")
     args = ap.parse_args(argv)
+    if args.report:
+        saved = json.loads(Path(args.report).read_text())
+        print(render(summarise([Sample(**s) for s in saved["samples"]]), saved["info"]))
+        return 0
     files = args.files or (300 if args.quick else 7000)
     size_mb = args.size_mb or (5 if args.quick else 150)
     reps = args.reps or (2 if args.quick else 5)
@@ -267,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
     if "loop" in disks and os.geteuid() != 0:
         print("durability: not root, so no loop device: --disk loop skipped", file=sys.stderr)
         disks.remove("loop")
-    for tool in ("strace", "gcc"):
+    for tool in ("gcc",) + (("strace",) if args.strace else ()):
         if shutil.which(tool) is None:
             print(f"durability: needs {tool} (apt install {tool})", file=sys.stderr)
             return 2
@@ -276,13 +356,16 @@ def main(argv: list[str] | None = None) -> int:
         print(msg, file=sys.stderr, flush=True)
 
     with _workdir(args.workdir, keep=bool(args.workdir)) as workdir:
-        shim = workdir / "nosyncfs.so"
-        (workdir / "nosyncfs.c").write_text(SHIM_C)
-        subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(shim), str(workdir / "nosyncfs.c")],
-                       check=True)
+        shims = {}
+        for variant, code in (("timed", TIMED_C), ("no-op", NOOP_C)):
+            c_file = workdir / f"syncfs-{variant}.c"
+            c_file.write_text(code)
+            shims[variant] = c_file.with_suffix(".so")
+            subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-Wall", "-o", str(shims[variant]),
+                            str(c_file), "-ldl"], check=True)
         log(f"generating {files} files, {size_mb} MiB ...")
         ws = generate(workdir / "laptop", files=files, size_mb=size_mb)
-        runner = Runner(workdir=workdir, ws=ws, shim=shim, log=log)
+        runner = Runner(workdir=workdir, ws=ws, shims=shims, strace=args.strace, log=log)
         fs = {}
         for disk in disks:
             if disk == "same":
