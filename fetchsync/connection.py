@@ -11,11 +11,11 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from typing import Any
+from typing import Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
 from fetchsync.protocol import hashing, wire
-from fetchsync.protocol.loader import NEED, loader_command
+from fetchsync.protocol.loader import NEED, loader_spec
 from fetchsync.transport import Channel, Transport
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ class Connection:
     @classmethod
     def open(cls, transport: Transport, *, python: str | None = None) -> Connection:
         python = python or remote_python()
-        command, archive = loader_command(python)
+        command, archive = loader_spec(python)
         channel = transport.exec(command)
         reader = wire.Reader(channel.recv)
         sent = 0
@@ -113,7 +113,7 @@ class Connection:
         return conn
 
     @staticmethod
-    def _deliver(channel: Channel, reader: wire.Reader, archive: bytes) -> int:
+    def _deliver(channel: Channel, reader: wire.Reader, archive: Callable[[], bytes]) -> int:
         """Send the endpoint if the loader says NEED; stop at the hello's magic."""
         buf = reader._buf
         while True:
@@ -123,8 +123,9 @@ class Connection:
                 return 0
             if need_at >= 0:
                 del buf[:need_at + len(NEED)]
-                channel.send_all(archive)
-                return len(archive)
+                data = archive()
+                channel.send_all(data)
+                return len(data)
             if len(buf) > wire.MAX_NOISE:
                 raise ProtocolError("the robot printed too much before the endpoint started")
             if not reader._fill(len(buf) + 1):

@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
 from fetchsync.errors import ConfigError
-from fetchsync.protocol.loader import loader_command
+from fetchsync.protocol.loader import loader_spec
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 
@@ -86,7 +86,7 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":
         # this call paid for the handshake; leave a master behind for the next ones
-        mux.spawn_master(target.host, target.user, path, warm=loader_command(remote_python())[0])
+        mux.spawn_master(target.host, target.user, path, warm=loader_spec(remote_python())[0])
     return transport
 
 

@@ -1,0 +1,57 @@
+"""The endpoint's command line comes from a local note; the archive is built only on NEED."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from fetchsync.protocol import loader
+from fetchsync.protocol.errors import ProtocolError
+
+
+@pytest.fixture(autouse=True)
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(loader, "_cache", None)
+    return tmp_path / "fetchsync"
+
+
+def test_the_note_gives_the_archive_digest_without_building_it(cache, monkeypatch):
+    data, digest = loader.endpoint_archive()
+    assert hashlib.sha256(data).hexdigest() == digest
+    monkeypatch.setattr(loader, "_cache", None)
+    assert loader.endpoint_digest() == (digest, len(data))  # builds once, writes the note
+    assert len(list(cache.glob("endpoint-*.note"))) == 1
+
+    def no_build():
+        raise AssertionError("the archive was built although the note has its digest")
+
+    monkeypatch.setattr(loader, "_cache", None)
+    monkeypatch.setattr(loader, "endpoint_archive", no_build)
+    cmd, _archive = loader.loader_spec("python3")
+    assert f" {digest} {len(data)}" in cmd
+
+
+def test_a_changed_source_gets_a_new_note(cache, monkeypatch):
+    loader.endpoint_digest()
+    monkeypatch.setattr(loader, "_cache", None)
+    monkeypatch.setattr(loader, "_sources_stamp", lambda here: "0" * 32)
+    loader.endpoint_digest()
+    assert len(list(cache.glob("endpoint-*.note"))) == 2
+
+
+def test_a_wrong_note_is_refused_on_need_and_removed(cache, monkeypatch):
+    _data, digest = loader.endpoint_archive()
+    monkeypatch.setattr(loader, "_cache", None)
+    loader.endpoint_digest()
+    [note] = cache.glob("endpoint-*.note")
+    note.write_text("f" * 64 + " 1234\n")
+    monkeypatch.setattr(loader, "_cache", None)
+    cmd, archive = loader.loader_spec("python3")
+    assert "f" * 64 in cmd
+    with pytest.raises(ProtocolError, match="run the command again"):
+        archive()
+    assert not note.exists()
+    monkeypatch.setattr(loader, "_cache", None)
+    assert loader.endpoint_digest()[0] == digest
