@@ -479,6 +479,10 @@ class Syncer:
         self._robot_sigs: dict[str, bytes] = {}
         self._synced: dict[str, Synced] | None = None  # the state's entries, kept between calls
         self._signed: set[str] | None = None  # paths whose state entry holds a signature
+        # upload parts this session abandoned (id -> how far they reach): a later upload
+        # at least as long overwrites one instead of leaving it on the robot until the
+        # session ends (the watch agent's sessions last hours)
+        self._spare_uploads: dict[str, int] = {}
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -755,41 +759,48 @@ class Syncer:
         is sent only if the file did not change while read (nor was replaced), so the
         robot never holds half of one version and half of another. A file that changed
         is read and uploaded again, up to READ_TRIES times; the pieces of an attempt
-        overwrite the last one's in the same upload. Raises OSError as :func:`read_stable`.
+        overwrite the last one's in the same upload, and a part left by a file that kept
+        changing or vanished is reused by a later upload of this session (see
+        ``_spare_uploads``). Raises OSError as :func:`read_stable`.
         """
-        upload = os.urandom(8).hex()
-        uploaded = 0   # how far the robot's upload part may reach already
-        for attempt in range(READ_TRIES):
-            _pause(attempt)
-            if read_hook is not None:
-                read_hook(full, "open")
-            fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-            try:
-                before = os.fstat(fd)
-                if before.st_size < uploaded:
-                    # an older attempt's tail would stay past the end: start a new upload
-                    # (the robot drops the unused one when this session ends)
-                    upload, uploaded = os.urandom(8).hex(), 0
-                h = hashing.new(self.algorithm)
-                offset = 0
-                while offset < before.st_size:
-                    piece = os.read(fd, min(PIECE, before.st_size - offset))
-                    if not piece:
-                        break
-                    if read_hook is not None:
-                        read_hook(full, "read")
-                    if not _same_file(before, os.fstat(fd)):
-                        break  # changed under us: stop sending this attempt now
-                    h.update(piece)
-                    batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
-                    offset += len(piece)
-                    uploaded = max(uploaded, offset)
-                after = os.fstat(fd)
-            finally:
-                os.close(fd)
-            if offset == after.st_size and _same_file(before, after) and _still_there(full, after):
-                break
-        else:
+        upload, uploaded = "", 0   # the upload part, and how far it may reach on the robot
+        done = False
+        try:
+            for attempt in range(READ_TRIES):
+                _pause(attempt)
+                if read_hook is not None:
+                    read_hook(full, "open")
+                fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+                try:
+                    before = os.fstat(fd)
+                    if not upload or before.st_size < uploaded:
+                        # a longer part's tail would stay past the end: use another one
+                        self._spare(upload, uploaded)
+                        upload, uploaded = self._take_upload(before.st_size)
+                    h = hashing.new(self.algorithm)
+                    offset = 0
+                    while offset < before.st_size:
+                        piece = os.read(fd, min(PIECE, before.st_size - offset))
+                        if not piece:
+                            break
+                        if read_hook is not None:
+                            read_hook(full, "read")
+                        if not _same_file(before, os.fstat(fd)):
+                            break  # changed under us: stop sending this attempt now
+                        h.update(piece)
+                        batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
+                        offset += len(piece)
+                        uploaded = max(uploaded, offset)
+                    after = os.fstat(fd)
+                finally:
+                    os.close(fd)
+                if offset == after.st_size and _same_file(before, after) and _still_there(full, after):
+                    done = True
+                    break
+        finally:
+            if not done:
+                self._spare(upload, uploaded)
+        if not done:
             raise OSError(errno.EBUSY, f"it kept changing while it was read ({READ_TRIES} tries); "
                           "the robot keeps its previous version", full)
         op = M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": "",
@@ -800,6 +811,18 @@ class Syncer:
         if entry is not None:
             local.stats[op.path] = entry
         batcher.add(op, tag=(Planned(op, WHOLE, item), None))
+
+    def _take_upload(self, size: int) -> tuple[str, int]:
+        """An upload id for ``size`` bytes: an abandoned part no longer than that, else a new one."""
+        for upload, extent in self._spare_uploads.items():
+            if extent <= size:
+                del self._spare_uploads[upload]
+                return upload, extent
+        return os.urandom(8).hex(), 0
+
+    def _spare(self, upload: str, extent: int) -> None:
+        if upload and extent:
+            self._spare_uploads[upload] = extent
 
     def _settle(self, tag: Any, res: M.Result, remote: dict[str, M.Listed], new_synced: dict[str, Synced],
                 upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str], whole_only: set[str],
