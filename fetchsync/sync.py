@@ -41,7 +41,7 @@ BATCH_OPS = 4000
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
 READ_TRIES = 5                 # reads of a file that changes while read, before giving up on it
-VANISHED = "vanished while pushing; treated as deleted"
+VANISHED = "vanished while it was being read; treated as deleted"
 
 # A test seam: when set, called as ``read_hook(full_path, event)`` where a push
 # reads a local file, with event "open" (about to open it) or "read" (a chunk
