@@ -201,7 +201,12 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         if not src.is_dir():
             raise SyncError(f"{src} does not exist; nothing to push",
                             hint="check --workspace, or pass --force to empty the robot's src/")
-        if not any(os.scandir(src)):
+        try:
+            empty = not any(os.scandir(src))
+        except OSError as exc:
+            raise SyncError(f"cannot list {src}: {exc.strerror or exc}",
+                            hint="check its permissions") from None
+        if empty:
             raise SyncError(f"{src} is empty; pushing it would empty the robot's src/",
                             hint="pass --force if that is what you want")
     else:

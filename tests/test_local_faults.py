@@ -381,3 +381,22 @@ def test_a_new_file_that_vanishes_leaves_nothing(robot, monkeypatch):
     assert r.errors == [] and r.deleted == 0 and r.files == 0
     assert not (ws / "src/my_pkg/fresh.txt").exists()
     assert tree_of(src) == tree_of(ws / "src")
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+def test_an_unreadable_src_itself_is_one_line(tmp_path):
+    make_workspace(tmp_path / "ws")
+    e = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+             XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    (tmp_path / "ws/src").chmod(0)
+    try:
+        proc = run("push", env=e, unprivileged=True)
+    finally:
+        (tmp_path / "ws/src").chmod(0o755)
+    lines = proc.stderr.decode().strip().splitlines()
+    assert proc.returncode == 5 and len(lines) == 1, proc.stderr.decode()
+    assert "cannot list" in lines[0] and "Permission denied" in lines[0]
+    assert not (tmp_path / "robot-home/robot_ws/src/my_pkg").exists()
