@@ -86,7 +86,11 @@ class Agent:
         self.src = str(target.workspace / "src")
         self.stop_event = threading.Event()
         self.cond = threading.Condition()
-        self.pending = Pending(full=True)  # the first sync checks everything
+        # The first sync checks everything; it is the watcher's first batch (a
+        # rescan, due once every watch is in place), not a request of its own:
+        # a full push started before the watches would have to be repeated
+        # after them, and on a large tree each one costs seconds.
+        self.pending = Pending()
         self.next_seq = 1
         self.done_seq = 0       # every request up to this one is on the robot
         self.failed: list[tuple[int, int, str]] = []  # (first, last request, why) of failed pushes
@@ -239,6 +243,14 @@ class Agent:
 
     def _sync_loop(self) -> None:
         backoff = BACKOFF_FIRST
+        # connect while the watcher puts its watches in place, so the first
+        # sync finds the link up; a failure here is the first sync's to retry
+        try:
+            self._ensure_connected()
+        except (TransportError, ProtocolError, EOFError, OSError) as exc:
+            self._went_offline(None, exc)
+        except FetchsyncError:
+            pass  # not the link (a configuration problem): the first sync reports it
         while not self.stop_event.is_set():
             with self.cond:
                 while self.pending.empty() and not self.stop_event.is_set():
