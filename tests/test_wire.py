@@ -104,3 +104,16 @@ def test_a_bad_header_fails_before_its_body_is_awaited(ftype, flags):
 
     with pytest.raises(ProtocolError):
         wire.Reader(recv).read_frame()
+
+
+def test_pack_sends_barely_compressible_data_raw():
+    import os
+    import zlib
+
+    # ~10% compressible (a mesh's float noise): zlib would cost more time than it saves
+    data = b"".join(os.urandom(90) + b"\0" * 10 for _ in range(2000))
+    assert 0.85 < len(zlib.compress(data, 1)) / len(data) < 0.95
+    assert wire.pack(data) == (data, False)
+    text = b"int x = 1;\n" * 20000
+    packed, z = wire.pack(text)
+    assert z and len(packed) < len(text) // 10

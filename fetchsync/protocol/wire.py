@@ -116,12 +116,19 @@ def inflate(data: bytes, limit: int) -> bytes:
     return out
 
 
+# Compress only what a sample shows shrinks below this. zlib -1 runs at ~100 MB/s,
+# so sparing 10% (meshes, point clouds) costs more time than it saves on any
+# link faster than ~10 MB/s (Wi-Fi's order), and it competes for the CPU with
+# reading and hashing.
+WORTH_COMPRESSING = 0.85
+
+
 def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
     """``data`` zlib-compressed when a sample shows it shrinks, and whether it was."""
     if len(data) < COMPRESS_MIN:
         return data, False
     sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:][:16384]
-    if len(zlib.compress(sample, level)) > 0.95 * len(sample):
+    if len(zlib.compress(sample, level)) > WORTH_COMPRESSING * len(sample):
         return data, False  # already compressed (images, archives, bags): do not waste time
     packed = zlib.compress(data, level)
     return (packed, True) if len(packed) < len(data) else (data, False)
