@@ -157,6 +157,17 @@ def _hash_file(full: str, algorithm: str) -> str:
         return hashing.file_digest(algorithm, fh).hex()
 
 
+def worth_signing(data: bytes) -> bool:
+    """Whether to keep a delta signature of content we send: text of some size.
+
+    Binary files (a NUL in the first 8 KiB, git's test: meshes, recordings,
+    images) are rarely edited in place, their lines (our chunk boundaries)
+    are noise, and signing them was a third of an initial push's CPU. If one
+    does change, the robot signs its copy on request (one round trip more).
+    """
+    return len(data) >= SIG_MIN and b"\0" not in data[:8192]
+
+
 def _racy(entry: Entry, now_ns: int) -> bool:
     return now_ns - entry.mtime_ns < RACY_NS
 
@@ -738,7 +749,7 @@ class Syncer:
             p = Planned(op, WHOLE, M.Listed(op.path, "f", entry.mode, len(data), hash=digest))
             local.items[op.path] = p.item  # type: ignore[assignment]
         local.stats[op.path] = entry
-        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if len(data) >= SIG_MIN else None
+        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
         if p.how == DELTA:
             stored = self._robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None:

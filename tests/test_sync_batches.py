@@ -64,3 +64,20 @@ def test_another_writer_between_batches_is_detected_and_survived(syncer, tmp_pat
     assert tree_of(src) == tree_of(robot_src)
     kept = list((robot_src.parent / ".fetchsync" / "conflicts").rglob("theirs.txt"))
     assert kept and kept[0].read_text() == "theirs\n"
+
+
+def test_binary_files_keep_no_signature_yet_an_edit_still_travels_as_a_delta(syncer):
+    s, src, robot_src = syncer
+    rnd = __import__("random").Random(3)
+    mesh = bytes(rnd.getrandbits(8) for _ in range(300_000))  # NULs: binary
+    (src / "pkg0" / "mesh.stl").write_bytes(mesh)
+    (src / "pkg0" / "table.cpp").write_text("".join(f"int t{i} = {i * 7};\n" for i in range(20000)))
+    s.push()
+    signed = s.state.signed_paths()
+    assert "pkg0/table.cpp" in signed and "pkg0/mesh.stl" not in signed
+    (src / "pkg0" / "mesh.stl").write_bytes(mesh[:150_000] + b"edited" + mesh[150_006:])
+    report = s.push()
+    assert report.errors == [] and report.files == 1
+    assert (robot_src / "pkg0" / "mesh.stl").read_bytes() == (src / "pkg0" / "mesh.stl").read_bytes()
+    # the robot signed its copy and only the changed region travelled
+    assert report.bytes_sent < 60_000, report.bytes_sent
