@@ -107,9 +107,6 @@ def test_a_bad_header_fails_before_its_body_is_awaited(ftype, flags):
 
 
 def test_pack_sends_barely_compressible_data_raw():
-    import os
-    import zlib
-
     # ~10% compressible (a mesh's float noise): zlib would cost more time than it saves
     data = b"".join(os.urandom(90) + b"\0" * 10 for _ in range(2000))
     assert 0.85 < len(zlib.compress(data, 1)) / len(data) < 0.95
