@@ -293,12 +293,13 @@ def _ret_path(c: Call) -> str:
     return m.group(1) if m else ""
 
 
-def traced_push(env: dict, trace: Path, *, preload: Path | None = None) -> tuple[dict, Verdict]:
+def traced_push(env: dict, trace: Path, *, preload: Path | None = None,
+                workspace: Path | None = None) -> tuple[dict, Verdict]:
     strace = _need("strace")
     python = f"{strace} -f -tt -y -s 8 -e trace={TRACED} -o {trace} python3"
     r = push(env, python=python, preload=preload)
-    workspace = str(Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws")
-    return r, check_order(parse_trace(trace.read_text()), workspace)
+    workspace = workspace or Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws"
+    return r, check_order(parse_trace(trace.read_text()), str(workspace))
 
 
 # ---------------------------------------------------------------------- syscall order
@@ -358,6 +359,28 @@ def test_large_file_in_pieces_is_synced_before_its_reply(env, tmp_path):
     assert v.violations == []
     assert v.replies >= 6
     assert (robot_src(env) / "my_pkg/big.bin").read_bytes() == big.read_bytes()
+
+
+@pytest.mark.ssh
+def test_push_over_ssh_replies_after_the_last_sync(ssh_home, remote_dir, tmp_path):
+    """The same order when sshd starts the endpoint, as on a real robot."""
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCHSYNC_REMOTE_PYTHON"):
+        e.pop(k, None)
+    # no connection master: each push starts its own endpoint, under strace
+    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_PERSIST="0",
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+             XDG_STATE_HOME=str(tmp_path / "state"))
+    src = make_workspace(tmp_path / "ws") / "src"
+    _r, v = traced_push(e, tmp_path / "trace1", workspace=remote_dir)
+    assert v.violations == [] and v.temp_renames == 7
+    (src / "my_pkg/package.xml").unlink()
+    (src / "my_pkg/src/node.cpp").write_text("edited\n")
+    (src / "my_pkg/more").mkdir()
+    _r, v = traced_push(e, tmp_path / "trace2", workspace=remote_dir)
+    assert v.violations == [] and v.temp_renames == 1
+    assert any(c[0] == "rename" and "/.fetchsync/trash/" in c[2] for c in v.changes)
+    assert tree_of(src) == tree_of(remote_dir / "src")
 
 
 def _only_deletes(src: Path) -> None:
