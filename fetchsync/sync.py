@@ -524,11 +524,17 @@ class Syncer:
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header
-        remote = self._apply_listing(listing, synced)
-        epoch, gen = listing["epoch"], listing["gen"]
-        local.hash_where_needed(self.local_root, remote, self.algorithm)
-        _report_skipped(local, report)
-        self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run, progress=progress)
+        if _nothing_to_do(local, synced, listing, epoch, gen):
+            # the robot holds what we last synced and so do we: no plan, no commit
+            _report_skipped(local, report)
+            self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+        else:
+            remote = self._apply_listing(listing, synced)
+            epoch, gen = listing["epoch"], listing["gen"]
+            local.hash_where_needed(self.local_root, remote, self.algorithm)
+            _report_skipped(local, report)
+            self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
+                           progress=progress)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -1071,6 +1077,22 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
     return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
+
+
+def _nothing_to_do(local: LocalTree, synced: dict[str, Synced], listing: dict[str, Any],
+                   epoch: str, gen: int) -> bool:
+    """Whether the robot reports no drift since the state's generation and every local
+    path is what the state says was synced (the common no-op push, decided in one pass)."""
+    if (listing.get("full") or listing.get("entries") or listing.get("gone")
+            or listing.get("epoch") != epoch or listing.get("gen") != gen
+            or local.unhashed or len(local.items) != len(synced)):
+        return False
+    for path, item in local.items.items():
+        s = synced.get(path)
+        if s is None or s.kind != item.kind or s.mode != item.mode or (
+                s.hash != item.hash if item.kind == "f" else s.target != item.target):
+            return False
+    return True
 
 
 def _report_skipped(local: LocalTree, report: Report) -> None:

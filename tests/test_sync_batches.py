@@ -81,3 +81,24 @@ def test_binary_files_keep_no_signature_yet_an_edit_still_travels_as_a_delta(syn
     assert (robot_src / "pkg0" / "mesh.stl").read_bytes() == (src / "pkg0" / "mesh.stl").read_bytes()
     # the robot signed its copy and only the changed region travelled
     assert report.bytes_sent < 60_000, report.bytes_sent
+
+
+def test_the_no_op_shortcut_still_sees_every_kind_of_change(syncer):
+    s, src, robot_src = syncer
+    s.push()
+    r = s.push()
+    assert (r.files, r.dirs, r.deleted, r.rounds) == (0, 0, 0, 0)
+    changes = [
+        lambda: (src / "pkg1" / "empty").mkdir(),
+        lambda: (src / "pkg1" / "f1.txt").chmod(0o755),
+        lambda: (src / "pkg2").chmod(0o700),
+        lambda: (robot_src / "pkg3" / "f2.txt").write_text("edited on the robot\n"),
+        lambda: (robot_src / "pkg3" / "f3.txt").unlink(),
+        lambda: (src / "pkg4" / "f4.txt").unlink(),
+        lambda: (src / "link").symlink_to("pkg0"),
+    ]
+    for change in changes:
+        change()
+        r = s.push()
+        assert r.errors == [] and r.rounds == 1, r
+        assert tree_of(src) == tree_of(robot_src)
