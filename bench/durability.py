@@ -312,8 +312,11 @@ def machine_line() -> str:
 
 
 def fs_line(path: Path) -> str:
-    res = subprocess.run(["findmnt", "-n", "-o", "SOURCE,FSTYPE,OPTIONS", "-T", str(path)],
-                         capture_output=True, text=True, check=False)
+    try:
+        res = subprocess.run(["findmnt", "-n", "-o", "SOURCE,FSTYPE,OPTIONS", "-T", str(path)],
+                             capture_output=True, text=True, check=False)
+    except OSError:
+        return "?"
     return res.stdout.strip() or "?"
 
 
