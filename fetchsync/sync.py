@@ -534,7 +534,7 @@ class Syncer:
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
             self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                           progress=progress)
+                           progress=progress, listed_in_full=bool(listing.get("full")))
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -578,9 +578,12 @@ class Syncer:
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
                   progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None) -> bool:
+                  scope_paths: set[str] | None = None, listed_in_full: bool = False) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
-        then advance the state. Returns True if an incremental run met another writer."""
+        then advance the state. Returns True if an incremental run met another writer.
+
+        ``listed_in_full``: ``remote`` came from a full listing, so the robot's index
+        may not vouch for what it already held; those paths are adopted there."""
         if self._signed is None:
             self._signed = self.state.signed_paths()
         signed = self._signed
@@ -639,6 +642,7 @@ class Syncer:
                 listing = self.conn.request({"op": "list", "mode": "full"}).header
                 remote = self._apply_listing(listing, synced)
                 epoch, gen = listing["epoch"], listing["gen"]
+                listed_in_full = True
                 continue
             # only a base mismatch (it goes whole next time) or a file that
             # vanished (its delete) is worth another round; a lasting failure
@@ -652,14 +656,22 @@ class Syncer:
                 report.errors.append({"path": left[0].op.path, "error":
                                       f"{len(left)} path(s) still differ on the robot after "
                                       f"{report.rounds} rounds (is something there rewriting them?)"})
-        # paths already identical need no operation, but the state must know them
+        # paths already identical need no operation, but the state must know them,
+        # and so must the robot's index if it did not (else every later drift
+        # check there would report them, and a no-op push would list them all)
+        adopt: list[list[Any]] = []
         for path, item in local.items.items():
             r = remote.get(path)
             if r is not None and r == item and path not in upserts:
+                if listed_in_full:
+                    adopt.append(item.to_wire())
                 s = _synced_from(item, local.stats.get(path), now_ns)
                 if new_synced.get(path) != s:
                     upserts[path] = (s, None)
                     new_synced[path] = s
+        if adopt and not dry_run:
+            ad = self.conn.request({"op": "adopt", "entries": adopt}).header
+            epoch, gen = ad["epoch"], ad["gen"]
         candidates = list(new_synced) if scope_paths is None else \
             [p for p in scope_paths if p in new_synced]
         for path in candidates:

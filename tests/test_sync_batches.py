@@ -102,3 +102,20 @@ def test_the_no_op_shortcut_still_sees_every_kind_of_change(syncer):
         r = s.push()
         assert r.errors == [] and r.rounds == 1, r
         assert tree_of(src) == tree_of(robot_src)
+
+
+def test_a_lost_robot_index_is_rebuilt_by_the_next_push(syncer):
+    """Files the robot already holds are adopted into its index after a full listing:
+    else every later drift check there reports all of them, forever."""
+    s, src, robot_src = syncer
+    s.push()
+    (robot_src.parent / ".fetchsync" / "index").unlink()
+    s.opened = None  # a new session: the robot reloads its (now missing) index
+    s.conn.close()
+    s.conn = Connection.open(LocalTransport(robot_src.parent.parent))
+    relisted = s.push()
+    assert relisted.errors == [] and relisted.files == 0 and relisted.bytes_received > 10_000
+    again = s.push()
+    assert again.errors == [] and again.files == 0
+    assert again.bytes_received < 1_000, again.bytes_received  # an empty drift, not a listing
+    assert tree_of(src) == tree_of(robot_src)
