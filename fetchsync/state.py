@@ -119,21 +119,11 @@ class State:
         try:
             if replace_all:
                 cur.execute("DELETE FROM entries")
-            rows = []
-            keep_sig = []
-            for path, s, sig in upserts:
-                key = _encode(path)
-                if sig is None:
-                    keep_sig.append((key, s.hash))
-                rows.append((key, s.kind, s.mode, s.hash, s.target, s.size, s.mtime_ns,
-                             s.ctime_ns, s.ino, sig))
-            old_sigs = {}
-            for key, h in keep_sig:
-                row = cur.execute("SELECT hash, sig FROM entries WHERE path=?", (key,)).fetchone()
-                if row and row[0] == h and row[1] is not None:
-                    old_sigs[key] = row[1]
-            rows = [r[:-1] + (old_sigs.get(r[0]),) if r[-1] is None else r for r in rows]
-            cur.executemany("INSERT OR REPLACE INTO entries VALUES (?,?,?,?,?,?,?,?,?,?)", rows)
+            # rows are made as SQLite takes them: a first push of 100,000 paths
+            # would otherwise hold them all, twice, next to everything else
+            rows = ((_encode(path), s.kind, s.mode, s.hash, s.target, s.size, s.mtime_ns,
+                     s.ctime_ns, s.ino, sig) for path, s, sig in upserts)
+            cur.executemany(_UPSERT, rows)
             cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
             for name, value in (meta or {}).items():
                 cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
@@ -144,6 +134,19 @@ class State:
 
     def reset(self) -> None:
         self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
+
+
+# A NULL signature keeps the stored one only while the content hash is the same.
+_UPSERT = """
+INSERT INTO entries (path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino, sig)
+VALUES (?,?,?,?,?,?,?,?,?,?)
+ON CONFLICT (path) DO UPDATE SET
+    kind=excluded.kind, mode=excluded.mode, target=excluded.target, size=excluded.size,
+    mtime_ns=excluded.mtime_ns, ctime_ns=excluded.ctime_ns, ino=excluded.ino,
+    sig=CASE WHEN excluded.sig IS NOT NULL THEN excluded.sig
+             WHEN entries.hash = excluded.hash THEN entries.sig END,
+    hash=excluded.hash
+"""
 
 
 def _encode(path: str) -> bytes:
