@@ -29,8 +29,9 @@ pipes) is checked two ways:
   checks that the endpoint the loader caches in ``~/.cache/fetchsync``
   survives a cut after the robot's first connection.
 
-Known gaps are marked xfail: strict for the syscall order (deterministic), not
-strict after a simulated cut (someone else's sync(2) may flush for us).
+Gaps these tests found, now fixed: a batch that only deleted, made
+directories or changed modes was not synced before its reply, and the loader
+cached the endpoint without an fsync (a cut could leave it empty).
 """
 
 from __future__ import annotations
@@ -53,14 +54,6 @@ from helpers import fetchsync, make_workspace, report, tree_of
 TEMP_MARK = ".fetchsync-tmp-"
 MAGIC = b"\x89FSYNC"
 POWERCUT = bool(os.environ.get("FETCHSYNC_TEST_POWERCUT"))
-# a batch of only these is not made durable before its reply: a store.py fix
-# is reported (commit() returns before any syncfs when nothing was renamed)
-_GAP = ("Store.apply makes a batch with no write durable only by chance: "
-        "_Batch.commit returns before syncfs when nothing is renamed")
-KNOWN_GAP = pytest.mark.xfail(strict=True, reason=_GAP)
-# Not strict after a simulated power cut: anyone's sync(2) meanwhile (bench/run.py
-# calls os.sync() before each push) makes durable what the endpoint did not.
-KNOWN_GAP_CUT = pytest.mark.xfail(strict=False, reason=_GAP)
 
 TRACED = ("write,pwrite64,writev,openat,fchmod,ftruncate,rename,renameat,renameat2,unlink,unlinkat,"
           "rmdir,mkdir,mkdirat,symlink,symlinkat,link,linkat,chmod,fchmodat,syncfs,sync,fsync,fdatasync")
@@ -396,9 +389,9 @@ def _only_chmod(src: Path) -> None:
 
 
 @pytest.mark.parametrize("change", [
-    pytest.param(_only_deletes, id="deletes", marks=KNOWN_GAP),
-    pytest.param(_only_mkdir, id="mkdir", marks=KNOWN_GAP),
-    pytest.param(_only_chmod, id="chmod", marks=KNOWN_GAP),
+    pytest.param(_only_deletes, id="deletes"),
+    pytest.param(_only_mkdir, id="mkdir"),
+    pytest.param(_only_chmod, id="chmod"),
 ])
 def test_a_batch_without_writes_is_synced_before_its_reply(env, tmp_path, change):
     push(env)
@@ -563,8 +556,8 @@ def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
 
 
 @pytest.mark.parametrize("change", [
-    pytest.param(_only_deletes, id="deletes", marks=KNOWN_GAP_CUT),
-    pytest.param(_only_mkdir, id="mkdir", marks=KNOWN_GAP_CUT),
+    pytest.param(_only_deletes, id="deletes"),
+    pytest.param(_only_mkdir, id="mkdir"),
 ])
 def test_power_cut_after_a_batch_without_writes(tmp_path, disk, change):
     env = make_env(tmp_path, disk.mount / "robot")
@@ -596,9 +589,6 @@ def _start_endpoint(home: Path) -> bytes:
     return first[:len(MAGIC)]
 
 
-@pytest.mark.xfail(strict=False, reason="the loader caches the endpoint with no fsync: a power cut "
-                                        "after the journal commits leaves it empty, and every later "
-                                        "connection fails to import it")
 def test_power_cut_after_the_endpoint_is_cached_leaves_a_working_robot(tmp_path):
     # commit=1: the journal commits on its own within a second, as ext4's
     # default 5 s would between a robot's first connection and a power cut

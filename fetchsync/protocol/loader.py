@@ -28,7 +28,7 @@ if sys.version_info < (3, 8):
 h, n = sys.argv[1], int(sys.argv[2])
 d = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "fetchsync")
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
-if not os.path.isfile(p):
+if not os.path.isfile(p) or os.path.getsize(p) != n:
     o = sys.stdout.buffer
     o.write(b"FSYNC-NEED\n")
     o.flush()
@@ -39,6 +39,8 @@ if not os.path.isfile(p):
     t = p + ".%d.tmp" % os.getpid()
     with open(t, "wb") as f:
         f.write(b)
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(t, p)
 sys.path.insert(0, p)
 from fetchsync.protocol.server import main

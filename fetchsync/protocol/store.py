@@ -547,6 +547,7 @@ class _Batch:
         self.zpart = b""
         self.reading = set()  # type: set  # paths pending writers read (copy sources, delta bases)
         self.n = 0
+        self.changed = False  # an operation other than an upload part may have changed the tree
 
     def _blob(self, op: M.Op) -> bytes:
         off, length = op.blob
@@ -561,6 +562,8 @@ class _Batch:
     def run(self, op: M.Op) -> M.Result:
         idx = self.n
         self.n += 1
+        if op.kind != M.UPLOAD:
+            self.changed = True
         try:
             return self._run(op, idx)
         except PathError as exc:
@@ -744,11 +747,12 @@ class _Batch:
         os.close(fd)
 
     def commit(self, results: List[M.Result]) -> None:
-        if not self.renames:
-            return
+        if not self.changed:
+            return  # upload parts only: nothing is reported written yet
         rootfd = os.open(self.s.root, os.O_RDONLY)
         try:
-            syncfs(rootfd)
+            if self.renames:
+                syncfs(rootfd)  # the temporaries' content, before any is renamed into place
             for tmp, full, path, idx, digest in self.renames:
                 try:
                     os.rename(tmp, full)
