@@ -534,7 +534,9 @@ class Syncer:
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
             self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                           progress=progress, listed_in_full=bool(listing.get("full")))
+                           progress=progress,
+                           listed=remote if listing.get("full") else
+                           [x[0] for x in listing.get("entries", [])])
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -578,12 +580,14 @@ class Syncer:
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
                   progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None, listed_in_full: bool = False) -> bool:
+                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer.
 
-        ``listed_in_full``: ``remote`` came from a full listing, so the robot's index
-        may not vouch for what it already held; those paths are adopted there."""
+        ``listed``: the paths the robot's listing reported (all, after a full one),
+        which its index does not vouch for; those found identical are adopted there."""
+        robot_listed = set(listed or ())
+        adopt_all = False
         if self._signed is None:
             self._signed = self.state.signed_paths()
         signed = self._signed
@@ -642,7 +646,7 @@ class Syncer:
                 listing = self.conn.request({"op": "list", "mode": "full"}).header
                 remote = self._apply_listing(listing, synced)
                 epoch, gen = listing["epoch"], listing["gen"]
-                listed_in_full = True
+                adopt_all = True
                 continue
             # only a base mismatch (it goes whole next time) or a file that
             # vanished (its delete) is worth another round; a lasting failure
@@ -663,7 +667,7 @@ class Syncer:
         for path, item in local.items.items():
             r = remote.get(path)
             if r is not None and r == item and path not in upserts:
-                if listed_in_full:
+                if adopt_all or path in robot_listed:
                     adopt.append(item.to_wire())
                 s = _synced_from(item, local.stats.get(path), now_ns)
                 if new_synced.get(path) != s:

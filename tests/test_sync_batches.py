@@ -119,3 +119,23 @@ def test_a_lost_robot_index_is_rebuilt_by_the_next_push(syncer):
     assert again.errors == [] and again.files == 0
     assert again.bytes_received < 1_000, again.bytes_received  # an empty drift, not a listing
     assert tree_of(src) == tree_of(robot_src)
+
+
+def test_drift_the_laptop_already_matches_is_adopted_too(syncer):
+    """A robot index that forgot its records but kept its generation reports every path
+    as drift; once found identical they are adopted, and the next drift is empty."""
+    import marshal
+
+    s, src, robot_src = syncer
+    s.push()
+    index = robot_src.parent / ".fetchsync" / "index"
+    data = marshal.loads(index.read_bytes())
+    data["synced"] = {}
+    index.write_bytes(marshal.dumps(data))
+    s.opened = None
+    s.conn.close()
+    s.conn = Connection.open(LocalTransport(robot_src.parent.parent))
+    first = s.push()
+    assert first.errors == [] and first.files == 0 and first.bytes_received > 10_000
+    again = s.push()
+    assert again.errors == [] and again.bytes_received < 1_000, again.bytes_received
