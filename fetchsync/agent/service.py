@@ -18,7 +18,9 @@ taken and says where the first one is.
 
 from __future__ import annotations
 
+import ctypes
 import fcntl
+import gc
 import hashlib
 import logging
 import os
@@ -37,6 +39,36 @@ log = logging.getLogger(__name__)
 BACKOFF_FIRST = 0.25
 BACKOFF_CAP = 4.0
 PROBE_EVERY = 2.0  # seconds between link checks while idle
+RELEASE_AFTER = 1000  # paths a push must have covered before its memory is handed back
+
+
+def release_memory() -> None:
+    """Hand the memory a large push used back to the system.
+
+    CPython frees a full push's hundreds of thousands of objects, but glibc
+    keeps the pages in its heaps and arenas (the sender thread has its own),
+    so the agent would stay at its high-water mark for as long as it runs.
+    ``malloc_trim(0)`` returns free heap pages to the kernel; without glibc
+    this is only a collection.
+    """
+    gc.collect()
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+_TRIM: Any = None
+
+
+def _malloc_trim() -> Any:
+    global _TRIM
+    if _TRIM is None:
+        try:
+            # the symbols the process has loaded: glibc's, on a glibc system
+            _TRIM = getattr(ctypes.CDLL(None), "malloc_trim", False)
+        except (OSError, AttributeError):
+            _TRIM = False
+    return _TRIM or None
 
 
 def agent_paths(target: Target) -> tuple[Path, Path]:
@@ -387,6 +419,8 @@ class Agent:
         if self.state == "live" and not getattr(self, "_announced", False):
             self._announced = True
             self.say(f"live: {self.src} -> {self.target.robot}:{self.target.remote_workspace}/src")
+        if work.full or report.files + report.dirs + report.deleted >= RELEASE_AFTER:
+            release_memory()
 
     def _set_state(self, state: str) -> None:
         with self.cond:
