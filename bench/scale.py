@@ -16,7 +16,9 @@ its own connection and endpoint start-up, and no process outlives its step):
 3. ``fetchsync watch`` on that unchanged workspace: the time from launch until
    the agent says it is live (its ``live:`` line, then confirmed by
    ``fetchsync status --json``), then one edit of a ``.cpp``, timed from the
-   write until the robot's copy holds the new bytes.
+   write until the robot's copy holds the new bytes;
+4. ``fetchsync watch`` again, on an empty remote workspace with no
+   last-synced state: its own first, full sync (``--no-watch-initial`` skips it).
 
 Peak memory is the kernel's high-water mark of resident memory, ``VmHWM`` in
 ``/proc/PID/status``, polled every 20 ms for the fetchsync process and for the
@@ -236,6 +238,19 @@ class ScaleBench:
     def close(self) -> None:
         shutil.rmtree(self.runtime_dir, ignore_errors=True)
 
+    def fresh_target(self, tag: str) -> None:
+        """From now on: a new, empty remote workspace and no last-synced state (a first sync)."""
+        self.env["XDG_STATE_HOME"] = str(self.workdir / f"state-{tag}")
+        if self.robot.kind == "local":
+            self.env["FETCHSYNC_REMOTE_WORKSPACE"] = f"~/robot_ws_{tag}"
+            self.remote_src = (
+                Path(self.env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / f"robot_ws_{tag}" / "src"
+            )
+        else:
+            remote = self.workdir / "robot" / f"robot_ws_{tag}"
+            self.env["FETCHSYNC_REMOTE_WORKSPACE"] = str(remote)
+            self.remote_src = remote / "src"
+
     def fetchsync(self, *args: str) -> list[str]:
         return [sys.executable, "-m", "fetchsync", *args]
 
@@ -304,8 +319,8 @@ class ScaleBench:
         return res
 
     # ---------------------------------------------------------------------- watch
-    def watch(self) -> dict[str, Any]:
-        logfile = self.workdir / "watch.log"
+    def watch(self, label: str = "watch") -> dict[str, Any]:
+        logfile = self.workdir / f"{label.replace(' ', '-')}.log"
         argv = self.fetchsync("watch")
         res: dict[str, Any] = {}
         with open(logfile, "wb") as out:
@@ -332,7 +347,7 @@ class ScaleBench:
             res["endpoint_peak_live_kib"] = sampler.endpoint_peak_kib
             res["inotify_watches"] = inotify_watches(proc.pid)
             log(
-                f"watch: live after {res['startup_seconds']:.2f} s (status: {res['status_state']}); "
+                f"{label}: live after {res['startup_seconds']:.2f} s (status: {res['status_state']}); "
                 f"agent peak {sampler.client_kib * 1024 / MB:.0f} MB, "
                 f"{res['inotify_watches']} inotify watches"
             )
@@ -343,13 +358,13 @@ class ScaleBench:
             res["agent_rss_edit_kib"] = _status_kib(proc.pid, "VmRSS")
             res["endpoint_peak_edit_kib"] = sampler.endpoint_peak_kib
             log(
-                f"watch: one edit on the robot after {_secs(res['edit_seconds'])}; agent peak "
+                f"{label}: one edit on the robot after {_secs(res['edit_seconds'])}; agent peak "
                 f"{sampler.client_kib * 1024 / MB:.0f} MB"
             )
-            self.verify("watch, after one edit")
+            self.verify(f"{label}, after one edit")
         except Exception as exc:  # noqa: BLE001 - any failure of the step is reported, not raised
-            self.failures.append(f"watch: {exc}\n{logfile.read_text(errors='replace')[-3000:]}")
-            log(f"watch failed: {exc}")
+            self.failures.append(f"{label}: {exc}\n{logfile.read_text(errors='replace')[-3000:]}")
+            log(f"{label} failed: {exc}")
         finally:
             sampler.stop()
             if proc.poll() is None:
@@ -474,6 +489,16 @@ def render(res: dict[str, Any]) -> str:
             f"memory ≤ 300 MB | "
             f"{_mem_verdict(wat.get('agent_peak_edit_kib'), wat.get('endpoint_peak_edit_kib'))} |"
         ),
+    ]
+    wi = res.get("watch_initial")
+    if wi is not None:
+        out.append(
+            f"| `fetchsync watch` first start: empty robot, no state, initial sync to live | "
+            f"{_secs(wi.get('startup_seconds'))} | {_mb(wi.get('agent_peak_live_kib'))} | "
+            f"{_mb(wi.get('endpoint_peak_live_kib'))} | memory ≤ 300 MB | "
+            f"{_mem_verdict(wi.get('agent_peak_live_kib'), wi.get('endpoint_peak_live_kib'))} |"
+        )
+    out += [
         "",
         (
             f"Peak RSS = VmHWM (MB = 10^6 bytes). The agent held {wat.get('inotify_watches', '?')} "
@@ -482,6 +507,12 @@ def render(res: dict[str, Any]) -> str:
             f"`fetchsync status` said `{wat.get('status_state')}` "
             f"{_secs(wat.get('status_seconds'))} after launch. Inside the push processes: "
             f"initial {_secs(ini.get('inner_seconds'))}, no-op {_secs(noop.get('inner_seconds'))}."
+            + (
+                f" Started on an empty robot, the agent's VmRSS was {_mb(wi.get('agent_rss_live_kib'))}"
+                f" when live and {_mb(wi.get('agent_rss_edit_kib'))} after an edit."
+                if wi is not None
+                else ""
+            )
         ),
         "",
     ]
@@ -513,6 +544,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=("ssh", "local"),
         default="ssh",
         help="the real sshd on 127.0.0.1 (default) or the local subprocess robot",
+    )
+    ap.add_argument(
+        "--watch-initial",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also start the agent on an empty robot with no state: its first, full sync",
     )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw figures here")
@@ -560,6 +597,10 @@ def main(argv: list[str] | None = None) -> int:
             bench.verify("no-op push")
             log("fetchsync watch on the unchanged workspace")
             res["watch"] = bench.watch()
+            if a.watch_initial:
+                log("fetchsync watch, first start: an empty robot and no state")
+                bench.fresh_target("first")
+                res["watch_initial"] = bench.watch("watch from empty")
             res["verification"] = bench.verification
             res["failures"] = bench.failures
         report = render(res)

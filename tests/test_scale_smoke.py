@@ -59,6 +59,7 @@ def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
         "initial push": [],
         "no-op push": [],
         "watch, after one edit": [],
+        "watch from empty, after one edit": [],
     }
     assert (
         raw["initial"]["returncode"] == 0 and raw["initial"]["files"] == raw["workspace"]["files"]
@@ -70,6 +71,8 @@ def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
     # the measurements were taken (figures exist), whatever they are
     assert raw["initial"]["client_peak_kib"] > 0 and raw["initial"]["endpoint_peak_kib"] > 0
     assert watch["agent_peak_live_kib"] > 0 and watch["inotify_watches"] > 0
+    first = raw["watch_initial"]  # the agent's own first, full sync into an empty robot
+    assert first["status_state"] == "live" and first["edit_seconds"] is not None
 
 
 # What the scale benchmark led to change, tested at a size CI can afford.
