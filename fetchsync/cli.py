@@ -294,7 +294,33 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
 
 
 def main() -> None:
-    cli(prog_name="fetchsync")
+    try:
+        cli(prog_name="fetchsync")
+        code: Any = 0
+    except SystemExit as exc:
+        code = exc.code
+    if isinstance(code, str):
+        print(code, file=sys.stderr)
+        code = 1
+    _exit(0 if code is None else int(code))
+
+
+def _exit(code: int) -> None:
+    """End the process without the interpreter's teardown.
+
+    A no-op push builds tens of thousands of small objects, and freeing them
+    one by one at exit took 20-80 ms, a fifth of the whole call. Exit
+    handlers still run and output is flushed; then the kernel frees it all.
+    """
+    import atexit
+
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            code = code or 1  # a closed or broken stdout is a failure to report
+    os._exit(code)
 
 
 if __name__ == "__main__":
