@@ -25,9 +25,10 @@ from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import Store, StoreError
 
 MAX_WORKSPACE = 4096
-# A client that has not spoken this long after our hello is not waiting for us:
-# we are a connection master's spare endpoint, with time to prepare.
-PREWARM_AFTER = 0.2
+# A client that has not spoken this long after our hello is probably not there:
+# we are a connection master's spare endpoint, with time to prepare. If one was
+# only slow and opens the same workspace, its open takes what was prepared.
+PREWARM_AFTER = 0.05
 LAST_OPEN = "last-open.json"
 
 
