@@ -28,7 +28,7 @@ from fetchsync.protocol import messages as M
 from fetchsync.protocol.ignore import IgnoreRules
 from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
-from fetchsync.protocol.tree import Entry, entry_from_stat, scan
+from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan
 from fetchsync.state import State, Synced
 
 log = logging.getLogger(__name__)
@@ -56,6 +56,7 @@ class Report:
     verb: str
     robot: str = ""
     connection: str = ""     # "ssh", "master" (a persistent connection) or "local"
+    scan: str = ""           # the local tree: "scanned" now, or "watched" by the connection master
     local: str = ""
     remote: str = ""
     files: int = 0
@@ -172,17 +173,23 @@ def _racy(entry: Entry, now_ns: int) -> bool:
     return now_ns - entry.mtime_ns < RACY_NS
 
 
+def scan_tree(root: str, rules: IgnoreRules) -> ScanResult:
+    """Stat everything under ``root`` the rules keep; a one-line error if it cannot be listed."""
+    try:
+        return scan(root, rules, is_temp=is_temp)
+    except OSError as exc:
+        raise SyncError(f"cannot list {root}: {exc.strerror or exc}") from exc
+
+
 def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str, *,
-               lazy: bool = False) -> LocalTree:
+               lazy: bool = False, scanned: ScanResult | None = None) -> LocalTree:
     """The local tree with content hashes; the state vouches for files whose stat is unchanged.
 
     With ``lazy``, files the state does not know are left unhashed (hash ``""``,
-    listed in ``unhashed``) for :meth:`LocalTree.hash_where_needed`.
+    listed in ``unhashed``) for :meth:`LocalTree.hash_where_needed`. ``scanned``
+    is a scan already made (by :func:`scan_tree`, or the connection master's).
     """
-    try:
-        result = scan(root, rules, is_temp=is_temp)
-    except OSError as exc:
-        raise SyncError(f"cannot list {root}: {exc.strerror or exc}") from exc
+    result = scanned if scanned is not None else scan_tree(root, rules)
     items: dict[str, M.Listed] = {}
     stats: dict[str, Entry] = {}
     skipped = list(result.skipped)
@@ -499,6 +506,12 @@ class Syncer:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
                 "create": create}
 
+    def _warm_scan(self) -> ScanResult | None:
+        """The local scan as a connection master keeps it current, if one does."""
+        local_scan = getattr(self.conn.transport, "local_scan", None)
+        entries = local_scan(self.local_root, self.rules.to_wire()) if local_scan is not None else None
+        return ScanResult(entries, []) if entries is not None else None
+
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
             synced = self.state.entries()
@@ -520,15 +533,19 @@ class Syncer:
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
-        local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True)
+        scanned = self._warm_scan()
+        report.scan = "watched" if scanned is not None else "scanned"
+        if scanned is None:
+            scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header
-        if _nothing_to_do(local, synced, listing, epoch, gen):
+        if _nothing_to_do(scanned, synced, listing, epoch, gen):
             # the robot holds what we last synced and so do we: no plan, no commit
-            _report_skipped(local, report)
             self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
         else:
+            local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
+                               scanned=scanned)
             remote = self._apply_listing(listing, synced)
             epoch, gen = listing["epoch"], listing["gen"]
             local.hash_where_needed(self.local_root, remote, self.algorithm)
@@ -1095,18 +1112,25 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
     return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
 
 
-def _nothing_to_do(local: LocalTree, synced: dict[str, Synced], listing: dict[str, Any],
+def _nothing_to_do(scanned: ScanResult, synced: dict[str, Synced], listing: dict[str, Any],
                    epoch: str, gen: int) -> bool:
     """Whether the robot reports no drift since the state's generation and every local
-    path is what the state says was synced (the common no-op push, decided in one pass)."""
+    path stands as the state recorded it when synced: the common no-op push, decided
+    in one pass over the scan, before any hash or plan."""
+    entries = scanned.entries
     if (listing.get("full") or listing.get("entries") or listing.get("gone")
             or listing.get("epoch") != epoch or listing.get("gen") != gen
-            or local.unhashed or len(local.items) != len(synced)):
+            or scanned.skipped or len(entries) != len(synced)):
         return False
-    for path, item in local.items.items():
+    for path, e in entries.items():
         s = synced.get(path)
-        if s is None or s.kind != item.kind or s.mode != item.mode or (
-                s.hash != item.hash if item.kind == "f" else s.target != item.target):
+        if s is None or s.kind != e.kind or s.mode != e.mode:
+            return False
+        if e.kind == "f":
+            # the stat the state recorded (never a racy one: those are stored as -1)
+            if s.size != e.size or s.mtime_ns != e.mtime_ns or s.ctime_ns != e.ctime_ns or s.ino != e.ino:
+                return False
+        elif e.kind == "l" and s.target != e.target:
             return False
     return True
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -128,3 +129,71 @@ def test_robot_changes_after_a_warm_endpoint_scanned_are_still_seen(env, remote_
     # and the robot's version of the edited file is in .fetchsync/conflicts
     copies = list((remote_dir / ".fetchsync" / "conflicts").rglob("node.cpp"))
     assert copies and "fixed on the robot" in copies[0].read_text()
+
+
+def test_the_master_keeps_the_local_scan_current(env, remote_dir):
+    """The master watches the local tree (inotify) and answers a push's scan from it:
+    every kind of local change made meanwhile must still be pushed."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    fetchsync("push", env=env)
+    assert wait_for(lambda: masters(runtime))
+    assert wait_for(lambda: report(fetchsync("push", "--json", env=env))["scan"] == "watched")
+    pkg = local / "my_pkg"
+    (pkg / "src/node.cpp").write_text("int main() { return 2; }\n")
+    (pkg / "new_dir/deeper").mkdir(parents=True)
+    (pkg / "new_dir/deeper/n.h").write_text("#pragma once\n")
+    (pkg / "package.xml").unlink()
+    (pkg / "scripts/run.py").chmod(0o700)
+    (pkg / "launch").rename(pkg / "launch_moved")
+    (pkg / "rel_link").unlink()
+    (pkg / "rel_link").symlink_to("CMakeLists.txt")
+    (pkg / "CMakeLists.txt.swp").write_text("editor swap: ignored\n")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["scan"] == "watched" and r["connection"] == "master"
+    assert tree_of(local) == {k: v for k, v in tree_of(remote_dir / "src").items()} | {
+        "my_pkg/CMakeLists.txt.swp": tree_of(local)["my_pkg/CMakeLists.txt.swp"]}
+    assert not (remote_dir / "src/my_pkg/CMakeLists.txt.swp").exists()
+    # and a push with nothing changed is a no-op from the watched scan
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["scan"] == "watched" and r["files"] == r["deleted"] == r["chmods"] == 0
+
+
+def test_the_masters_scan_answers_only_what_a_fresh_scan_would(tmp_path):
+    import marshal
+
+    from fetchsync.agent.mux import SCAN_VERSION, Master
+    from fetchsync.protocol.store import is_temp
+    from fetchsync.protocol.tree import scan
+    from fetchsync.sync import build_rules
+
+    src = make_workspace(tmp_path / "ws") / "src"
+    rules = build_rules()
+    master = Master(transport=None, path=tmp_path / "sock", idle=60, warm=None)
+    request = {"scan": str(src), "rules": rules.to_wire(), "v": SCAN_VERSION}
+
+    def answer():
+        return marshal.loads(master._scan(request))["entries"]
+
+    def fresh():
+        return {p: tuple(e) for p, e in scan(str(src), rules, is_temp=is_temp).entries.items()}
+
+    with pytest.raises(ValueError, match="starting"):
+        master._scan(request)  # the first request only starts the watch
+    assert wait_for(lambda: master.trees.get(json.dumps([str(src), rules.to_wire()])) is not None)
+    assert answer() == fresh()
+    (src / "my_pkg/src/node.cpp").write_text("changed\n")
+    (src / "my_pkg/new").mkdir()
+    assert answer() == fresh()
+    assert answer() == fresh()  # the cached reply, nothing moved
+    (src / "my_pkg/.fetchsyncignore").write_text("*.txt\n")
+    with pytest.raises(ValueError, match="lost"):
+        master._scan(request)  # the rules changed: it rescans from scratch
+    os.mkfifo(src / "my_pkg/fifo")
+    with pytest.raises(ValueError, match="starting"):
+        master._scan(request)
+    assert wait_for(lambda: master.trees.get(json.dumps([str(src), rules.to_wire()])) is not None)
+    with pytest.raises(ValueError, match="skips"):
+        master._scan(request)  # a FIFO is reported by a real scan: the caller must scan
+    with pytest.raises(ValueError, match="unknown"):
+        master._scan({"scan": str(src), "v": 99})

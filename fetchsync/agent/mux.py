@@ -12,6 +12,14 @@ Socket protocol (one connection per remote command): the client sends one
 JSON line ``{"exec": COMMAND}`` and then the command's stdin as raw bytes
 (half-close = EOF); the master answers with frames ``u8 kind | u32 len |
 data``: 1 stdout, 2 stderr, 3 exit status (i32), 4 error message.
+
+The master also keeps the *local* side warm: asked ``{"scan": ROOT, "rules":
+RULES}``, it answers (one stdout frame, :mod:`marshal`) with the entries a
+fresh scan of ROOT would give, from a scan it made once and keeps current
+with inotify (``fetchsync.protocol.watched``). The first request only starts
+that scan; until it is ready, and whenever the events may be incomplete or
+the tree has entries a scan would report as skipped, the answer is an error
+frame and the caller scans for itself.
 """
 
 from __future__ import annotations
@@ -37,6 +45,8 @@ log = logging.getLogger(__name__)
 K_STDOUT, K_STDERR, K_EXIT, K_ERROR = 1, 2, 3, 4
 _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
+SCAN_VERSION = 1
+MAX_TREES = 2  # local workspaces kept watched by one master
 
 
 def persist_seconds() -> float:
@@ -182,6 +192,42 @@ class MuxTransport:
             raise ConnectError(f"the connection master for {self.name} did not answer") from exc
         return MuxChannel(sock)
 
+    def local_scan(self, root: str, rules: list[Any], timeout: float = 5.0) -> dict[str, Any] | None:
+        """The entries under ``root`` as the master keeps them current, or None (scan yourself)."""
+        import marshal
+
+        from fetchsync.protocol.tree import Entry
+
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.settimeout(timeout)
+        try:
+            sock.connect(str(self.path))
+            sock.sendall(json.dumps({"scan": root, "rules": rules, "v": SCAN_VERSION}).encode() + b"\n")
+            sock.shutdown(socket.SHUT_WR)
+            buf = bytearray()
+            while True:
+                chunk = sock.recv(1 << 20)
+                if not chunk:
+                    break
+                buf += chunk
+        except OSError:
+            return None
+        finally:
+            sock.close()
+        if len(buf) < _HDR.size:
+            return None
+        kind, n = _HDR.unpack_from(buf)
+        if kind != K_STDOUT or len(buf) != _HDR.size + n:
+            return None
+        try:
+            reply = marshal.loads(bytes(buf[_HDR.size:]))
+            if reply.get("v") != SCAN_VERSION or reply.get("root") != root:
+                return None
+            make = Entry._make
+            return {path: make(t) for path, t in reply["entries"].items()}
+        except (ValueError, EOFError, TypeError, AttributeError, KeyError):
+            return None
+
     def close(self) -> None:
         pass
 
@@ -229,6 +275,9 @@ class Master:
         self.lock = threading.Lock()
         self.active = 0
         self.last_used = time.monotonic()
+        self.trees: dict[str, Any] = {}  # scan key -> WatchedTree, or None while being built
+        self.scan_replies: dict[str, tuple[int, bytes]] = {}  # scan key -> (tree version, reply)
+        self.trees_lock = threading.Lock()
 
     def _refill(self) -> None:
         with self.lock:
@@ -281,6 +330,7 @@ class Master:
                 except (TimeoutError, socket.timeout):
                     if not self.transport.is_alive(timeout=0):
                         return
+                    self._drain_trees()
                     with self.lock:
                         idle = self.active == 0 and time.monotonic() - self.last_used > self.idle
                     if idle or not self._owns(own):
@@ -300,6 +350,11 @@ class Master:
                 for w in self.pool:
                     w.channel.close()
                 self.pool = []
+            with self.trees_lock:
+                for tree in self.trees.values():
+                    if tree is not None:
+                        tree.close()
+                self.trees = {}
             self.transport.close()
 
     def _owns(self, ino: int) -> bool:
@@ -308,11 +363,81 @@ class Master:
         except OSError:
             return False
 
+    # ------------------------------------------------------------------ local scans
+    def _scan(self, request: dict[str, Any]) -> bytes:
+        """The marshalled entries of a watched local tree; ValueError if not ready or usable."""
+        import marshal
+
+        if request.get("v") != SCAN_VERSION or not isinstance(request.get("scan"), str):
+            raise ValueError("unknown scan request")
+        root, rules = request["scan"], request.get("rules")
+        key = json.dumps([root, rules])
+        with self.trees_lock:
+            if key not in self.trees:
+                if len(self.trees) >= MAX_TREES:
+                    oldest = next(iter(self.trees))
+                    old = self.trees.pop(oldest)
+                    self.scan_replies.pop(oldest, None)
+                    if old is not None:
+                        old.close()
+                self.trees[key] = None
+                threading.Thread(target=self._build_tree, args=(key, root, rules), daemon=True).start()
+                raise ValueError("starting to watch that tree")
+            tree = self.trees[key]
+            if tree is None:
+                raise ValueError("still scanning that tree")
+            if not tree.refresh():
+                tree.close()
+                del self.trees[key]
+                self.scan_replies.pop(key, None)
+                raise ValueError("events were lost; watching that tree again")
+            if tree.skipped:
+                raise ValueError("that tree has entries a scan skips")
+            cached = self.scan_replies.get(key)
+            if cached is not None and cached[0] == tree.version:
+                return cached[1]  # nothing moved since the last answer
+            entries = {path: tuple(e) for path, e in tree.entries.items()}
+            reply = marshal.dumps({"v": SCAN_VERSION, "root": root, "entries": entries})
+            self.scan_replies[key] = (tree.version, reply)
+        return reply
+
+    def _build_tree(self, key: str, root: str, rules: Any) -> None:
+        from fetchsync.protocol.ignore import IgnoreRules
+        from fetchsync.protocol.store import is_temp
+        from fetchsync.protocol.watched import Unavailable, WatchedTree
+
+        try:
+            tree = WatchedTree(root, IgnoreRules.from_wire(rules) if rules is not None else None,
+                               is_temp)
+        except (Unavailable, OSError, ValueError) as exc:
+            log.debug("cannot watch %s: %s", root, exc)
+            tree = None
+        with self.trees_lock:
+            if key in self.trees and tree is not None:
+                self.trees[key] = tree
+                return
+            self.trees.pop(key, None)
+        if tree is not None:
+            tree.close()
+
+    def _drain_trees(self) -> None:
+        """Apply the events queued since the last look, so a burst cannot overflow the queue."""
+        with self.trees_lock:
+            for key, tree in list(self.trees.items()):
+                if tree is not None and not tree.refresh():
+                    tree.close()
+                    del self.trees[key]
+                    self.scan_replies.pop(key, None)
+
     def _client(self, conn: socket.socket) -> None:
         try:
             f = conn.makefile("rb")
             line = f.readline(1 << 16)
-            command = json.loads(line)["exec"]
+            request = json.loads(line)
+            if "scan" in request:
+                self._answer_scan(conn, request)
+                return
+            command = request["exec"]
             channel = self._take(command)
         except Exception as exc:
             try:
@@ -358,6 +483,19 @@ class Master:
                 pass
         finally:
             channel.close()
+            conn.close()
+            self._done()
+
+    def _answer_scan(self, conn: socket.socket, request: dict[str, Any]) -> None:
+        try:
+            try:
+                data, kind = self._scan(request), K_STDOUT
+            except ValueError as exc:
+                data, kind = str(exc).encode(), K_ERROR
+            conn.sendall(_HDR.pack(kind, len(data)) + data)
+        except OSError:
+            pass
+        finally:
             conn.close()
             self._done()
 

@@ -125,12 +125,15 @@ class WatchedTree:
             raise
         self.entries: Dict[str, Entry] = result.entries
         self.skipped: List[Tuple[str, str]] = result.skipped
+        self.version = 0  # moves on whenever a refresh found events
 
     def refresh(self) -> bool:
         """Bring the entries up to date; False if that is not possible (scan in full instead)."""
         touched = self.watch.touched()
         if touched is None:
             return False
+        if touched:
+            self.version += 1
         # parents first: a new directory is scanned whole before its children's events
         for path in sorted(touched, key=lambda p: (p.count("/"), p)):
             if not self._refresh(path):
