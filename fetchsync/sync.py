@@ -540,9 +540,16 @@ class Syncer:
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header
-        if _nothing_to_do(scanned, synced, listing, epoch, gen):
-            # the robot holds what we last synced and so do we: no plan, no commit
+        differing = None if dry_run else _local_changes(scanned, synced, listing, epoch, gen)
+        if differing is not None:
+            # the robot holds what we last synced: only the paths that changed here
+            # since need a plan, as the watch agent pushes them
             self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+            if differing:
+                done = self.push_paths(differing)
+                done.bytes_sent, done.bytes_received = self.conn.bytes_out - b_out, self.conn.bytes_in - b_in
+                done.seconds, done.scan = time.monotonic() - t0, report.scan
+                return done
         else:
             local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
                                scanned=scanned)
@@ -1112,27 +1119,37 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
     return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
 
 
-def _nothing_to_do(scanned: ScanResult, synced: dict[str, Synced], listing: dict[str, Any],
-                   epoch: str, gen: int) -> bool:
-    """Whether the robot reports no drift since the state's generation and every local
-    path stands as the state recorded it when synced: the common no-op push, decided
-    in one pass over the scan, before any hash or plan."""
+QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted
+
+
+def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict[str, Any],
+                   epoch: str, gen: int) -> set[str] | None:
+    """The local paths that differ from what the state recorded when it synced them, if the
+    robot reports no drift since the state's generation and they are few; else None.
+
+    The common pushes (nothing changed, or a few edits) are decided in one pass over
+    the scan, comparing each entry with the stat the state recorded, before any hash
+    or plan over the whole tree. A racy entry (stored without its stat) counts as
+    changed, and so is hashed again.
+    """
     entries = scanned.entries
     if (listing.get("full") or listing.get("entries") or listing.get("gone")
-            or listing.get("epoch") != epoch or listing.get("gen") != gen
-            or scanned.skipped or len(entries) != len(synced)):
-        return False
+            or listing.get("epoch") != epoch or listing.get("gen") != gen or scanned.skipped):
+        return None
+    out: set[str] = set()
     for path, e in entries.items():
         s = synced.get(path)
-        if s is None or s.kind != e.kind or s.mode != e.mode:
-            return False
-        if e.kind == "f":
-            # the stat the state recorded (never a racy one: those are stored as -1)
-            if s.size != e.size or s.mtime_ns != e.mtime_ns or s.ctime_ns != e.ctime_ns or s.ino != e.ino:
-                return False
-        elif e.kind == "l" and s.target != e.target:
-            return False
-    return True
+        if s is None or s.kind != e.kind or s.mode != e.mode or (
+                (s.size != e.size or s.mtime_ns != e.mtime_ns or s.ctime_ns != e.ctime_ns
+                 or s.ino != e.ino) if e.kind == "f" else (e.kind == "l" and s.target != e.target)):
+            out.add(path)
+            if len(out) > QUICK_MAX:
+                return None
+    if len(entries) - len(out) != len(synced):
+        out.update(p for p in synced if p not in entries)
+        if len(out) > QUICK_MAX:
+            return None
+    return out
 
 
 def _report_skipped(local: LocalTree, report: Report) -> None:

@@ -139,3 +139,17 @@ def test_drift_the_laptop_already_matches_is_adopted_too(syncer):
     assert first.errors == [] and first.files == 0 and first.bytes_received > 10_000
     again = s.push()
     assert again.errors == [] and again.bytes_received < 1_000, again.bytes_received
+
+
+def test_a_few_local_changes_are_pushed_path_by_path_with_reuse(syncer):
+    s, src, robot_src = syncer
+    s.push()
+    (src / "pkg5" / "f7.txt").rename(src / "pkg6" / "moved.txt")
+    (src / "pkg1" / "f1.txt").write_text("edited\n")
+    (src / "pkg2" / "f2.txt").unlink()
+    (src / "pkg3" / "newdir" / "sub").mkdir(parents=True)
+    (src / "pkg3" / "newdir" / "sub" / "n.txt").write_text("new\n")
+    r = s.push()
+    assert r.errors == [] and r.reused == 1 and r.deleted == 2 and r.files == 3 and r.dirs == 2, r
+    assert tree_of(src) == tree_of(robot_src)
+    assert s.push().changed == 0
