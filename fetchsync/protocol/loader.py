@@ -75,7 +75,8 @@ def endpoint_archive() -> Tuple[bytes, str]:
     return _cache
 
 
-def _notes_dir() -> str:
+def cache_dir() -> str:
+    """fetchsync's cache directory on this machine (the loader's too, on the robot)."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "fetchsync")
 
@@ -99,7 +100,7 @@ def endpoint_digest() -> Tuple[str, int]:
     if _cache is not None:
         return _cache[1], len(_cache[0])
     here = os.path.dirname(os.path.abspath(__file__))
-    note = os.path.join(_notes_dir(), "endpoint-%s.note" % _sources_stamp(here))
+    note = os.path.join(cache_dir(), "endpoint-%s.note" % _sources_stamp(here))
     try:
         with open(note, "r", encoding="ascii") as fh:
             digest, length = fh.read().split()
@@ -127,10 +128,10 @@ def loader_spec(python: str = "python3") -> Tuple[str, Callable[[], bytes]]:
     def archive() -> bytes:
         data, actual = endpoint_archive()
         if actual != digest:  # the note is wrong (a source rewritten within its mtime?)
-            for name in os.listdir(_notes_dir()):
+            for name in os.listdir(cache_dir()):
                 if name.startswith("endpoint-") and name.endswith(".note"):
                     try:
-                        os.unlink(os.path.join(_notes_dir(), name))
+                        os.unlink(os.path.join(cache_dir(), name))
                     except OSError:
                         pass
             raise ProtocolError("fetchsync's endpoint changed while it was starting; run the "

@@ -22,6 +22,7 @@ from typing import Any, BinaryIO, Dict, List, Optional, Tuple
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
+from fetchsync.protocol.loader import cache_dir
 from fetchsync.protocol.store import Store, StoreError
 
 MAX_WORKSPACE = 4096
@@ -30,12 +31,6 @@ MAX_WORKSPACE = 4096
 # only slow and opens the same workspace, its open takes what was prepared.
 PREWARM_AFTER = 0.05
 LAST_OPEN = "last-open.json"
-
-
-def _cache_dir() -> str:
-    """Where the loader caches the endpoint (and we remember the last workspace opened)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "fetchsync")
 
 
 def _open_key(h: Dict[str, Any], algorithm: str) -> str:
@@ -155,7 +150,7 @@ class Server:
         if ready:
             return
         try:
-            with open(os.path.join(_cache_dir(), LAST_OPEN), "r", encoding="utf-8") as fh:
+            with open(os.path.join(cache_dir(), LAST_OPEN), "r", encoding="utf-8") as fh:
                 spec = json.load(fh)
             if not (isinstance(spec, dict) and isinstance(spec.get("workspace"), str)
                     and isinstance(spec.get("key"), str)
@@ -166,7 +161,7 @@ class Server:
         self.prewarm = _Prewarm(spec)
 
     def _remember_open(self, key: str, workspace: str, h: Dict[str, Any]) -> None:
-        path = os.path.join(_cache_dir(), LAST_OPEN)
+        path = os.path.join(cache_dir(), LAST_OPEN)
         spec = {"key": key, "workspace": workspace, "rules": h.get("rules"),
                 "algorithm": self.algorithm}
         text = json.dumps(spec, sort_keys=True)
