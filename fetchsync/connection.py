@@ -156,8 +156,10 @@ class Connection:
                             + (f": {last}" if last else f" (exit status {status})"))
 
     # ------------------------------------------------------------------ requests
-    def send(self, header: dict[str, Any], blob: bytes = b"", *, packed_blob: bool = False) -> int:
-        """Send a request; ``packed_blob`` says the blob carries its own compression."""
+    def send(self, header: dict[str, Any], blob: bytes = b"", *, packed_blob: bool = False,
+             sent: Callable[[int, int], None] | None = None) -> int:
+        """Send a request; ``packed_blob`` says the blob carries its own compression.
+        ``sent(bytes so far, frame length)`` is called as the frame goes out."""
         with self._lock:
             req_id = self._next_id
             self._next_id += 1
@@ -169,6 +171,8 @@ class Connection:
             piece = data[start:start + SEND_PIECE]
             self.channel.send_all(piece)
             self.bytes_out += len(piece)
+            if sent is not None:
+                sent(start + len(piece), len(data))
         return req_id
 
     def check_link(self) -> None:

@@ -438,11 +438,15 @@ class _Batcher:
         header = dict(header, ops=ops)
         if zpart:
             header["zpart"] = [len(zpart), zpos]
-        req = self.conn.send(header, zpart + b"".join(raw), packed_blob=True)
+        progress, base = self.progress, self.done
+
+        def sent(k: int, n: int) -> None:  # the batch's share of the total, as its frame goes out
+            if progress is not None:
+                progress(base + nbytes * k // max(n, 1), self.total)
+
+        req = self.conn.send(header, zpart + b"".join(raw), packed_blob=True, sent=sent)
         self.sent.append((req, tags))
         self.done += nbytes
-        if self.progress is not None:
-            self.progress(self.done, self.total)
 
     def _drain(self) -> None:
         if self._sender is not None:
@@ -546,7 +550,7 @@ class Syncer:
             # since need a plan, as the watch agent pushes them
             self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
             if differing:
-                done = self.push_paths(differing)
+                done = self.push_paths(differing, progress=progress)
                 done.bytes_sent, done.bytes_received = self.conn.bytes_out - b_out, self.conn.bytes_in - b_in
                 done.seconds, done.scan = time.monotonic() - t0, report.scan
                 return done
@@ -566,7 +570,8 @@ class Syncer:
         report.seconds = time.monotonic() - t0
         return report
 
-    def push_paths(self, paths: Iterable[str], dirs: Iterable[str] = ()) -> Report:
+    def push_paths(self, paths: Iterable[str], dirs: Iterable[str] = (), *,
+                   progress: Progress | None = None) -> Report:
         """Push only what changed at ``paths`` and below ``dirs`` (the watch agent's fast path).
 
         No listing from the robot: the plan starts from the last-synced state,
@@ -578,10 +583,10 @@ class Syncer:
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         synced = self._load_synced()
         if not synced or self.state.epoch == "" or self.opened is None:
-            return self.push()
+            return self.push(progress=progress)
         paths, dirs = set(paths), set(dirs)
         if "" in dirs:
-            return self.push()
+            return self.push(progress=progress)
         paths.discard("")
         if not paths and not dirs:
             return report
@@ -593,9 +598,9 @@ class Syncer:
             remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
         _report_skipped(local, report)
         stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
-                               scope=scope, scope_paths=only)
+                               scope=scope, scope_paths=only, progress=progress)
         if stale:
-            return self.push()
+            return self.push(progress=progress)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -649,7 +654,7 @@ class Syncer:
             planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
-                               sum(p.op.size for p in planned if p.how == WHOLE))
+                               sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
             vanished = False
             for p in planned:
                 vanished |= self._send_op(batcher, p, local, report)
@@ -801,6 +806,7 @@ class Syncer:
             if stored is not None:
                 d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
                 if len(d) < len(data):
+                    batcher.total -= op.size - len(d)  # the progress counts what travels
                     batcher.add(op, d, tag=(p, sig))
                     return False
             op = M.Op(**{**op.__dict__, "source": M.SRC_DATA, "base": ""})

@@ -147,6 +147,26 @@ def test_slow_link_push_is_correct(env, fault_proxy, remote_dir):
     assert temporaries(remote_dir) == []
 
 
+def test_slow_link_shows_progress_on_a_terminal(env, fault_proxy, remote_dir):
+    """A transfer longer than a second draws a progress bar on a terminal: the initial
+    push, and a later push of a few changed files (the path-by-path one) too."""
+    from terminal import Terminal
+
+    # incompressible and larger than SSH's 2 MiB window (what fits in it counts as
+    # sent at once): ~4 s at 1 MB/s
+    blob = local_src(env) / "my_pkg" / "blob.bin"
+    blob.write_bytes(os.urandom(4_000_000))
+    fault_proxy.throttle(bytes_per_second=1_000_000, latency=0.02)
+    for _ in range(2):
+        term = Terminal(["push"], env)
+        assert term.wait(timeout=60) == 0, term.output
+        bars = [chunk for chunk in term.output.split(b"\r") if chunk.startswith(b"[#")]
+        assert bars and b"% " in bars[-1] and b"of " in bars[-1], term.output
+        assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
+        blob.write_bytes(os.urandom(4_000_000))
+    fault_proxy.pass_through()
+
+
 def robot_scratch(remote_dir: Path) -> list[str]:
     """Leftovers of an interrupted session in the robot's ``.fetchsync/tmp``."""
     tmp = remote_dir / ".fetchsync" / "tmp"
