@@ -210,3 +210,91 @@ def test_the_index_survives_a_reopen_and_an_old_format_is_dropped(tmp_path):
     assert (again.epoch, again.gen) == (s.epoch, s.gen)
     assert again.synced == s.synced and "caf\udce9.txt" in again.synced
     assert not (meta / "index.json").exists()
+
+
+def _reopened(s: Store) -> Store:
+    return Store(s.workspace, algorithm=ALG)
+
+
+def _index_of(s: Store) -> tuple:
+    return (s.epoch, s.gen, s.synced, s.cache, s.trash_log)
+
+
+def test_each_save_appends_a_record_and_a_reopen_replays_them(tmp_path):
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    s.apply([write("a.txt", b"v1")], b"v1")
+    s.save_index()  # the first save writes the snapshot
+    snapshot = (Path(s.meta) / "index").read_bytes()
+    for i in range(5):
+        data = b"v%d" % (i + 2)
+        s.apply([write("a.txt", data, expect=M.expect_file(h(b"v%d" % (i + 1)))),
+                 write(f"f{i}.txt", data)], data + data)
+        s.save_index()
+    s.apply([M.Op(M.DELETE, "f0.txt", expect=M.expect_file(h(b"v2")))], b"")
+    s.save_index()
+    s.unlock()
+    assert (Path(s.meta) / "index").read_bytes() == snapshot  # only the journal grew
+    assert (Path(s.meta) / "index.log").stat().st_size > 0
+    again = _reopened(s)
+    assert _index_of(again) == _index_of(s)
+    assert "f0.txt" not in again.synced and again.synced["a.txt"][2] == h(b"v6")
+
+
+def test_a_torn_journal_record_is_ignored_and_the_next_save_writes_a_snapshot(tmp_path):
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    s.apply([write("a.txt", b"v1")], b"v1")
+    s.save_index()
+    s.apply([write("b.txt", b"b")], b"b")
+    s.save_index()
+    s.unlock()
+    before = _index_of(_reopened(s))
+    with open(Path(s.meta) / "index.log", "ab") as fh:
+        fh.write(b"\x00\x00\x01\x00garbage")  # a crash mid-append
+    torn = _reopened(s)
+    assert _index_of(torn) == before
+    torn.lock()
+    torn.apply([write("c.txt", b"c")], b"c")
+    torn.save_index()
+    torn.unlock()
+    assert (Path(s.meta) / "index.log").stat().st_size == 0  # folded into a new snapshot
+    assert _index_of(_reopened(torn)) == _index_of(torn) and "c.txt" in torn.synced
+
+
+def test_a_journal_of_another_snapshot_is_never_applied(tmp_path, monkeypatch):
+    import fetchsync.protocol.store as store_mod
+
+    monkeypatch.setattr(store_mod, "JOURNAL_MIN", 0)  # every save past the first: a snapshot
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    s.apply([write("a.txt", b"v1")], b"v1")
+    s.save_index()
+    old_log = Path(s.meta) / "index.log"
+    s.apply([write("b.txt", b"b")], b"b")
+    s.save_index()  # appends (the journal was empty)
+    stale = old_log.read_bytes()
+    s.apply([write("c.txt", b"c")], b"c")
+    s.save_index()  # the journal outgrew the limit: a new snapshot
+    s.unlock()
+    assert old_log.stat().st_size == 0
+    old_log.write_bytes(stale)  # as if a crash left the old journal beside the new snapshot
+    again = _reopened(s)
+    assert _index_of(again) == _index_of(s)
+
+
+def test_another_writers_saves_are_seen_when_the_lock_is_taken(tmp_path):
+    a = Store(str(tmp_path / "ws"), algorithm=ALG)
+    b = Store(str(tmp_path / "ws"), algorithm=ALG)
+    a.lock()
+    a.apply([write("a.txt", b"v1")], b"v1")
+    a.save_index()
+    a.unlock()
+    b.lock()
+    assert "a.txt" in b.synced and b.gen == a.gen
+    b.apply([write("b.txt", b"b")], b"b")
+    b.save_index()
+    b.unlock()
+    a.lock()
+    assert "b.txt" in a.synced and a.gen == b.gen
+    a.unlock()

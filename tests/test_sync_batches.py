@@ -124,14 +124,13 @@ def test_a_lost_robot_index_is_rebuilt_by_the_next_push(syncer):
 def test_drift_the_laptop_already_matches_is_adopted_too(syncer):
     """A robot index that forgot its records but kept its generation reports every path
     as drift; once found identical they are adopted, and the next drift is empty."""
-    import marshal
+    from fetchsync.protocol.store import Store
 
     s, src, robot_src = syncer
     s.push()
-    index = robot_src.parent / ".fetchsync" / "index"
-    data = marshal.loads(index.read_bytes())
-    data["synced"] = {}
-    index.write_bytes(marshal.dumps(data))
+    robot = Store(str(robot_src.parent), algorithm=s.algorithm)
+    robot.synced.clear()
+    robot._write_snapshot()  # same epoch and generation, no records
     s.opened = None
     s.conn.close()
     s.conn = Connection.open(LocalTransport(robot_src.parent.parent))

@@ -16,8 +16,9 @@ Rules it keeps:
   (policy ``preserve``) or the operation is refused (policy ``refuse``).
   Deleted paths go to a bounded ``.fetchsync/trash/``. Nothing is lost.
 - Nothing is written outside the root, nor through a symlink.
-- The index (``.fetchsync/index``, in :mod:`marshal` format: rewritten after
-  every batch, so it must be cheap to write) records what was last synced at each
+- The index (``.fetchsync/index``, a :mod:`marshal` snapshot, plus
+  ``index.log``, the changes made since, appended after every request and
+  folded into a new snapshot when it grows) records what was last synced at each
   path, a stat cache for content hashes, an epoch and a generation, so the
   sender can learn in one round trip what changed here since its last sync.
 """
@@ -31,6 +32,7 @@ import marshal
 import os
 import shutil
 import stat as stat_mod
+import struct
 import time
 import uuid
 from typing import Any, Dict, List, Optional, Tuple
@@ -45,10 +47,14 @@ META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
 TRASH_KEEP_BATCHES = 50
 TRASH_KEEP_BYTES = 512 * 1024 * 1024
-INDEX_VERSION = 2
+INDEX_VERSION = 3
 INDEX = "index"
+JOURNAL = "index.log"
+JOURNAL_MIN = 1 << 20  # the journal is folded into a new snapshot past this and half the snapshot
+_LEN = struct.Struct(">I")
 OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists in full)
-_INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list))
+_INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list),
+                ("serial", str))
 READ_BLOCK = 1 << 20
 
 
@@ -135,15 +141,21 @@ class Store:
 
     # ------------------------------------------------------------------ index
     def _index_stamp(self) -> Any:
-        try:
-            st = os.stat(os.path.join(self.meta, INDEX))
-        except OSError:
-            return None
-        return (st.st_ino, st.st_size, st.st_mtime_ns)
+        stamp = []  # type: List[Optional[Tuple[int, int, int]]]
+        for name in (INDEX, JOURNAL):
+            try:
+                st = os.stat(os.path.join(self.meta, name))
+            except OSError:
+                stamp.append(None)
+            else:
+                stamp.append((st.st_ino, st.st_size, st.st_mtime_ns))
+        return tuple(stamp)
 
     def _load_index(self) -> None:
         path = os.path.join(self.meta, INDEX)
         self._loaded_stamp = self._index_stamp()
+        self._touched_synced = set()  # type: set  # paths changed since the last save
+        self._touched_cache = set()  # type: set
         data = None  # type: Any
         try:
             with open(path, "rb") as fh:
@@ -159,7 +171,7 @@ class Store:
         if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
                 or data.get("algorithm") != self.algorithm
                 or not all(isinstance(data.get(k), t) for k, t in _INDEX_TYPES)):
-            data = {"v": INDEX_VERSION, "epoch": uuid.uuid4().hex, "gen": 0,
+            data = {"v": INDEX_VERSION, "epoch": uuid.uuid4().hex, "gen": 0, "serial": "",
                     "algorithm": self.algorithm, "synced": {}, "cache": {}, "trash": []}
             self._dirty = True
         else:
@@ -169,6 +181,48 @@ class Store:
         self.synced = data["synced"]  # type: Dict[str, List[Any]]  # path -> [kind, mode, hash|target]
         self.cache = data["cache"]    # type: Dict[str, List[Any]]  # path -> [size, mtime, ctime, ino, hash]
         self.trash_log = data.get("trash", [])  # type: List[List[Any]]
+        self._serial = data["serial"]  # type: str  # the snapshot the journal's records apply to
+        index_stat = self._loaded_stamp[0]
+        self._snapshot_size = index_stat[1] if index_stat else 0
+        # -1: no snapshot of ours to append to (new, damaged): the next save writes one
+        self._journal_size = self._replay_journal() if self._serial else -1
+
+    def _replay_journal(self) -> int:
+        """Apply the journal's records written since our snapshot; the length of its valid part
+        (-1 if the file holds anything else: the next save writes a new snapshot)."""
+        try:
+            with open(os.path.join(self.meta, JOURNAL), "rb") as fh:
+                buf = fh.read()
+        except FileNotFoundError:
+            return 0
+        except OSError:
+            return -1
+        pos = 0
+        while pos + _LEN.size <= len(buf):
+            (n,) = _LEN.unpack_from(buf, pos)
+            end = pos + _LEN.size + n
+            if end > len(buf):
+                break  # torn by a crash mid-append
+            try:
+                rec = marshal.loads(buf[pos + _LEN.size:end])
+                if not (isinstance(rec, dict) and rec.get("serial") == self._serial):
+                    break
+                epoch, gen, trash = rec["epoch"], rec["gen"], rec["trash"]
+                changes = [(self.synced, rec["s"]), (self.cache, rec["c"])]
+                if not (isinstance(epoch, str) and isinstance(gen, int) and isinstance(trash, list)
+                        and all(isinstance(c, dict) for _t, c in changes)):
+                    break
+            except (ValueError, EOFError, TypeError, KeyError):
+                break
+            for table, change in changes:
+                for path, value in change.items():
+                    if value is None:
+                        table.pop(path, None)
+                    else:
+                        table[path] = value
+            self.epoch, self.gen, self.trash_log = epoch, gen, trash
+            pos = end
+        return pos if pos == len(buf) else -1
 
     def discard_uploads(self) -> None:
         """Remove the upload parts this session started and never used (its client left)."""
@@ -180,17 +234,66 @@ class Store:
         self._uploads.clear()
 
     def save_index(self) -> None:
+        """Record what changed since the last save: a journal record of the touched paths,
+        or, once the journal outgrows half the snapshot, a new snapshot.
+
+        Rewriting the whole index after every request cost a one-file save ~0.3 s
+        of the robot's time on 100,000 files; a record costs what it holds.
+        """
         if not self._dirty:
             return
-        data = {"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen, "algorithm": self.algorithm,
-                "synced": self.synced, "cache": self.cache, "trash": self.trash_log}
-        path = os.path.join(self.meta, INDEX)
-        tmp = path + ".tmp"
-        with open(tmp, "wb") as fh:
-            fh.write(marshal.dumps(data))
-        os.replace(tmp, path)
+        if self._journal_size < 0 or self._journal_size > max(JOURNAL_MIN, self._snapshot_size // 2):
+            self._write_snapshot()
+        else:
+            rec = marshal.dumps({
+                "serial": self._serial, "epoch": self.epoch, "gen": self.gen, "trash": self.trash_log,
+                "s": {p: self.synced.get(p) for p in self._touched_synced},
+                "c": {p: self.cache.get(p) for p in self._touched_cache}})
+            fd = os.open(os.path.join(self.meta, JOURNAL), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+            try:
+                _write_all(fd, _LEN.pack(len(rec)) + rec)
+            finally:
+                os.close(fd)
+            self._journal_size += _LEN.size + len(rec)
+        self._touched_synced.clear()
+        self._touched_cache.clear()
         self._dirty = False
         self._loaded_stamp = self._index_stamp()
+
+    def _write_snapshot(self) -> None:
+        self._serial = uuid.uuid4().hex
+        blob = marshal.dumps({"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen,
+                              "algorithm": self.algorithm, "serial": self._serial,
+                              "synced": self.synced, "cache": self.cache, "trash": self.trash_log})
+        path = os.path.join(self.meta, INDEX)
+        with open(path + ".tmp", "wb") as fh:
+            fh.write(blob)
+        os.replace(path + ".tmp", path)
+        # the old journal's records name the old snapshot: a crash before this
+        # line leaves them ignored, never applied to the new one
+        with open(os.path.join(self.meta, JOURNAL + ".tmp"), "wb"):
+            pass
+        os.replace(os.path.join(self.meta, JOURNAL + ".tmp"), os.path.join(self.meta, JOURNAL))
+        self._snapshot_size = len(blob)
+        self._journal_size = 0
+
+    def _set_cache(self, path: str, value: Optional[List[Any]]) -> None:
+        if value is None:
+            if self.cache.pop(path, None) is None:
+                return
+        else:
+            self.cache[path] = value
+        self._touched_cache.add(path)
+        self._dirty = True
+
+    def _set_synced(self, path: str, value: Optional[List[Any]]) -> None:
+        if value is None:
+            if self.synced.pop(path, None) is None:
+                return
+        else:
+            self.synced[path] = value
+        self._touched_synced.add(path)
+        self._dirty = True
 
     def _clean_temps(self) -> None:
         for dirpath, dirs, files in os.walk(self.root):
@@ -252,8 +355,7 @@ class Store:
             return cached[4]
         with open(self._resolver.full(path), "rb") as fh:
             digest = hashing.file_digest(self.algorithm, fh).hex()
-        self.cache[path] = [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest]
-        self._dirty = True
+        self._set_cache(path, [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest])
         return digest
 
     @staticmethod
@@ -280,8 +382,7 @@ class Store:
         entry = stat_path(self._resolver.full(path))
         if entry is None or entry.kind != FILE or not digest:
             return self.listed(path, entry)
-        self.cache[path] = [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest]
-        self._dirty = True
+        self._set_cache(path, [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest])
         return M.Listed(path, FILE, entry.mode, entry.size, hash=digest)
 
     def current(self, path: str) -> Optional[M.Listed]:
@@ -301,8 +402,7 @@ class Store:
                 out.append(item)
                 live.add(path)
         for path in [p for p in self.cache if p not in live]:
-            del self.cache[path]
-            self._dirty = True
+            self._set_cache(path, None)
         out.sort(key=lambda x: x.path)
         return out, result.skipped
 
@@ -373,19 +473,17 @@ class Store:
 
     def _record(self, path: str, item: Optional[M.Listed]) -> None:
         if item is None:
-            if self.synced.pop(path, None) is not None:
-                self._dirty = True
+            self._set_synced(path, None)
             return
         extra = item.hash if item.kind == FILE else item.target
-        self.synced[path] = [item.kind, item.mode, extra]
-        self._dirty = True
+        self._set_synced(path, [item.kind, item.mode, extra])
 
     def _forget_below(self, path: str) -> None:
         prefix = path + "/"
-        for table in (self.synced, self.cache):
-            for key in [k for k in table if k == path or k.startswith(prefix)]:
-                del table[key]
-        self._dirty = True
+        for key in [k for k in self.synced if k == path or k.startswith(prefix)]:
+            self._set_synced(key, None)
+        for key in [k for k in self.cache if k == path or k.startswith(prefix)]:
+            self._set_cache(key, None)
 
     def adopt(self, items: List[M.Listed]) -> int:
         """Record ``items`` as synced where the disk still holds exactly them."""
