@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 BACKOFF_FIRST = 0.25
 BACKOFF_CAP = 4.0
 PROBE_EVERY = 2.0  # seconds between link checks while idle
-RELEASE_AFTER = 1000  # paths a push must have covered before its memory is handed back
+RELEASE_AFTER = 1000  # paths a push must have changed before its memory is handed back
 
 
 def release_memory() -> None:
@@ -419,7 +419,9 @@ class Agent:
         if self.state == "live" and not getattr(self, "_announced", False):
             self._announced = True
             self.say(f"live: {self.src} -> {self.target.robot}:{self.target.remote_workspace}/src")
-        if work.full or report.files + report.dirs + report.deleted >= RELEASE_AFTER:
+        if report.files + report.dirs + report.deleted >= RELEASE_AFTER:
+            # not after a full sync that changed little (the start-up rescan of an
+            # unchanged tree): its entries are the ones loaded from the state
             self._compact()
 
     def _compact(self) -> None:
