@@ -187,6 +187,11 @@ class Connection:
             raise LinkLostError(f"the link to {self.transport.name} was lost: "
                                 "the robot stopped answering keepalives")
 
+    def answered(self, req_id: int) -> bool:
+        """Whether :meth:`wait` for ``req_id`` would return (or raise) at once."""
+        with self._arrived:
+            return req_id in self._pending or self._failure is not None
+
     def wait(self, req_id: int) -> wire.Frame:
         # A dead Wi-Fi link acks nothing but fails nothing either: the kernel's
         # user timeout only fires while we have data in flight, so a client

@@ -364,6 +364,9 @@ class _Batcher:
         self._sender: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._mark: tuple[int, int] = (-1, -1)
+        self._taken = 0  # batches in ``sent`` whose answer was read
+        self.last: dict[str, Any] = {}
+        self.stale = False
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
         z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.pack(
@@ -464,24 +467,33 @@ class _Batcher:
         if self._failure is not None:
             raise self._failure
 
-    def results(self) -> tuple[list[tuple[Any, M.Result]], dict[str, Any], bool]:
-        """Results of every batch that applied, the last answer, and whether one was refused
-        as stale (someone else wrote to the robot meanwhile; later batches are refused too)."""
-        self._drain()
+    def answered(self, *, wait: bool = False) -> list[tuple[Any, M.Result]]:
+        """The results of the batches answered since the last call, in order (with ``wait``,
+        of every batch sent, once the last is out). Each batch is let go of once read, so
+        a push of 100,000 operations does not hold them all, nor all their answers.
+
+        ``last`` then holds the last answer that applied, ``stale`` whether one was refused
+        as stale (someone else wrote to the robot meanwhile; later batches are refused too).
+        """
+        if wait:
+            self._drain()
         out: list[tuple[Any, M.Result]] = []
-        last: dict[str, Any] = {}
-        stale = False
-        for req, tags in self.sent:
+        while self._taken < len(self.sent):
+            req, tags = self.sent[self._taken]
+            if not wait and not self.conn.answered(req):
+                break
             frame = self.conn.wait(req)
+            self.sent[self._taken] = (req, [])
+            self._taken += 1
             if frame.header.get("stale"):
-                stale = True
+                self.stale = True
                 continue
-            last = frame.header
-            results = last.get("results", [])
+            self.last = frame.header
+            results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
             out.extend((t, M.Result.from_wire(r)) for t, r in zip(tags, results))
-        return out, last, stale
+        return out
 
 
 # --------------------------------------------------------------------------- push
@@ -655,18 +667,29 @@ class Syncer:
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
-            vanished = False
-            for p in planned:
-                vanished |= self._send_op(batcher, p, local, report)
+            vanished = mismatch = False
+
+            def settle(answered: list[tuple[Any, M.Result]]) -> None:
+                nonlocal mismatch
+                for tag, res in answered:
+                    mismatch |= res.code == M.BASE_MISMATCH
+                    self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local,
+                                 report, now_ns)
+
+            # settled as the robot answers, so a large push never holds every
+            # operation and every answer at once
+            planned.reverse()
+            while planned:
+                vanished |= self._send_op(batcher, planned.pop(), local, report)
+                if len(planned) % 512 == 0:
+                    settle(batcher.answered())
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
             batcher.flush()
-            results, last, stale = batcher.results()
-            if last:
-                epoch, gen = last["epoch"], last["gen"]
-            for tag, res in results:
-                self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local, report,
-                             now_ns)
+            settle(batcher.answered(wait=True))
+            stale = batcher.stale
+            if batcher.last:
+                epoch, gen = batcher.last["epoch"], batcher.last["gen"]
             if stale:
                 if scope is not None:
                     self._commit(upserts, deletes, new_synced, epoch, gen)
@@ -680,11 +703,12 @@ class Syncer:
             # only a base mismatch (it goes whole next time) or a file that
             # vanished (its delete) is worth another round; a lasting failure
             # (no space, permission) is reported once
-            if not vanished and not any(r.code == M.BASE_MISMATCH for _t, r in results):
+            if not vanished and not mismatch:
                 break
-        if not dry_run:
-            left = [p for p in plan(local.items, remote, expect) if p.op.path not in
-                    {e["path"] for e in report.errors} and not guarded(p.op.path)]
+        if not dry_run and report.rounds:  # no round: the first plan was empty already
+            failed = {e["path"] for e in report.errors}
+            left = [p for p in plan(local.items, remote, expect)
+                    if p.op.path not in failed and not guarded(p.op.path)]
             if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
                 report.errors.append({"path": left[0].op.path, "error":
                                       f"{len(left)} path(s) still differ on the robot after "
