@@ -156,23 +156,32 @@ class Connection:
                             + (f": {last}" if last else f" (exit status {status})"))
 
     # ------------------------------------------------------------------ requests
-    def send(self, header: dict[str, Any], blob: bytes = b"", *, packed_blob: bool = False,
+    def send(self, header: dict[str, Any], blob: bytes = b"", *,
+             blob_parts: list[bytes] | None = None,
              sent: Callable[[int, int], None] | None = None) -> int:
-        """Send a request; ``packed_blob`` says the blob carries its own compression.
-        ``sent(bytes so far, frame length)`` is called as the frame goes out."""
+        """Send a request. ``blob_parts``: a blob in parts that carry their own compression,
+        sent as they are (not joined, nor compressed again). ``sent(bytes so far, frame
+        length)`` is called as the frame goes out."""
         with self._lock:
             req_id = self._next_id
             self._next_id += 1
-        data = wire.encode_frame(wire.Frame(wire.T_REQUEST, req_id, header, blob),
-                                 compress=self.compress, compress_blob=not packed_blob)
+        frame = wire.Frame(wire.T_REQUEST, req_id, header, blob)
+        if blob_parts is None:
+            parts = [wire.encode_frame(frame, compress=self.compress)]
+        else:
+            parts = wire.encode_frame_parts(frame, blob_parts, compress=self.compress)
+        total = sum(len(p) for p in parts)
+        done = 0
         # in pieces, so bytes_out shows progress during a long frame on a slow
         # link (check_link's callers tell a slow link from a dead one by it)
-        for start in range(0, len(data), SEND_PIECE):
-            piece = data[start:start + SEND_PIECE]
-            self.channel.send_all(piece)
-            self.bytes_out += len(piece)
-            if sent is not None:
-                sent(start + len(piece), len(data))
+        for data in parts:
+            for start in range(0, len(data), SEND_PIECE):
+                piece = data[start:start + SEND_PIECE]
+                self.channel.send_all(piece)
+                self.bytes_out += len(piece)
+                done += len(piece)
+                if sent is not None:
+                    sent(done, total)
         return req_id
 
     def check_link(self) -> None:

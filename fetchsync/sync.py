@@ -437,17 +437,23 @@ class _Batcher:
                     raw.append(data)
                     rpos += len(data)
             ops.append(op.to_wire())
-        zpart = zlib.compress(b"".join(packed), 1) if packed else b""
+        # one zlib stream over the compressible parts, made without joining them
+        zparts: list[bytes] = []
+        if packed:
+            deflate = zlib.compressobj(1)
+            zparts = [deflate.compress(data) for data in packed]
+            zparts.append(deflate.flush())
+            del packed
         header = dict(header, ops=ops)
-        if zpart:
-            header["zpart"] = [len(zpart), zpos]
+        if zparts:
+            header["zpart"] = [sum(len(p) for p in zparts), zpos]
         progress, base = self.progress, self.done
 
         def sent(k: int, n: int) -> None:  # the batch's share of the total, as its frame goes out
             if progress is not None:
                 progress(base + nbytes * k // max(n, 1), self.total)
 
-        req = self.conn.send(header, zpart + b"".join(raw), packed_blob=True, sent=sent)
+        req = self.conn.send(header, blob_parts=zparts + raw, sent=sent)
         self.sent.append((req, tags))
         self.done += nbytes
 

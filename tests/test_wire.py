@@ -114,3 +114,14 @@ def test_pack_sends_barely_compressible_data_raw():
     text = b"int x = 1;\n" * 20000
     packed, z = wire.pack(text)
     assert z and len(packed) < len(text) // 10
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_a_frame_in_parts_is_the_frame_with_its_blob_joined(compress):
+    header = {"op": "sync", "ops": [{"k": "w", "p": "a" * 40}] * 20}
+    parts = [os.urandom(1000), b"", b"x" * 5000]
+    frame = wire.Frame(wire.T_REQUEST, 7, header, b"".join(parts))
+    joined = b"".join(wire.encode_frame_parts(frame._replace(blob=b""), parts, compress=compress))
+    assert joined == wire.encode_frame(frame, compress=compress, compress_blob=False)
+    got = wire.Reader(io.BytesIO(joined).read).read_frame()
+    assert (got.header, got.blob, got.req_id) == (header, frame.blob, 7)

@@ -80,6 +80,24 @@ def encode_frame(frame: Frame, *, compress: bool = False, compress_blob: bool = 
     return _FRAME.pack(len(body), frame.type, flags, frame.req_id) + body
 
 
+def encode_frame_parts(frame: Frame, blob_parts: "list[bytes]", *, compress: bool = False,
+                       level: int = 1) -> "list[bytes]":
+    """A frame whose blob carries its own compression, as byte strings to send in order:
+    the blob's parts are not copied into one (a batch's are megabytes)."""
+    head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
+    flags = 0
+    if compress and len(head) >= COMPRESS_MIN:
+        packed_head = zlib.compress(head, level)
+        if len(packed_head) < len(head):
+            head = packed_head
+            flags |= FLAG_ZHEAD
+    body_len = _U32.size + len(head) + sum(len(p) for p in blob_parts)
+    if body_len > MAX_FRAME:
+        raise ProtocolError("frame of %d bytes is over the cap of %d" % (body_len, MAX_FRAME))
+    return [_FRAME.pack(body_len, frame.type, flags, frame.req_id) + _U32.pack(len(head)) + head,
+            *blob_parts]
+
+
 def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
     if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
         raise ProtocolError("unknown frame flags 0x%02x" % flags)
