@@ -948,7 +948,7 @@ class Syncer:
                 upserts.pop(key, None)
                 deletes.add(key)
             return
-        written = M.Listed.from_wire(res.written) if res.written else p.item
+        written = _as_sent(res.written, p.item) if res.written else p.item
         if written is None:
             return
         if p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK) and path in remote and remote[path].kind == "d" \
@@ -1186,6 +1186,16 @@ def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict
         if len(out) > QUICK_MAX:
             return None
     return out
+
+
+def _as_sent(wire: Any, item: M.Listed | None) -> M.Listed:
+    """What the robot reports it wrote, as the item we sent when it is that (the usual case):
+    a large push then keeps one copy of each path and hash, not a second one per answer."""
+    if (item is not None and isinstance(wire, list) and len(wire) == 5 and wire[0] == item.path
+            and wire[1] == item.kind and wire[2] == item.mode and wire[3] == item.size
+            and wire[4] == (item.target if item.kind == "l" else item.hash)):
+        return item
+    return M.Listed.from_wire(wire)
 
 
 def _report_skipped(local: LocalTree, report: Report) -> None:
