@@ -360,7 +360,7 @@ class _Batcher:
         self.total = total
         self.done = 0
         self._queue: queue.Queue[tuple[dict[str, Any], list[tuple[M.Op, bytes, bool]], list[Any]] | None] \
-            = queue.Queue(maxsize=2)
+            = queue.Queue(maxsize=1)
         self._sender: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._mark: tuple[int, int] = (-1, -1)
@@ -756,7 +756,7 @@ class Syncer:
                 elif sig is not None:
                     self._signed.add(path)
             self._signed.difference_update(deletes)
-        self.state.commit(upserts=[(p, s, sig) for p, (s, sig) in upserts.items()],
+        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
                           deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
                                                  "algorithm": self.algorithm})
         self._synced = new_synced
