@@ -197,3 +197,40 @@ def test_the_masters_scan_answers_only_what_a_fresh_scan_would(tmp_path):
         master._scan(request)  # a FIFO is reported by a real scan: the caller must scan
     with pytest.raises(ValueError, match="unknown"):
         master._scan({"scan": str(src), "v": 99})
+
+
+def watched_inodes(pid: int) -> set[int]:
+    """The inodes of the directories a process watches with inotify (from /proc fdinfo)."""
+    out = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            if os.readlink(f"/proc/{pid}/fd/{fd}") != "anon_inode:inotify":
+                continue
+            with open(f"/proc/{pid}/fdinfo/{fd}") as fh:
+                for line in fh:
+                    if line.startswith("inotify wd:"):
+                        out.add(int(line.split(" ino:")[1].split()[0], 16))
+        except OSError:
+            continue
+    return out
+
+
+def test_spare_endpoints_follow_the_workspace_opened_last(env, remote_dir, tmp_path):
+    """Spares started before the first push to another workspace switch to it."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    fetchsync("push", env=env)
+    assert wait_for(lambda: masters(runtime))
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
+    first_ino = os.stat(remote_dir / "src").st_ino
+    # both spares have prepared the first workspace
+    assert wait_for(lambda: sum(first_ino in watched_inodes(pid)
+                                for pid in prewarmed_endpoints()) >= 2, timeout=10)
+    other = dict(env, FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir) + "-other",
+                 XDG_STATE_HOME=str(tmp_path / "state-other"))
+    assert report(fetchsync("push", "--json", env=other))["connection"] == "master"
+    src_ino = os.stat(str(remote_dir) + "-other/src").st_ino
+
+    def spares_watch_other() -> bool:
+        return sum(src_ino in watched_inodes(pid) for pid in prewarmed_endpoints()) >= 2
+
+    assert wait_for(spares_watch_other, timeout=10)

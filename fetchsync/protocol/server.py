@@ -30,6 +30,7 @@ MAX_WORKSPACE = 4096
 # we are a connection master's spare endpoint, with time to prepare. If one was
 # only slow and opens the same workspace, its open takes what was prepared.
 PREWARM_AFTER = 0.05
+PREWARM_POLL = 0.5  # then how often a waiting spare looks whether another workspace was opened
 LAST_OPEN = "last-open.json"
 
 
@@ -142,23 +143,41 @@ class Server:
                 return
 
     def _maybe_prewarm(self) -> None:
-        """While no client talks to us, open and watch the workspace opened last."""
-        try:
-            ready, _, _ = select.select([self.inp.fileno()], [], [], PREWARM_AFTER)
-        except (OSError, ValueError, AttributeError):
-            return
-        if ready:
-            return
-        try:
-            with open(os.path.join(cache_dir(), LAST_OPEN), "r", encoding="utf-8") as fh:
-                spec = json.load(fh)
+        """While no client talks to us, open and watch the workspace opened last, and follow
+        the record when another endpoint opens a different one meanwhile (a spare started
+        before the first push to a new workspace would otherwise prepare the old one)."""
+        path = os.path.join(cache_dir(), LAST_OPEN)
+        seen = None  # type: Any
+        timeout = PREWARM_AFTER
+        while True:
+            try:
+                ready, _, _ = select.select([self.inp.fileno()], [], [], timeout)
+            except (OSError, ValueError, AttributeError):
+                return
+            if ready:
+                return
+            timeout = PREWARM_POLL
+            try:
+                st = os.stat(path)
+            except OSError:
+                continue
+            if (st.st_mtime_ns, st.st_size, st.st_ino) == seen:
+                continue
+            seen = (st.st_mtime_ns, st.st_size, st.st_ino)
+            try:
+                with open(path, "r", encoding="utf-8") as fh:
+                    spec = json.load(fh)
+            except (OSError, ValueError):
+                continue
             if not (isinstance(spec, dict) and isinstance(spec.get("workspace"), str)
                     and isinstance(spec.get("key"), str)
                     and spec.get("algorithm") in hashing.available()):
-                return
-        except (OSError, ValueError):
-            return
-        self.prewarm = _Prewarm(spec)
+                continue
+            if self.prewarm is not None:
+                if self.prewarm.key == spec["key"]:
+                    continue
+                self.prewarm.take("")  # let the old one finish, and close it
+            self.prewarm = _Prewarm(spec)
 
     def _remember_open(self, key: str, workspace: str, h: Dict[str, Any]) -> None:
         path = os.path.join(cache_dir(), LAST_OPEN)
