@@ -65,6 +65,17 @@ class _Prewarm:
         except Exception:  # an optimisation only: the client's open starts afresh
             self.store = None
 
+    def keep_current(self) -> bool:
+        """Apply the events queued so far (so a busy tree, such as another client's initial
+        push, cannot overflow the queue while we wait); False if events were lost."""
+        if self.thread.is_alive() or self.store is None or self.store.watched is None:
+            return True
+        if self.store.watched.refresh():
+            return True
+        self.store.watched.close()
+        self.store = None
+        return False
+
     def take(self, key: str) -> Optional[Store]:
         self.thread.join()
         store, self.store = self.store, None
@@ -157,6 +168,8 @@ class Server:
             if ready:
                 return
             timeout = PREWARM_POLL
+            if self.prewarm is not None and not self.prewarm.keep_current():
+                self.prewarm = _Prewarm(self.prewarm.spec)  # events were lost: scan again
             try:
                 st = os.stat(path)
             except OSError:
