@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import shutil
@@ -141,3 +142,73 @@ def test_random_changes_always_match_a_fresh_scan(root: Path) -> None:
                 pass  # a collision with what is there: fine, whatever happened is the truth
         assert tree.refresh()
         assert tree.entries == fresh(root), f"round {_round}"
+
+
+_LIMIT_SCRIPT = r'''
+import json, os, sys, time
+sys.path.insert(0, REPO)
+root = sys.argv[1]
+with open("/proc/sys/user/max_inotify_watches", "w") as fh:
+    fh.write("4\n")            # in this user namespace only: the root and 3 directories
+from fetchsync.agent.mux import SCAN_VERSION, Master
+from fetchsync.protocol.store import Store
+from fetchsync.sync import build_rules
+
+def watches():
+    n = 0
+    for fd in os.listdir("/proc/self/fdinfo"):
+        try:
+            with open("/proc/self/fdinfo/" + fd) as fh:
+                n += sum(line.startswith("inotify wd:") for line in fh)
+        except OSError:
+            pass
+    return n
+
+out = {}
+store = Store(os.path.dirname(root), algorithm="blake2b-128")
+out["store_watch"] = store.watch()
+out["watches_after_store"] = watches()
+rules = build_rules()
+master = Master(transport=None, path="/nonexistent", idle=60, warm=None)
+request = {"scan": root, "rules": rules.to_wire(), "v": SCAN_VERSION}
+answers = []
+for _ in range(40):
+    try:
+        master._scan(request)
+        answers.append("entries")
+    except ValueError as exc:
+        answers.append(str(exc))
+    if "cannot be watched" in answers[-1]:
+        break
+    time.sleep(0.05)
+out["answers"] = answers
+out["watches_after_master"] = watches()
+print(json.dumps(out))
+'''.replace("REPO", repr(str(Path(__file__).resolve().parent.parent)))
+
+
+def test_over_the_watch_limit_nothing_is_kept_watched_nor_retried(tmp_path: Path) -> None:
+    """A tree that cannot be watched whole gives its watches back at once (a watch agent
+    needs them), on the robot's spare endpoint and in the connection master alike, and
+    the master does not retry it on every call."""
+    import subprocess
+    import sys
+
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("needs unshare (util-linux) for a user namespace of its own")
+    src = tmp_path / "ws" / "src"
+    for i in range(10):
+        (src / f"d{i}").mkdir(parents=True)
+    script = tmp_path / "limit.py"
+    script.write_text(_LIMIT_SCRIPT)
+    proc = subprocess.run([unshare, "--user", "--map-root-user", sys.executable, str(script), str(src)],
+                          capture_output=True, text=True, timeout=60)
+    if proc.returncode != 0 and "max_inotify_watches" in proc.stderr:
+        pytest.skip("cannot set a user namespace's inotify limit here: " + proc.stderr[-300:])
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["store_watch"] is False and out["watches_after_store"] == 0
+    assert out["answers"][0].startswith("starting")
+    assert "cannot be watched" in out["answers"][-1] and "entries" not in out["answers"]
+    assert out["watches_after_master"] == 0

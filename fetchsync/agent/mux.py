@@ -47,6 +47,7 @@ _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
 SCAN_VERSION = 1
 MAX_TREES = 2  # local workspaces kept watched by one master
+UNWATCHABLE_FOR = 600.0  # seconds before watching a tree that could not be watched is tried again
 
 
 def persist_seconds() -> float:
@@ -277,6 +278,7 @@ class Master:
         self.last_used = time.monotonic()
         self.trees: dict[str, Any] = {}  # scan key -> WatchedTree, or None while being built
         self.scan_replies: dict[str, tuple[int, bytes]] = {}  # scan key -> (tree version, reply)
+        self.unwatchable: dict[str, float] = {}  # scan key -> when watching it last failed
         self.trees_lock = threading.Lock()
 
     def _refill(self) -> None:
@@ -374,6 +376,8 @@ class Master:
         key = json.dumps([root, rules])
         with self.trees_lock:
             if key not in self.trees:
+                if time.monotonic() - self.unwatchable.get(key, -UNWATCHABLE_FOR) < UNWATCHABLE_FOR:
+                    raise ValueError("that tree cannot be watched (inotify limit?)")
                 if len(self.trees) >= MAX_TREES:
                     oldest = next(iter(self.trees))
                     old = self.trees.pop(oldest)
@@ -412,11 +416,18 @@ class Master:
         except (Unavailable, OSError, ValueError) as exc:
             log.debug("cannot watch %s: %s", root, exc)
             tree = None
+        if tree is not None and tree.watch.lost:
+            # over the user's inotify watch limit: give the watches back (a watch
+            # agent needs them more) and let callers scan for themselves a while
+            tree.close()
+            tree = None
         with self.trees_lock:
             if key in self.trees and tree is not None:
                 self.trees[key] = tree
                 return
             self.trees.pop(key, None)
+            if tree is None:
+                self.unwatchable[key] = time.monotonic()
         if tree is not None:
             tree.close()
 

@@ -446,9 +446,13 @@ class Store:
         """Scan now and keep the scan current with inotify, for a later :meth:`drift`."""
         from fetchsync.protocol.watched import Unavailable, WatchedTree
         try:
-            self.watched = WatchedTree(self.root, self.rules, is_temp)
+            tree = WatchedTree(self.root, self.rules, is_temp)
         except (Unavailable, OSError):
             return False
+        if tree.watch.lost:  # over the user's inotify watch limit: give them back
+            tree.close()
+            return False
+        self.watched = tree
         return True
 
     def _current_entries(self) -> Dict[str, Entry]:
