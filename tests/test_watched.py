@@ -212,3 +212,18 @@ def test_over_the_watch_limit_nothing_is_kept_watched_nor_retried(tmp_path: Path
     assert out["answers"][0].startswith("starting")
     assert "cannot be watched" in out["answers"][-1] and "entries" not in out["answers"]
     assert out["watches_after_master"] == 0
+
+
+def test_a_path_that_cannot_be_looked_at_makes_the_tree_untrusted(root: Path, monkeypatch) -> None:
+    import fetchsync.protocol.watched as watched_mod
+
+    tree = watched(root)
+    (root / "pkg" / "src" / "a.cpp").write_text("changed\n")
+
+    def refuse(full):
+        raise PermissionError(13, "Permission denied", full)
+
+    monkeypatch.setattr(watched_mod, "stat_path", refuse)
+    assert not tree.refresh()  # its events are spent: the entries can no longer be vouched for
+    monkeypatch.undo()
+    assert not tree.refresh()  # and stay untrusted: the caller scans afresh

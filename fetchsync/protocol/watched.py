@@ -135,9 +135,14 @@ class WatchedTree:
         if touched:
             self.version += 1
         # parents first: a new directory is scanned whole before its children's events
-        for path in sorted(touched, key=lambda p: (p.count("/"), p)):
-            if not self._refresh(path):
-                return False
+        try:
+            for path in sorted(touched, key=lambda p: (p.count("/"), p)):
+                if not self._refresh(path):
+                    self.watch.lost = True
+                    return False
+        except OSError:  # say, a path that cannot be looked at any more: its events are spent
+            self.watch.lost = True
+            return False
         return not self.watch.lost
 
     def _forget(self, path: str) -> None:
