@@ -298,3 +298,13 @@ def test_another_writers_saves_are_seen_when_the_lock_is_taken(tmp_path):
     a.lock()
     assert "b.txt" in a.synced and a.gen == b.gen
     a.unlock()
+
+
+def test_a_rename_that_fails_at_commit_leaves_no_temporary(store):
+    # found by the fuzzer: a symlink written, then a directory made at the same path
+    # in the same batch; the symlink's rename into place fails at commit
+    ops = [M.Op(M.SYMLINK, "b", expect=M.ABSENT, target="a"), M.Op(M.MKDIR, "b", expect=M.ABSENT, mode=0o755)]
+    results = store.apply(ops, b"")
+    assert len(results) == 2 and not results[0].ok
+    assert (src(store) / "b").is_dir()
+    assert not [n for _d, _s, files in os.walk(store.root) for n in files if ".fetchsync-tmp-" in n]

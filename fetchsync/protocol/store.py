@@ -859,7 +859,13 @@ class _Batch:
                 try:
                     os.rename(tmp, full)
                 except OSError as exc:
+                    # say, a directory made at that path later in the batch: the
+                    # temporary must not stay behind
                     results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (path, exc.strerror))
+                    try:
+                        os.unlink(tmp)
+                    except OSError:
+                        pass
                     continue
                 item = self.s.written(path, digest)
                 self.s._record(path, item)
