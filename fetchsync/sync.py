@@ -231,6 +231,8 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
         result = scan(root, rules, is_temp=is_temp, start=top)
         skipped.extend(result.skipped)
         for path, entry in result.entries.items():
+            if path in stats and stats[path] == entry:
+                continue  # a touched path already added (and hashed) above
             _add_entry(root, path, entry, synced, algorithm, items, stats, skipped)
 
     scope: Callable[[str], bool]
