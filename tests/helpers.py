@@ -73,3 +73,16 @@ def fetchsync(*args: str, env: dict | None = None, check: bool = True,
 
 def report(proc: subprocess.CompletedProcess) -> dict:
     return json.loads(proc.stdout.decode().strip().splitlines()[-1])
+
+
+def ssh_env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[str, str]:
+    """The CLI's environment for a push to the test sshd's ``robot`` alias from ``home``
+    (an ssh_home or proxied_home), with a fresh workspace under ``tmp_path``."""
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
+        e.pop(k, None)
+    e.update(HOME=str(home), FETCHSYNC_ROBOT="robot",
+             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+             XDG_STATE_HOME=str(tmp_path / "state"), **extra)
+    make_workspace(tmp_path / "ws")
+    return e

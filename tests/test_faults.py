@@ -9,7 +9,6 @@ push or pull converges with no temporaries left behind.
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, report, ssh_env, tree_of
 
 pytestmark = pytest.mark.ssh
 
@@ -78,14 +77,7 @@ def bulky_files(src: Path, *, count: int = 40, size: int = 64 * 1024) -> None:
 
 @pytest.fixture
 def env(proxied_home, remote_dir, tmp_path):
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(HOME=str(proxied_home.home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
-    make_workspace(tmp_path / "ws")
-    return e
+    return ssh_env(proxied_home.home, remote_dir, tmp_path)
 
 
 def local_src(env: dict) -> Path:

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import make_workspace, report, tree_of
+from helpers import make_workspace, report, ssh_env, tree_of
 
 from fetchsync import sync
 from fetchsync.connection import Connection
@@ -48,14 +48,7 @@ def leftovers(workspace: Path) -> list[str]:
 # --------------------------------------------------------------------------- end to end, real sshd
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path):
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
-    make_workspace(tmp_path / "ws")
-    return e
+    return ssh_env(ssh_home.home, remote_dir, tmp_path)
 
 
 def run(*args: str, env: dict, unprivileged: bool = False) -> subprocess.CompletedProcess:

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, make_workspace, report, ssh_env, tree_of
 
 pytestmark = pytest.mark.ssh
 
@@ -36,14 +36,8 @@ def wait_for(cond, timeout=15.0):
 def env(ssh_home, remote_dir, tmp_path):
     # short: AF_UNIX socket paths are limited to 108 bytes
     runtime = Path(tempfile.mkdtemp(prefix="fsrun", dir="/tmp"))
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_PERSIST="60",
-             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_MUX_LOG=str(tmp_path / "mux.log"), FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir), XDG_STATE_HOME=str(tmp_path / "state"))
-    make_workspace(tmp_path / "ws")
-    yield e
+    yield ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60",
+                  XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_MUX_LOG=str(tmp_path / "mux.log"))
     for pid in masters(runtime):
         os.kill(pid, signal.SIGTERM)
     shutil.rmtree(runtime, ignore_errors=True)

@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, report, ssh_env, tree_of
 
 pytestmark = pytest.mark.ssh
 
@@ -16,14 +16,7 @@ PY38 = "/root/.pyenv/versions/3.8.18/bin/python3.8"
 
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path):
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
-    make_workspace(tmp_path / "ws")
-    return e
+    return ssh_env(ssh_home.home, remote_dir, tmp_path)
 
 
 def test_push_and_edit_and_pull_over_ssh(env, remote_dir):
