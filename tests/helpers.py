@@ -86,3 +86,27 @@ def ssh_env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[
              XDG_STATE_HOME=str(tmp_path / "state"), **extra)
     make_workspace(tmp_path / "ws")
     return e
+
+
+def run_bench(script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = ()) -> tuple[str, dict]:
+    """Run ``bench/SCRIPT`` with ``args`` plus ``--json`` and ``--workdir`` under ``tmp_path``;
+    its stdout (the report) and the raw JSON. Skips (fails under CI) without sshd or ``needs``."""
+    import shutil
+
+    import pytest
+    from sshd import find_sshd
+
+    missing = [t for t in needs if shutil.which(t) is None] + (["sshd"] if find_sshd() is None else [])
+    if missing:
+        if os.environ.get("CI"):
+            pytest.fail(f"{', '.join(missing)} should have been installed by .ci/run")
+        pytest.skip(f"needs {', '.join(missing)}")
+    repo = Path(__file__).resolve().parent.parent
+    out_json = tmp_path / "bench.json"
+    proc = subprocess.run(
+        [sys.executable, str(repo / "bench" / script), *args, "--json", str(out_json),
+         "--workdir", str(tmp_path / "work")],
+        cwd=repo, check=False, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+        timeout=180)
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-5000:]}"
+    return proc.stdout, json.loads(out_json.read_text())

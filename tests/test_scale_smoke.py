@@ -9,51 +9,17 @@ them meaningless). The full run is by hand: see bench/README.md.
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from sshd import find_sshd
-
-REPO = Path(__file__).resolve().parent.parent
-
+from helpers import run_bench
 
 @pytest.mark.ssh
 def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
-    if find_sshd() is None:
-        if os.environ.get("CI"):
-            pytest.fail("sshd is installed by .ci/run; it is missing")
-        pytest.skip("needs sshd (openssh-server)")
-    out_json = tmp_path / "scale.json"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(REPO / "bench" / "scale.py"),
-            "--files",
-            "3000",
-            "--size-mb",
-            "20",
-            "--json",
-            str(out_json),
-            "--workdir",
-            str(tmp_path / "work"),
-        ],
-        cwd=REPO,
-        check=False,
-        stdin=subprocess.DEVNULL,
-        capture_output=True,
-        text=True,
-        timeout=180,
-    )
-    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-5000:]}"
-    assert "| step | time | fetchsync peak RSS | robot endpoint peak RSS | target | verdict |" in (
-        proc.stdout
-    )
-    assert "verification: PASS" in proc.stdout
-    raw = json.loads(out_json.read_text())
+    stdout, raw = run_bench("scale.py", "--files", "3000", "--size-mb", "20", tmp_path=tmp_path)
+    assert "| step | time | fetchsync peak RSS | robot endpoint peak RSS | target | verdict |" in stdout
+    assert "verification: PASS" in stdout
     assert raw["failures"] == []
     assert raw["verification"] == {
         "initial push": [],
