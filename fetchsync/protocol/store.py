@@ -28,6 +28,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import fcntl
+import itertools
 import marshal
 import os
 import shutil
@@ -66,20 +67,16 @@ def is_temp(name: str) -> bool:
     return TEMP_MARK in name and name.startswith(".")
 
 
+_TEMP_IDS = itertools.count()
+_TEMP_SALT = os.urandom(6).hex()
+
+
 def _temp_name(final_name: str) -> str:
-    return ".%s%s%s" % (final_name[:100], TEMP_MARK, uuid.uuid4().hex[:12])
+    # unique per process (a random salt, then a counter): no random bytes per file
+    return ".%s%s%s%06x" % (final_name[:100], TEMP_MARK, _TEMP_SALT, next(_TEMP_IDS) & 0xFFFFFF)
 
 
 _libc = None
-_WRITERS = None  # type: Any
-
-
-def _writers() -> Any:
-    global _WRITERS
-    if _WRITERS is None:
-        from concurrent.futures import ThreadPoolExecutor
-        _WRITERS = ThreadPoolExecutor(max_workers=4)
-    return _WRITERS
 
 
 def syncfs(fd: int) -> None:
@@ -552,11 +549,8 @@ class Store:
             pass
         try:
             results = [batch.run(op) for op in ops]
-            batch.finish_writes(results)
             batch.commit(results)
         finally:
-            for fut, _idx, _op, _tmp in batch.writes:
-                fut.exception()  # let every writer finish before cleaning up
             batch.cleanup()
             try:
                 os.unlink(marker)
@@ -645,9 +639,7 @@ class _Batch:
         self.blob = blob
         self.policy = policy
         self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
-        self.writes = []  # type: List[Tuple[Any, int, M.Op, str]]  # (future, result index, op, tmp)
         self.zpart = b""
-        self.reading = set()  # type: set  # paths pending writers read (copy sources, delta bases)
         self.n = 0
         self.changed = False  # an operation other than an upload part may have changed the tree
 
@@ -696,7 +688,7 @@ class _Batch:
                 raise _Refused("%s was changed here since the last sync" % unsynced[0])
             where = ""
             for path in unsynced:
-                where = self._set_aside(path, "conflicts")
+                where = self.s._set_aside(path, "conflicts")
             return cur, where[: len(where) - len(unsynced[-1])] + op.path
         if op.kind == M.CHMOD or cur.expectation() == op.expect:
             return cur, ""
@@ -707,7 +699,7 @@ class _Batch:
             # link (the rename below replaces only the directory entry) and
             # patch from it
             return cur, self.s._keep_copy(op.path, "conflicts")
-        where = self._set_aside(op.path, "conflicts")
+        where = self.s._set_aside(op.path, "conflicts")
         self.s._forget_below(op.path)
         return None, where
 
@@ -734,13 +726,13 @@ class _Batch:
         full = s._resolver.full(op.path)
         if op.kind == M.DELETE:
             if cur is not None:
-                self._set_aside(op.path, "trash")
+                self.s._set_aside(op.path, "trash")
                 s._forget_below(op.path)
             s._record(op.path, None)
             return M.Result(preserved=preserved)
         if op.kind == M.MKDIR:
             if cur is not None and cur.kind != DIR:
-                self._set_aside(op.path, "trash")
+                self.s._set_aside(op.path, "trash")
                 cur = None
             if cur is None:
                 os.mkdir(full, op.mode or 0o755)
@@ -757,57 +749,25 @@ class _Batch:
             return M.Result(preserved=preserved, written=item.to_wire() if item else None)
         if cur is not None and cur.kind == DIR:
             # a directory becomes a file or link: the old tree goes to the trash
-            self._set_aside(op.path, "trash")
+            self.s._set_aside(op.path, "trash")
             s._forget_below(op.path)
             cur = None
         parent_dir = os.path.dirname(full)
         tmp = os.path.join(parent_dir, _temp_name(os.path.basename(full)))
         if op.kind == M.SYMLINK:
             os.symlink(op.target, tmp)
-        elif op.source == M.SRC_UPLOAD:
-            self._write_file(op, cur, tmp)
         else:
-            # the temporaries of a batch are independent (renames come later,
-            # in order), and creating, inflating and hashing release the GIL
-            self.writes.append((_writers().submit(self._write_file, op, cur, tmp), idx, op, tmp))
-            if op.source == M.SRC_COPY:
-                self.reading.add(op.from_path)
-            elif op.source == M.SRC_DELTA:
-                self.reading.add(op.path)
+            # written here, in this thread: a pool of writers made threads
+            # creating files in one directory spin on its lock in the kernel,
+            # and cost more CPU than it saved (measured on a 7,000-file push)
+            try:
+                self._write_file(op, cur, tmp)
+            except (DeltaError, OSError):
+                raise  # the operation's result, made by run()
+            except Exception as exc:  # say, a malformed delta: this operation's failure only
+                return M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
         self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
         return M.Result(preserved=preserved)
-
-    def _set_aside(self, path: str, where: str) -> str:
-        """Store._set_aside, once no writer is pending: a pending one may read
-        below ``path`` (a copy's source, a delta's base) or be creating its
-        temporary there. Deletes come last in a batch, so this waits once."""
-        for fut, _idx, _op, _tmp in self.writes:
-            fut.exception()
-        self.reading = set()
-        return self.s._set_aside(path, where)
-
-    def finish_writes(self, results: List[M.Result]) -> None:
-        """Wait for the temporaries being written; a failed one becomes its op's result."""
-        failed = set()
-        for fut, idx, op, tmp in self.writes:
-            exc = fut.exception()
-            if exc is None:
-                continue
-            failed.add(idx)
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            if isinstance(exc, DeltaError):
-                results[idx] = M.Result(M.BASE_MISMATCH, "delta does not apply: %s" % exc)
-            elif isinstance(exc, OSError):
-                code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
-                results[idx] = M.Result(code, "%s: %s" % (op.path, exc.strerror or exc))
-            else:
-                results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
-        self.writes = []
-        if failed:
-            self.renames = [r for r in self.renames if r[3] not in failed]
 
     def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str) -> None:
         s = self.s
