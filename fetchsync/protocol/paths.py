@@ -14,6 +14,7 @@ from fetchsync.protocol.errors import PathError
 
 MAX_PATH = 4096
 MAX_NAME = 255
+_NOT_NAMES = frozenset(("", ".", ".."))
 
 
 def validate(path: str) -> str:
@@ -27,9 +28,10 @@ def validate(path: str) -> str:
     if path.startswith("/"):
         raise PathError("absolute path: %r" % path)
     for part in path.split("/"):
-        if part in ("", ".", ".."):
+        if part in _NOT_NAMES:
             raise PathError("path is not normalised or leaves the root: %r" % path)
-        if len(os.fsencode(part)) > MAX_NAME:
+        # a character encodes to at most 4 bytes: only long names need encoding
+        if len(part) > MAX_NAME // 4 and len(os.fsencode(part)) > MAX_NAME:
             raise PathError("name too long in %r" % path)
     return path
 
