@@ -10,8 +10,10 @@ stream ends the endpoint.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
+import queue
 import select
 import socket
 import sys
@@ -143,8 +145,20 @@ class Server:
         if self.algorithm not in hashing.available():
             raise ProtocolError("client asked for unknown hash algorithm %r" % (self.algorithm,))
         self.compress = client.get("compression") == "zlib"
+        # frames are read ahead by a thread, so the link keeps carrying the next
+        # batch while this one is applied and flushed to disk (the SSH window
+        # alone holds ~2 MB: the client would stall after that)
+        frames = queue.Queue(maxsize=READ_AHEAD)  # type: queue.Queue[Any]
+        threading.Thread(target=self._read_ahead, args=(frames,), name="fetchsync-read",
+                         daemon=True).start()
         while True:
-            frame = self.reader.read_frame()
+            try:
+                frame = frames.get(timeout=IDLE_TRIM_AFTER)
+            except queue.Empty:
+                _trim_heap()  # idle: give back what the last requests used
+                frame = frames.get()
+            if isinstance(frame, BaseException):
+                raise frame
             if frame is None:
                 return
             if frame.type != wire.T_REQUEST:
@@ -152,6 +166,16 @@ class Server:
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
+
+    def _read_ahead(self, frames: "queue.Queue[Any]") -> None:
+        try:
+            while True:
+                frame = self.reader.read_frame()
+                frames.put(frame)
+                if frame is None:
+                    return
+        except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
+            frames.put(exc)
 
     def _maybe_prewarm(self) -> None:
         """While no client talks to us, open and watch the workspace opened last, and follow
@@ -364,7 +388,37 @@ class Server:
         return {}, b""
 
 
+READ_AHEAD = 2  # frames (of up to 8 MiB of a push each) read before they are served
+IDLE_TRIM_AFTER = 2.0  # seconds without a request before the heap is trimmed
+_libc = None  # type: Any
+
+
+def _tune_malloc() -> None:
+    """Let glibc reuse the heap for frame-sized buffers instead of mmap'ing each afresh.
+
+    Every 8 MiB frame, its inflated part and their slices would otherwise be
+    new mappings, page-faulted in and zeroed by the kernel: ~70,000 faults and
+    ~0.15 s of CPU on a 150 MB push. The heap is trimmed when idle instead.
+    """
+    global _libc
+    try:
+        _libc = ctypes.CDLL(None)
+        _libc.mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD
+        _libc.mallopt(-1, 64 * 1024 * 1024)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        _libc = None  # not glibc: its own allocator's defaults
+
+
+def _trim_heap() -> None:
+    if _libc is not None:
+        try:
+            _libc.malloc_trim(0)
+        except AttributeError:
+            pass
+
+
 def main() -> None:
+    _tune_malloc()
     # stdout carries frames only: anything else printed would corrupt the stream
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
