@@ -85,8 +85,12 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     # a master authenticates on its own, without a terminal: after a password
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":
-        # this call paid for the handshake; leave a master behind for the next ones
-        mux.spawn_master(target.host, target.user, path, warm=loader_spec(remote_python())[0])
+        # this call paid for the handshake; leave a master behind for the next
+        # ones, once it is done: a master starting now (its handshake, its
+        # spare endpoints opening this very workspace) would take the CPU this
+        # call needs, on both ends
+        warm = loader_spec(remote_python())[0]
+        transport.after_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm)
     return transport
 
 

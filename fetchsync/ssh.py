@@ -246,6 +246,8 @@ class SSHTransport:
         self._keepalive = keepalive
         self._timeout = timeout
         self._probe_lock = threading.Lock()
+        self.after_close: Callable[[], None] | None = None
+        """Called once when this connection is closed (say, to leave a master behind)."""
 
     @classmethod
     def connect(
@@ -358,6 +360,9 @@ class SSHTransport:
         self._transport.close()
         for hop in reversed(self._hops):
             hop.close()
+        after, self.after_close = self.after_close, None
+        if after is not None:
+            after()
 
     def __repr__(self) -> str:
         return f"SSHTransport({self.settings.user}@{self.settings.display})"
@@ -478,10 +483,16 @@ class _Opener:
         transport.banner_timeout = self.timeout
         transport.handshake_timeout = self.timeout
         transport.auth_timeout = self.timeout
+        options = transport.get_security_options()
+        # AES-GCM first (paramiko lists it last): one pass of AES-NI and GHASH
+        # per packet instead of AES-CTR plus an HMAC computed apart, about a
+        # third less CPU per byte on both ends for the same security; it is
+        # what OpenSSH prefers after chacha20, which paramiko lacks
+        gcm = [c for c in options.ciphers if c.endswith("-gcm@openssh.com")]
+        options.ciphers = gcm + [c for c in options.ciphers if c not in gcm]
         if preferred:
             # Ask for the key type known_hosts has, as ssh does, so that a server
             # with several host keys is not taken for one whose key changed.
-            options = transport.get_security_options()
             known = [k for k in preferred if k in options.key_types]
             options.key_types = known + [k for k in options.key_types if k not in known]
         try:

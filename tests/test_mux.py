@@ -23,6 +23,12 @@ def masters(runtime: Path) -> list[int]:
     return [int(x) for x in out.stdout.split()]
 
 
+def serving(runtime: Path) -> bool:
+    """A master is up and listening: a push leaves one behind as it ends, and it needs
+    its own handshake before its socket appears."""
+    return bool(masters(runtime)) and any((runtime / "fetchsync").glob("mux-*.sock"))
+
+
 def wait_for(cond, timeout=15.0):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -104,7 +110,7 @@ def test_robot_changes_after_a_warm_endpoint_scanned_are_still_seen(env, remote_
     runtime = Path(env["XDG_RUNTIME_DIR"])
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
     fetchsync("push", env=env)
-    assert wait_for(lambda: masters(runtime))
+    assert wait_for(lambda: serving(runtime))
     assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
     assert wait_for(lambda: len(prewarmed_endpoints()) >= 1)
     time.sleep(0.5)  # its scan (of a few files) is done: what follows is only in its events
@@ -131,7 +137,7 @@ def test_the_master_keeps_the_local_scan_current(env, remote_dir):
     runtime = Path(env["XDG_RUNTIME_DIR"])
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
     fetchsync("push", env=env)
-    assert wait_for(lambda: masters(runtime))
+    assert wait_for(lambda: serving(runtime))
     assert wait_for(lambda: report(fetchsync("push", "--json", env=env))["scan"] == "watched")
     pkg = local / "my_pkg"
     (pkg / "src/node.cpp").write_text("int main() { return 2; }\n")
@@ -213,7 +219,7 @@ def test_spare_endpoints_follow_the_workspace_opened_last(env, remote_dir, tmp_p
     """Spares started before the first push to another workspace switch to it."""
     runtime = Path(env["XDG_RUNTIME_DIR"])
     fetchsync("push", env=env)
-    assert wait_for(lambda: masters(runtime))
+    assert wait_for(lambda: serving(runtime))
     assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
     first_ino = os.stat(remote_dir / "src").st_ino
     # both spares have prepared the first workspace
