@@ -305,7 +305,7 @@ def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
             chunks = []
             left = before.st_size
             while left > 0:
-                chunk = os.read(fd, min(left, 1 << 20))
+                chunk = os.read(fd, left)  # one call, one copy for a whole file (they are < BIG)
                 if not chunk:
                     break
                 chunks.append(chunk)
@@ -315,7 +315,7 @@ def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
             after = os.fstat(fd)
         finally:
             os.close(fd)
-        data = b"".join(chunks)
+        data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
         if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
             entry = entry_from_stat(after)
             assert entry is not None
