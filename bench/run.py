@@ -107,6 +107,30 @@ class PushFailed(RuntimeError):
     pass
 
 
+def _cpu_times() -> tuple[int, int]:
+    with open("/proc/stat") as fh:
+        fields = [int(x) for x in fh.readline().split()[1:]]
+    idle = fields[3] + fields[4]  # idle + iowait
+    return sum(fields) - idle, sum(fields)
+
+
+def wait_quiet(*, busy: float = 0.15, window: float = 0.3, timeout: float = 15.0) -> None:
+    """Wait until the machine's CPUs were at most ``busy`` busy over ``window`` seconds.
+
+    A tool's background work after it returned (a connection master's spare
+    endpoints preparing the next call) must not be timed as the next tool's.
+    """
+    deadline = time.monotonic() + timeout
+    before = _cpu_times()
+    while time.monotonic() < deadline:
+        time.sleep(window)
+        after = _cpu_times()
+        total = after[1] - before[1]
+        if total > 0 and (after[0] - before[0]) / total <= busy:
+            return
+        before = after
+
+
 # --------------------------------------------------------------------------- the tools
 class Tool:
     """One push tool: a command run as a new process per push, and its remote tree."""
@@ -122,9 +146,16 @@ class Tool:
         raise NotImplementedError
 
     def reset(self) -> None:
-        """Empty the remote directory (and any local memory of it)."""
+        """Empty the remote directory (and any local memory of it).
+
+        The old tree is moved aside and deleted when the run ends: ext4 makes
+        creating files slow for a while after thousands were deleted (its inode
+        allocator skips recently freed inodes), which would slow the next push
+        down for a reason no user's initial push meets.
+        """
         if self.remote.exists():
-            shutil.rmtree(self.remote)
+            self.bench.graveyard.mkdir(exist_ok=True)
+            self.remote.rename(self.bench.graveyard / f"{self.name}-{time.monotonic_ns()}")
         self.remote.mkdir(parents=True)
 
     def command(self) -> tuple[list[str], dict[str, str]]:
@@ -137,6 +168,7 @@ class Tool:
         argv, env = self.command()
         counter = self.bench.counter
         os.sync()  # start each push with no writeback pending from the last one
+        wait_quiet()  # nor CPU still taken by the last one's background work (a master's spares)
         before = counter.read()
         t0 = time.perf_counter()
         proc = subprocess.run(
@@ -333,6 +365,7 @@ class Bench:
         # fetchsync's connection masters listen here: a directory of this run only
         # (short, for the unix socket path limit), so they are ours to stop
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="fsbench-run-"))
+        self.graveyard = workdir / "graveyard"  # trees replaced by a reset, deleted at the end
         self.ssh_config = self.home.config
         proxy = (
             f"{shlex.quote(sys.executable)} -S {shlex.quote(str(BENCH / 'countproxy.py'))} "
@@ -412,6 +445,7 @@ class Bench:
     def close(self) -> None:
         self.stop_masters()
         shutil.rmtree(self.runtime_dir, ignore_errors=True)
+        shutil.rmtree(self.graveyard, ignore_errors=True)
 
     # ---------------------------------------------------------------------- scenarios
     def order(self, rep: int) -> list[Tool]:
