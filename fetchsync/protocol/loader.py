@@ -6,6 +6,9 @@ itself would fail with a SyntaxError that says nothing useful), then looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
 reads exactly that many bytes from stdin, checks their hash and caches them.
+It runs the endpoint from a directory beside the zip, extracted and compiled
+once per Python version (a zip's modules are compiled again at every start:
+~50 ms of each connection), synced before it is renamed into place.
 Nothing is installed with root and nothing is downloaded by the robot.
 """
 
@@ -42,7 +45,35 @@ if not os.path.isfile(p) or os.path.getsize(p) != n:
         f.flush()
         os.fsync(f.fileno())
     os.replace(t, p)
-sys.path.insert(0, p)
+x = p[:-4] + "-" + str(sys.implementation.cache_tag)
+if not os.path.isdir(x):
+    import shutil
+    t = x + ".%d.tmp" % os.getpid()
+    try:
+        import zipfile, py_compile
+        with zipfile.ZipFile(p) as z:
+            z.extractall(t)
+        for r, _, fs in os.walk(t):
+            for f in fs:
+                if f.endswith(".py"):
+                    py_compile.compile(os.path.join(r, f), doraise=True, invalidation_mode=py_compile.PycInvalidationMode.UNCHECKED_HASH)
+        for r, _, fs in os.walk(t, topdown=False):
+            for f in fs + ["."]:
+                fd = os.open(os.path.join(r, f), os.O_RDONLY)
+                os.fsync(fd)
+                os.close(fd)
+        try:
+            os.rename(t, x)
+        except OSError:
+            shutil.rmtree(t, ignore_errors=True)
+        fd = os.open(d, os.O_RDONLY)
+        os.fsync(fd)
+        os.close(fd)
+    except Exception:
+        shutil.rmtree(t, ignore_errors=True)
+        x = p
+sys.dont_write_bytecode = True
+sys.path.insert(0, x if os.path.isdir(x) else p)
 from fetchsync.protocol.server import main
 main()
 """.strip()
