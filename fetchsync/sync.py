@@ -38,6 +38,7 @@ BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
 PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
+FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
 READ_TRIES = 5                 # reads of a file that changes while read, before giving up on it
@@ -376,7 +377,10 @@ class _Batcher:
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
-        if self.raw_len >= BATCH_BYTES or len(self.items) >= BATCH_OPS:
+        # the first batches are smaller, so the robot starts writing while the
+        # next ones are read here, and is not idle waiting for a whole 8 MiB
+        if self.raw_len >= BATCH_BYTES >> FIRST_BATCHES_SMALLER.get(self.batches, 0) \
+                or len(self.items) >= BATCH_OPS:
             self.flush()
 
     def flush(self, **extra: Any) -> None:
