@@ -193,7 +193,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     """
     from fetchsync.errors import SyncError
     from fetchsync.session import connect, open_state
-    from fetchsync.sync import Prescan, Syncer, build_rules, raise_for
+    from fetchsync.sync import Syncer, build_rules, raise_for
 
     target = _resolve(robot, user, workspace, remote_workspace)
     src = target.workspace / "src"
@@ -219,15 +219,9 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         progress = _Progress(not as_json)
         state = open_state(target)
         try:
-            prescans: list[Prescan] = []  # scanning here while the connection is made
-
-            def prescan() -> None:
-                prescans.append(Prescan(str(src), rules))
-
-            with connect(target, accept_fingerprint=accept_host_key, on_direct=prescan) as conn:
+            with connect(target, accept_fingerprint=accept_host_key) as conn:
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
-                                rules=rules, policy="refuse" if strict else "preserve",
-                                prescan=prescans[0] if prescans else None)
+                                rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress)
                 report.connection = _connection_kind(conn)
         finally:

@@ -55,13 +55,12 @@ def terminal_prompt() -> Callable[[str], str | None] | None:
 
 
 def open_transport(target: Target, *, accept_fingerprint: str | None = None,
-                   persistent: bool = True, on_direct: Callable[[], None] | None = None) -> Transport:
+                   persistent: bool = True) -> Transport:
     """A transport to the target's robot.
 
     ``persistent`` goes through (or leaves behind) a connection master; pass
     False for commands that need a PTY or an environment, which only a direct
-    SSH connection runs. ``on_direct`` is called when no master serves the
-    call, before the slow part: the handshake, or the local endpoint's start.
+    SSH connection runs.
     """
     if target.is_local:
         home = local_robot_home()
@@ -71,8 +70,6 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         if resolved.resolve() == target.workspace.resolve():
             raise ConfigError(f"the local robot's workspace {resolved} is the local workspace itself",
                               hint="pass --remote-workspace with another path")
-        if on_direct is not None:
-            on_direct()
         return LocalTransport(home)
     from fetchsync.agent import mux
 
@@ -82,8 +79,6 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         attached = mux.MuxTransport.attach(path, target.robot)
         if attached is not None:
             return attached
-    if on_direct is not None:
-        on_direct()
     from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
     transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint,
                                      password_callback=terminal_prompt())
@@ -100,9 +95,8 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
 
 
 @contextmanager
-def connect(target: Target, *, accept_fingerprint: str | None = None,
-            on_direct: Callable[[], None] | None = None) -> Iterator[Connection]:
-    transport = open_transport(target, accept_fingerprint=accept_fingerprint, on_direct=on_direct)
+def connect(target: Target, *, accept_fingerprint: str | None = None) -> Iterator[Connection]:
+    transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
         conn = Connection.open(transport, python=remote_python())
         try:

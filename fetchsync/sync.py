@@ -182,34 +182,6 @@ def scan_tree(root: str, rules: IgnoreRules) -> ScanResult:
         raise SyncError(f"cannot list {root}: {exc.strerror or exc}") from exc
 
 
-class Prescan:
-    """The local scan, made in a thread while the connection is being set up.
-
-    A first call waits a few hundred milliseconds for the SSH handshake and
-    the robot's endpoint to start; the laptop's scan need not wait after them.
-    """
-
-    def __init__(self, root: str, rules: IgnoreRules) -> None:
-        self._result: ScanResult | None = None
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(root, rules),
-                                        name="fetchsync-prescan", daemon=True)
-        self._thread.start()
-
-    def _run(self, root: str, rules: IgnoreRules) -> None:
-        try:
-            self._result = scan_tree(root, rules)
-        except BaseException as exc:  # raised where the result is taken
-            self._error = exc
-
-    def result(self) -> ScanResult:
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        assert self._result is not None
-        return self._result
-
-
 def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str, *,
                lazy: bool = False, scanned: ScanResult | None = None) -> LocalTree:
     """The local tree with content hashes; the state vouches for files whose stat is unchanged.
@@ -541,9 +513,8 @@ class Syncer:
     """Pushes a local tree to one remote workspace over a connection, keeping state."""
 
     def __init__(self, conn: Connection, state: State, *, local_root: str, remote_workspace: str,
-                 rules: IgnoreRules, policy: str = "preserve", prescan: Prescan | None = None) -> None:
+                 rules: IgnoreRules, policy: str = "preserve") -> None:
         self.conn = conn
-        self.prescan = prescan  # the local scan, started before the connection was up
         self.state = state
         self.local_root = local_root
         self.remote_workspace = remote_workspace
@@ -592,9 +563,8 @@ class Syncer:
                                    "epoch": epoch, "gen": gen})
         scanned = self._warm_scan()
         report.scan = "watched" if scanned is not None else "scanned"
-        prescan, self.prescan = self.prescan, None  # made for this first push only
         if scanned is None:
-            scanned = prescan.result() if prescan is not None else scan_tree(self.local_root, self.rules)
+            scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header
