@@ -293,7 +293,23 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
         build_locally(target.workspace, request, quiet_stdout=as_json)
 
 
+def _return_big_buffers() -> None:
+    """Have glibc serve large allocations (file contents, 8 MiB batches) from mmap always.
+
+    By default its threshold rises to the largest block freed, so later batches come
+    from the heap, which fragments and keeps the high-water mark: a first sync of
+    100,000 files ended 15-30 MB higher, in a watch agent that then lives on.
+    """
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).mallopt(-3, 256 * 1024)  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        pass  # not glibc: its own allocator's defaults
+
+
 def main() -> None:
+    _return_big_buffers()
     try:
         cli(prog_name="fetchsync")
         code: Any = 0

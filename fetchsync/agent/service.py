@@ -57,21 +57,6 @@ def release_memory() -> None:
         trim(0)
 
 
-def return_big_buffers() -> None:
-    """Have glibc serve large allocations (file contents, 8 MiB batches) from mmap always.
-
-    By default its threshold rises to the largest block freed, so later batches come
-    from the heap, which fragments and keeps the high-water mark: a first sync of
-    100,000 files ended 15-30 MB higher, in a watch agent that then lives on. Only
-    the agent pays for this: each mmap'd buffer is page-faulted in afresh, which
-    cost a one-shot push of 7,000 files ~0.1 s of CPU (26,000 more page faults).
-    """
-    try:
-        ctypes.CDLL(None).mallopt(-3, 256 * 1024)  # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):
-        pass  # not glibc: its own allocator's defaults
-
-
 _TRIM: Any = None
 
 

@@ -60,10 +60,8 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
     the robot of the packages it touched (the nearest package.xml above each
     path), its output streamed here.
     """
-    from fetchsync.agent.service import Agent, return_big_buffers
+    from fetchsync.agent.service import Agent
     from fetchsync.sync import build_rules
-
-    return_big_buffers()  # a long-lived process: keep its high-water mark down
 
     target = resolve(robot, user, workspace, remote_workspace)
     build = build or bool(build_args.strip())
