@@ -145,7 +145,7 @@ def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
     """``data`` zlib-compressed when a sample shows it shrinks, and whether it was."""
     if len(data) < COMPRESS_MIN:
         return data, False
-    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:][:16384]
+    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:len(data) // 2 + 16384]
     if len(zlib.compress(sample, level)) > WORTH_COMPRESSING * len(sample):
         return data, False  # already compressed (images, archives, bags): do not waste time
     packed = zlib.compress(data, level)
