@@ -25,7 +25,7 @@ from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.loader import cache_dir
-from fetchsync.protocol.store import Store, StoreError
+from fetchsync.protocol.store import Store, StoreError, unpack_zpart
 
 MAX_WORKSPACE = 4096
 # A client that has not spoken this long after our hello is probably not there:
@@ -111,6 +111,7 @@ class Server:
         self.compress = False
         self.algorithm = ""
         self.prewarm = None  # type: Optional[_Prewarm]
+        self.unpacked = None  # type: Optional[Tuple[bytes, bytes]]  # the request's, see _unpacked
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
@@ -153,12 +154,13 @@ class Server:
                          daemon=True).start()
         while True:
             try:
-                frame = frames.get(timeout=IDLE_TRIM_AFTER)
+                item = frames.get(timeout=IDLE_TRIM_AFTER)
             except queue.Empty:
                 _trim_heap()  # idle: give back what the last requests used
-                frame = frames.get()
-            if isinstance(frame, BaseException):
-                raise frame
+                item = frames.get()
+            if isinstance(item, BaseException):
+                raise item
+            frame, self.unpacked = item
             if frame is None:
                 return
             if frame.type != wire.T_REQUEST:
@@ -171,7 +173,7 @@ class Server:
         try:
             while True:
                 frame = self.reader.read_frame()
-                frames.put(frame)
+                frames.put((frame, _unpacked(frame)))
                 if frame is None:
                     return
         except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
@@ -309,7 +311,8 @@ class Server:
         policy = h.get("policy", "preserve")
         if policy not in ("preserve", "refuse"):
             raise ProtocolError("unknown conflict policy %r" % (policy,))
-        results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"))
+        unpacked, self.unpacked = self.unpacked, None
+        results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
         out = {"results": [r.to_wire() for r in results], "epoch": store.epoch,
                "gen": store.gen}  # type: Dict[str, Any]
         if h.get("verify"):
@@ -386,6 +389,19 @@ class Server:
 
     def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         return {}, b""
+
+
+def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, bytes]]:
+    """A sync request's compressed part, inflated by the reading thread (zlib lets go of
+    the GIL) while the serving one applies the request before; None if it has none, or
+    if it is bad: applying the request then says why."""
+    if frame is None or frame.type != wire.T_REQUEST or frame.header.get("op") != "sync" \
+            or frame.header.get("zpart") is None:
+        return None
+    try:
+        return unpack_zpart(frame.blob, frame.header["zpart"])
+    except ProtocolError:
+        return None
 
 
 READ_AHEAD = 2  # frames (of up to 8 MiB of a push each) read before they are served

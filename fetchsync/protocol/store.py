@@ -79,6 +79,17 @@ def _temp_name(final_name: str) -> str:
 _libc = None
 
 
+def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, bytes]:
+    """A sync request's blob as (its compressed part inflated, the raw rest)."""
+    if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
+            and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
+        raise ProtocolError("bad compressed-part reference")
+    packed = wire.inflate(blob[:zpart[0]], zpart[1])
+    if len(packed) != zpart[1]:
+        raise ProtocolError("compressed part has the wrong length")
+    return packed, blob[zpart[0]:]
+
+
 def syncfs(fd: int) -> None:
     """Flush the filesystem holding ``fd`` (one call per batch, not one per file)."""
     global _libc
@@ -527,21 +538,19 @@ class Store:
 
     # ------------------------------------------------------------------ writing
     def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
-              zpart: Optional[List[int]] = None) -> List[M.Result]:
+              zpart: Optional[List[int]] = None,
+              unpacked: Optional[Tuple[bytes, bytes]] = None) -> List[M.Result]:
         """Apply ``ops`` in order; one result each. Per-file failures are results.
 
         ``zpart`` = [compressed length, length] says the blob starts with one
         zlib stream, which operations flagged ``z`` address once inflated.
         """
-        packed = b""
-        if zpart is not None:
-            if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
-                    and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
-                raise ProtocolError("bad compressed-part reference")
-            packed = wire.inflate(blob[:zpart[0]], zpart[1])
-            if len(packed) != zpart[1]:
-                raise ProtocolError("compressed part has the wrong length")
-            blob = blob[zpart[0]:]
+        if unpacked is not None:  # the blob's compressed part, inflated while it waited
+            packed, blob = unpacked
+        elif zpart is not None:
+            packed, blob = unpack_zpart(blob, zpart)
+        else:
+            packed = b""
         batch = _Batch(self, blob, policy)
         batch.zpart = packed
         marker = os.path.join(self.meta, "batch-in-progress")
