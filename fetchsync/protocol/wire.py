@@ -105,12 +105,20 @@ def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
         raise ProtocolError("unknown frame type %d" % ftype)
     if flags & FLAG_ZLIB:
         body = inflate(body, MAX_BODY)
-    if len(body) < 4:
+    hlen = _header_length(body[:4], len(body))
+    return _frame(ftype, flags, req_id, body[4:4 + hlen], body[4 + hlen:])
+
+
+def _header_length(prefix: bytes, body_len: int) -> int:
+    if len(prefix) < 4:
         raise ProtocolError("frame body too short")
-    (hlen,) = _U32.unpack_from(body)
-    if hlen > MAX_HEADER or 4 + hlen > len(body):
+    (hlen,) = _U32.unpack(prefix)
+    if hlen > MAX_HEADER or 4 + hlen > body_len:
         raise ProtocolError("frame header length %d is out of range" % hlen)
-    raw_head = body[4:4 + hlen]
+    return int(hlen)
+
+
+def _frame(ftype: int, flags: int, req_id: int, raw_head: bytes, blob: bytes) -> Frame:
     if flags & FLAG_ZHEAD:
         raw_head = inflate(raw_head, MAX_HEADER)
     try:
@@ -119,7 +127,7 @@ def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
         raise ProtocolError("frame header is not JSON: %s" % exc)
     if not isinstance(header, dict):
         raise ProtocolError("frame header is not an object")
-    return Frame(ftype, req_id, header, body[4 + hlen:])
+    return Frame(ftype, req_id, header, blob)
 
 
 def inflate(data: bytes, limit: int) -> bytes:
@@ -172,8 +180,15 @@ class Reader:
     def _take(self, n: int) -> bytes:
         if not self._fill(n):
             raise EOFError("stream ended after %d of %d bytes" % (len(self._buf), n))
-        out = bytes(self._buf[:n])
-        del self._buf[:n]
+        buf = self._buf
+        if len(buf) == n:
+            out = bytes(buf)
+            buf.clear()
+            return out
+        view = memoryview(buf)
+        out = bytes(view[:n])  # one copy (a slice of the bytearray would be a second)
+        view.release()
+        del buf[:n]
         return out
 
     def read_hello(self) -> Dict[str, Any]:
@@ -217,7 +232,12 @@ class Reader:
             raise ProtocolError("unknown frame type %d" % ftype)
         if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
             raise ProtocolError("unknown frame flags 0x%02x" % flags)
-        return decode_body(ftype, flags, req_id, self._take(blen))
+        if flags & FLAG_ZLIB:
+            return decode_body(ftype, flags, req_id, self._take(blen))
+        # taken apart, so the blob (up to 8 MiB of a push) is not copied once more
+        hlen = _header_length(self._take(min(4, blen)), blen)
+        raw_head = self._take(hlen)
+        return _frame(ftype, flags, req_id, raw_head, self._take(blen - 4 - hlen))
 
 
 def encode_hello(caps: Dict[str, Any]) -> bytes:
