@@ -653,14 +653,15 @@ class _Batch:
         self.changed = False  # an operation other than an upload part may have changed the tree
 
     def _blob(self, op: M.Op) -> bytes:
+        return bytes(self._view(op))
+
+    def _view(self, op: M.Op) -> memoryview:
+        """The operation's data, not copied (hashed and written as it lies in the request)."""
         off, length = op.blob
-        if not op.z and off + length > len(self.blob):
+        data = self.zpart if op.z else self.blob
+        if off + length > len(data):
             raise ProtocolError("operation on %r points past the request's data" % op.path)
-        if op.z:
-            if off + length > len(self.zpart):
-                raise ProtocolError("operation on %r points past the request's data" % op.path)
-            return self.zpart[off:off + length]
-        return self.blob[off:off + length]
+        return memoryview(data)[off:off + length]
 
     def run(self, op: M.Op) -> M.Result:
         idx = self.n
@@ -720,7 +721,7 @@ class _Batch:
             fd = os.open(part, os.O_WRONLY | os.O_CREAT, 0o600)
             try:
                 os.lseek(fd, op.size, os.SEEK_SET)
-                _write_all(fd, self._blob(op))
+                _write_all(fd, self._view(op))
             finally:
                 os.close(fd)
             return M.Result()
@@ -792,7 +793,7 @@ class _Batch:
             s._uploads.discard(part)
             return
         if op.source == M.SRC_DATA:
-            data = self._blob(op)
+            data = self._view(op)  # type: Any
         elif op.source == M.SRC_DELTA:
             if cur is None or cur.kind != FILE or cur.hash != op.base:
                 raise DeltaError("the file here is not the delta's base")
@@ -857,7 +858,7 @@ class _Refused(Exception):
     pass
 
 
-def _write_all(fd: int, data: bytes) -> None:
+def _write_all(fd: int, data: Any) -> None:
     view = memoryview(data)
     while view:
         n = os.write(fd, view)
