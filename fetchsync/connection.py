@@ -175,8 +175,9 @@ class Connection:
         # in pieces, so bytes_out shows progress during a long frame on a slow
         # link (check_link's callers tell a slow link from a dead one by it)
         for data in parts:
+            view = memoryview(data)  # pieces of it, not copies
             for start in range(0, len(data), SEND_PIECE):
-                piece = data[start:start + SEND_PIECE]
+                piece = view[start:start + SEND_PIECE]
                 self.channel.send_all(piece)
                 self.bytes_out += len(piece)
                 done += len(piece)

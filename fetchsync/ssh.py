@@ -175,9 +175,13 @@ class SSHChannel:
         self._transport = transport
         self._name = name
 
-    def send_all(self, data: bytes) -> None:
+    def send_all(self, data: bytes | memoryview) -> None:
+        # paramiko's sendall re-slices what is left after every 32 KiB packet,
+        # copying it again each time; a memoryview's slices copy nothing
+        view = memoryview(data)
         try:
-            self._chan.sendall(data)
+            while view:
+                view = view[self._chan.send(view):]
         except (OSError, EOFError, SSHException) as exc:
             raise self._lost("while sending") from exc
 

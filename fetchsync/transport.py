@@ -24,7 +24,7 @@ LOCAL_ROBOT = "local"
 class Channel(Protocol):
     """A running remote command: its stdin, stdout and stderr as byte streams."""
 
-    def send_all(self, data: bytes) -> None:
+    def send_all(self, data: bytes | memoryview) -> None:
         """Write all of ``data`` to the command's stdin (raises LinkLostError)."""
 
     def recv(self, n: int) -> bytes:
@@ -74,7 +74,7 @@ class _ProcessChannel:
         self._proc = proc
         self._lock = threading.Lock()
 
-    def send_all(self, data: bytes) -> None:
+    def send_all(self, data: bytes | memoryview) -> None:
         assert self._proc.stdin is not None
         try:
             self._proc.stdin.write(data)

@@ -115,7 +115,7 @@ class MuxChannel:
             raise LinkLostError(f"connection master: {data.decode('utf-8', 'replace')}")
         return True
 
-    def send_all(self, data: bytes) -> None:
+    def send_all(self, data: bytes | memoryview) -> None:
         try:
             self.sock.sendall(data)
         except OSError as exc:
