@@ -111,7 +111,7 @@ class Server:
         self.compress = False
         self.algorithm = ""
         self.prewarm = None  # type: Optional[_Prewarm]
-        self.unpacked = None  # type: Optional[Tuple[bytes, bytes]]  # the request's, see _unpacked
+        self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
@@ -391,7 +391,7 @@ class Server:
         return {}, b""
 
 
-def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, bytes]]:
+def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, Any]]:
     """A sync request's compressed part, inflated by the reading thread (zlib lets go of
     the GIL) while the serving one applies the request before; None if it has none, or
     if it is bad: applying the request then says why."""

@@ -79,15 +79,16 @@ def _temp_name(final_name: str) -> str:
 _libc = None
 
 
-def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, bytes]:
-    """A sync request's blob as (its compressed part inflated, the raw rest)."""
+def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, Any]:
+    """A sync request's blob as (its compressed part inflated, the raw rest, not copied)."""
     if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
             and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
         raise ProtocolError("bad compressed-part reference")
-    packed = wire.inflate(blob[:zpart[0]], zpart[1])
+    view = memoryview(blob)
+    packed = wire.inflate(view[:zpart[0]], zpart[1])
     if len(packed) != zpart[1]:
         raise ProtocolError("compressed part has the wrong length")
-    return packed, blob[zpart[0]:]
+    return packed, view[zpart[0]:]
 
 
 def syncfs(fd: int) -> None:
@@ -539,7 +540,7 @@ class Store:
     # ------------------------------------------------------------------ writing
     def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
               zpart: Optional[List[int]] = None,
-              unpacked: Optional[Tuple[bytes, bytes]] = None) -> List[M.Result]:
+              unpacked: Optional[Tuple[bytes, Any]] = None) -> List[M.Result]:
         """Apply ``ops`` in order; one result each. Per-file failures are results.
 
         ``zpart`` = [compressed length, length] says the blob starts with one

@@ -130,7 +130,7 @@ def _frame(ftype: int, flags: int, req_id: int, raw_head: bytes, blob: bytes) ->
     return Frame(ftype, req_id, header, blob)
 
 
-def inflate(data: bytes, limit: int) -> bytes:
+def inflate(data: "bytes | memoryview", limit: int) -> bytes:
     """zlib-decompress ``data``, refusing output over ``limit`` bytes or a truncated stream."""
     try:
         d = zlib.decompressobj()
