@@ -287,21 +287,20 @@ class Store:
         self._journal_size = 0
 
     def _set_cache(self, path: str, value: Optional[List[Any]]) -> None:
-        if value is None:
-            if self.cache.pop(path, None) is None:
-                return
-        else:
-            self.cache[path] = value
-        self._touched_cache.add(path)
-        self._dirty = True
+        self._set_row(self.cache, self._touched_cache, path, value)
 
     def _set_synced(self, path: str, value: Optional[List[Any]]) -> None:
+        self._set_row(self.synced, self._touched_synced, path, value)
+
+    def _set_row(self, table: Dict[str, Any], touched: set, path: str,
+                 value: Optional[List[Any]]) -> None:
+        """Set or drop (None) ``path``'s row in one of the index's tables, for the journal."""
         if value is None:
-            if self.synced.pop(path, None) is None:
+            if table.pop(path, None) is None:
                 return
         else:
-            self.synced[path] = value
-        self._touched_synced.add(path)
+            table[path] = value
+        touched.add(path)
         self._dirty = True
 
     def _clean_temps(self) -> None:
