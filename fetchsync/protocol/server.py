@@ -112,6 +112,12 @@ class Server:
         self.algorithm = ""
         self.prewarm = None  # type: Optional[_Prewarm]
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
+        # the sync request whose files are written and being synced while the next
+        # one's are written: (its id, its batch, the syncfs under way), see _pipeline
+        self.held = None  # type: Optional[Tuple[int, Any, Any]]
+        # answers to requests whose renames are done, sent once a syncfs begun after
+        # them completes: nothing is reported written before it is durable
+        self.unsent = []  # type: List[wire.Frame]
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
@@ -153,6 +159,8 @@ class Server:
         threading.Thread(target=self._read_ahead, args=(frames,), name="fetchsync-read",
                          daemon=True).start()
         while True:
+            if self.held is not None and frames.empty():
+                self._settle()  # nothing follows yet: the held request is answered now
             try:
                 item = frames.get(timeout=IDLE_TRIM_AFTER)
             except queue.Empty:
@@ -162,12 +170,86 @@ class Server:
                 raise item
             frame, self.unpacked = item
             if frame is None:
+                self._settle(quiet=True)
                 return
             if frame.type != wire.T_REQUEST:
                 raise ProtocolError("expected a request frame")
+            if self._pipeline(frame, frames):
+                continue
+            self._settle()
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
+
+    def _pipeline(self, frame: wire.Frame, frames: "queue.Queue[Any]") -> bool:
+        """Serve a sync request that another follows closely, overlapping disk flushes
+        with writing: its files are written while the request before is synced, and
+        its own syncfs runs while the next one's are written. Answers keep their order
+        and go out only once what they report is durable. False: serve it as usual.
+
+        The first syncfs of a batch (its temporaries, before the renames) took ~9%
+        of a 150 MB initial push's time on the robot, its critical path.
+        """
+        h = frame.header
+        store = self.store
+        if h.get("op") != "sync" or h.get("verify") or store is None \
+                or (self.held is None and frames.empty()):
+            return False
+        try:
+            store.lock()
+            if h.get("require_fresh") and not self._fresh(store, h):
+                return False
+            ops = [M.Op.from_wire(o) for o in h["ops"]]
+        except Exception:  # served as usual, which answers what is wrong
+            return False
+        policy = h.get("policy", "preserve")
+        if policy not in ("preserve", "refuse"):
+            return False
+        if self.held is not None and self.held[1].blocks(ops):
+            self._settle(unlock=False)
+        unpacked, self.unpacked = self.unpacked, None
+        try:
+            batch = store.begin(ops, frame.blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
+        except (ProtocolError, OSError) as exc:
+            self._settle()
+            self._send(_error_frame(frame.req_id, exc))
+            return True
+        if self.held is not None:
+            req_id, prev, syncing = self.held
+            syncing.wait()  # prev's temporaries, and the renames before, are durable
+            self._send_unsent()
+            store.finish(prev, synced=True, durable=False)
+            store.save_index()
+            self.unsent.append(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, prev)))
+        self.held = (frame.req_id, batch, store.sync_in_background())
+        return True
+
+    def _settle(self, *, unlock: bool = True, quiet: bool = False) -> None:
+        """Finish the held request and send every answer still owed, in order."""
+        store = self.store
+        try:
+            if self.held is not None and store is not None:
+                req_id, batch, syncing = self.held
+                self.held = None
+                syncing.wait()
+                self._send_unsent()
+                store.finish(batch, synced=True)
+                store.save_index()
+                self._send(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, batch)))
+            elif self.unsent and store is not None:
+                store.sync()
+                self._send_unsent()
+        except (OSError, ValueError):
+            if not quiet:  # the client is gone (end of input): what was done is done
+                raise
+        finally:
+            if unlock and store is not None:
+                store.unlock()
+
+    def _send_unsent(self) -> None:
+        unsent, self.unsent = self.unsent, []
+        for frame in unsent:
+            self._send(frame)
 
     def _read_ahead(self, frames: "queue.Queue[Any]") -> None:
         try:
@@ -246,14 +328,8 @@ class Server:
                                                            "kind": "protocol"})
         try:
             header, blob = handler(frame.header, frame.blob)
-        except StoreError as exc:
-            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": str(exc), "kind": "store"})
-        except ProtocolError as exc:
-            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": str(exc), "kind": "protocol"})
-        except OSError as exc:
-            return wire.Frame(wire.T_ERROR, frame.req_id, {
-                "error": "%s%s" % (exc.strerror or exc, ": " + exc.filename if exc.filename else ""),
-                "kind": "os", "errno": exc.errno or 0})
+        except (ProtocolError, OSError) as exc:  # StoreError is a ProtocolError
+            return _error_frame(frame.req_id, exc)
         finally:
             if self.store is not None:
                 self.store.unlock()
@@ -312,9 +388,9 @@ class Server:
         if policy not in ("preserve", "refuse"):
             raise ProtocolError("unknown conflict policy %r" % (policy,))
         unpacked, self.unpacked = self.unpacked, None
-        results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
-        out = {"results": [r.to_wire() for r in results], "epoch": store.epoch,
-               "gen": store.gen}  # type: Dict[str, Any]
+        batch = store.begin(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
+        store.finish(batch)
+        out = _sync_answer(store, batch)
         if h.get("verify"):
             changed, gone = store.drift()
             out.update(drift=[e.to_wire() for e in changed], gone=gone)
@@ -389,6 +465,21 @@ class Server:
 
     def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         return {}, b""
+
+
+def _sync_answer(store: Store, batch: Any) -> Dict[str, Any]:
+    return {"results": [r.to_wire() for r in batch.results], "epoch": store.epoch, "gen": batch.gen}
+
+
+def _error_frame(req_id: int, exc: Exception) -> wire.Frame:
+    if isinstance(exc, StoreError):
+        return wire.Frame(wire.T_ERROR, req_id, {"error": str(exc), "kind": "store"})
+    if isinstance(exc, ProtocolError):
+        return wire.Frame(wire.T_ERROR, req_id, {"error": str(exc), "kind": "protocol"})
+    assert isinstance(exc, OSError)
+    return wire.Frame(wire.T_ERROR, req_id, {
+        "error": "%s%s" % (exc.strerror or exc, ": " + exc.filename if exc.filename else ""),
+        "kind": "os", "errno": exc.errno or 0})
 
 
 def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, Any]]:

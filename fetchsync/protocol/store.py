@@ -34,6 +34,7 @@ import os
 import shutil
 import stat as stat_mod
 import struct
+import threading
 import time
 import uuid
 from typing import Any, Dict, List, Optional, Tuple
@@ -57,6 +58,7 @@ OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists 
 _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list),
                 ("serial", str))
 READ_BLOCK = 1 << 20
+BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
 
 
 class StoreError(ProtocolError):
@@ -142,6 +144,7 @@ class Store:
                                  % (where, exc.strerror, os.path.dirname(where))) from None
             raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc)) from None
         self._lock_fd = -1
+        self._open_batches = 0  # begun and not finished: the lock is kept meanwhile
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: set
@@ -318,7 +321,7 @@ class Store:
         shutil.rmtree(os.path.join(self.meta, "tmp"), ignore_errors=True)
         os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
         try:
-            os.unlink(os.path.join(self.meta, "batch-in-progress"))
+            os.unlink(os.path.join(self.meta, BATCH_MARK))
         except FileNotFoundError:
             pass
 
@@ -341,7 +344,7 @@ class Store:
                     raise StoreError("another fetchsync is writing to %s" % self.workspace)
                 time.sleep(0.05)
         self._lock_fd = fd
-        if os.path.exists(os.path.join(self.meta, "batch-in-progress")):
+        if os.path.exists(os.path.join(self.meta, BATCH_MARK)):
             # left by a writer that died mid-batch (a live one would hold the
             # lock): its temporaries are garbage now, and only now
             self._clean_temps()
@@ -349,7 +352,7 @@ class Store:
             self._load_index()  # someone else wrote since we loaded
 
     def unlock(self) -> None:
-        if self._lock_fd >= 0:
+        if self._lock_fd >= 0 and not self._open_batches:
             os.close(self._lock_fd)
             self._lock_fd = -1
 
@@ -545,6 +548,17 @@ class Store:
         ``zpart`` = [compressed length, length] says the blob starts with one
         zlib stream, which operations flagged ``z`` address once inflated.
         """
+        return self.finish(self.begin(ops, blob, policy=policy, zpart=zpart, unpacked=unpacked))
+
+    def begin(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
+              zpart: Optional[List[int]] = None,
+              unpacked: Optional[Tuple[bytes, Any]] = None) -> "_Batch":
+        """The first half of :meth:`apply`: run ``ops``, their content written to
+        temporaries; nothing is renamed into place until :meth:`finish`.
+
+        A batch begun while another awaits its ``finish`` must not touch the
+        paths that one will rename (see :meth:`_Batch.blocks`).
+        """
         if unpacked is not None:  # the blob's compressed part, inflated while it waited
             packed, blob = unpacked
         elif zpart is not None:
@@ -553,22 +567,57 @@ class Store:
             packed = b""
         batch = _Batch(self, blob, policy)
         batch.zpart = packed
-        marker = os.path.join(self.meta, "batch-in-progress")
-        with open(marker, "wb"):
-            pass
-        try:
-            results = [batch.run(op) for op in ops]
-            batch.commit(results)
-        finally:
-            batch.cleanup()
-            try:
-                os.unlink(marker)
-            except FileNotFoundError:
+        if not self._open_batches:
+            with open(os.path.join(self.meta, BATCH_MARK), "wb"):
                 pass
+        self._open_batches += 1
+        try:
+            batch.results = [batch.run(op) for op in ops]
+        except BaseException:
+            self._close(batch)
+            raise
+        batch.blob = batch.zpart = b""  # written: the request's data may go
         self.gen += 1
+        batch.gen = self.gen
+        self._dirty = True
+        return batch
+
+    def finish(self, batch: "_Batch", *, synced: bool = False, durable: bool = True) -> List[M.Result]:
+        """Rename a begun batch's temporaries into place; its results, completed.
+
+        ``synced``: a syncfs begun after :meth:`begin` returned has completed
+        (:meth:`sync_in_background`), so the temporaries are durable already.
+        ``durable=False`` leaves the renames to the next syncfs: the caller
+        must not report them before one completes.
+        """
+        try:
+            batch.commit(batch.results, synced=synced, durable=durable)
+        finally:
+            self._close(batch)
         self._dirty = True
         self._prune_trash()
-        return results
+        return batch.results
+
+    def _close(self, batch: "_Batch") -> None:
+        batch.cleanup()
+        self._open_batches -= 1
+        if not self._open_batches:
+            try:
+                os.unlink(os.path.join(self.meta, BATCH_MARK))
+            except FileNotFoundError:
+                pass
+
+    def sync(self) -> None:
+        """Make everything written so far durable."""
+        rootfd = os.open(self.root, os.O_RDONLY)
+        try:
+            syncfs(rootfd)
+        finally:
+            os.close(rootfd)
+
+    def sync_in_background(self) -> "_BackgroundSync":
+        """:meth:`sync` in a thread, so the next batch's files are written meanwhile."""
+        return _BackgroundSync(self.root)
 
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
@@ -651,6 +700,8 @@ class _Batch:
         self.zpart = b""
         self.n = 0
         self.changed = False  # an operation other than an upload part may have changed the tree
+        self.results = []  # type: List[M.Result]
+        self.gen = 0  # the store's generation once this batch is applied
 
     def _blob(self, op: M.Op) -> bytes:
         return bytes(self._view(op))
@@ -818,12 +869,12 @@ class _Batch:
             raise
         os.close(fd)
 
-    def commit(self, results: List[M.Result]) -> None:
+    def commit(self, results: List[M.Result], *, synced: bool = False, durable: bool = True) -> None:
         if not self.changed:
             return  # upload parts only: nothing is reported written yet
         rootfd = os.open(self.s.root, os.O_RDONLY)
         try:
-            if self.renames:
+            if self.renames and not synced:
                 syncfs(rootfd)  # the temporaries' content, before any is renamed into place
             for tmp, full, path, idx, digest in self.renames:
                 try:
@@ -842,9 +893,30 @@ class _Batch:
                 results[idx] = M.Result(results[idx].code, results[idx].message, results[idx].preserved,
                                         item.to_wire() if item else None)
             self.renames = []
-            syncfs(rootfd)
+            if durable:
+                syncfs(rootfd)
         finally:
             os.close(rootfd)
+
+    def blocks(self, ops: List[M.Op]) -> bool:
+        """Whether ``ops``, begun before this batch's renames, could see or change
+        what they will rename: the same path, a path under one (a file that becomes
+        a directory), a directory above one that is replaced or deleted, a copy's
+        source. Uploads write only to the upload area."""
+        pending = set(r[2] for r in self.renames)
+        if not pending:
+            return False
+        above = set()  # type: set
+        for path in pending:
+            above.update(paths.ancestors(path))
+        for op in ops:
+            if op.kind == M.UPLOAD:
+                continue
+            if op.path in pending or (op.path in above and op.kind not in (M.MKDIR, M.CHMOD)) \
+                    or (op.from_path and op.from_path in pending) \
+                    or any(a in pending for a in paths.ancestors(op.path)):
+                return True
+        return False
 
     def cleanup(self) -> None:
         for tmp, _full, _path, _idx, _digest in self.renames:
@@ -856,6 +928,25 @@ class _Batch:
 
 class _Refused(Exception):
     pass
+
+
+class _BackgroundSync:
+    """One syncfs of a filesystem, in a thread (ctypes lets go of the GIL meanwhile)."""
+
+    def __init__(self, root: str) -> None:
+        self._fd = os.open(root, os.O_RDONLY)
+        self._done = threading.Event()
+        threading.Thread(target=self._run, name="fetchsync-syncfs", daemon=True).start()
+
+    def _run(self) -> None:
+        try:
+            syncfs(self._fd)
+        finally:
+            os.close(self._fd)
+            self._done.set()
+
+    def wait(self) -> None:
+        self._done.wait()
 
 
 def _write_all(fd: int, data: Any) -> None:
