@@ -29,3 +29,16 @@ def test_resolver_refuses_writing_through_a_symlinked_parent(tmp_path):
         r.check_parents("link/file")
     with pytest.raises(PathError):
         r.check_parents("missing/file")
+
+
+def test_resolver_full_validates_every_path_it_has_not_seen_and_stays_bounded(tmp_path):
+    from fetchsync.protocol import paths as paths_mod
+    r = paths_mod.Resolver(str(tmp_path))
+    for i in range(paths_mod.FULL_CACHE + 10):
+        assert r.full(f"d/f{i}") == os.path.join(str(tmp_path), f"d/f{i}")
+    assert len(r._full) <= paths_mod.FULL_CACHE
+    for bad in ("../x", "a//b", "/abs", "a/./b", "", None, 3):
+        with pytest.raises(PathError):
+            r.full(bad)  # type: ignore[arg-type]
+        with pytest.raises(PathError):
+            r.check_parents(bad)  # type: ignore[arg-type]

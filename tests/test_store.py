@@ -308,3 +308,40 @@ def test_a_rename_that_fails_at_commit_leaves_no_temporary(store):
     assert len(results) == 2 and not results[0].ok
     assert (src(store) / "b").is_dir()
     assert not [n for _d, _s, files in os.walk(store.root) for n in files if ".fetchsync-tmp-" in n]
+
+
+@pytest.fixture
+def umask(monkeypatch):
+    """Set this process's umask for the test (the store reads it once per process)."""
+    from fetchsync.protocol import store as store_mod
+    old = os.umask(0o022)
+    os.umask(old)
+
+    def set_umask(mask: int) -> None:
+        os.umask(mask)
+        monkeypatch.setattr(store_mod, "_UMASK", -1)
+
+    yield set_umask
+    os.umask(old)
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o077, 0o000])
+@pytest.mark.parametrize("mode", [0o644, 0o600, 0o755, 0o666, 0o4755])
+def test_files_and_directories_get_the_mode_asked_whatever_the_umask(store, umask, mask, mode):
+    umask(mask)
+    dir_mode = mode & 0o777 | 0o700
+    ops = [M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=dir_mode),
+           M.Op(M.WRITE, "d/f", expect=M.ABSENT, mode=mode, hash=h(b"x"), size=1, source=M.SRC_DATA,
+                blob=(0, 1))]
+    results = store.apply(ops, b"x")
+    assert all(r.ok for r in results)
+    assert os.lstat(src(store) / "d").st_mode & 0o7777 == dir_mode
+    assert os.lstat(src(store) / "d" / "f").st_mode & 0o7777 == mode
+    assert [M.Listed.from_wire(r.written).mode for r in results] == [dir_mode, mode]
+
+
+def test_a_directory_made_in_a_setgid_one_has_the_mode_asked(store):
+    os.chmod(src(store), 0o2755)  # new directories inherit the setgid bit
+    [r] = store.apply([M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o755)], b"")
+    assert r.ok and os.lstat(src(store) / "d").st_mode & 0o7777 == 0o755
+    assert M.Listed.from_wire(r.written).mode == 0o755

@@ -15,6 +15,7 @@ from fetchsync.protocol.errors import PathError
 MAX_PATH = 4096
 MAX_NAME = 255
 _NOT_NAMES = frozenset(("", ".", ".."))
+FULL_CACHE = 4096
 
 
 def validate(path: str) -> str:
@@ -63,13 +64,24 @@ class Resolver:
     def __init__(self, root: str) -> None:
         self.root = root
         self._dirs_ok = {"": True}  # type: dict[str, bool]
+        # the paths validated lately, with their full paths: an operation asks for
+        # its path's three or four times (check, write, rename, record)
+        self._full = {}  # type: dict[str, str]
 
     def full(self, path: str) -> str:
-        return os.path.join(self.root, validate(path))
+        try:
+            return self._full[path]
+        except (KeyError, TypeError):  # TypeError: not a string, which validate() says
+            pass
+        if len(self._full) >= FULL_CACHE:
+            self._full.clear()
+        out = self._full[path] = os.path.join(self.root, validate(path))
+        return out
 
     def check_parents(self, path: str) -> None:
         """Raise PathError unless every ancestor of ``path`` is a real directory."""
-        for anc in ancestors(validate(path)):
+        self.full(path)  # valid
+        for anc in ancestors(path):
             if self._dirs_ok.get(anc):
                 continue
             try:

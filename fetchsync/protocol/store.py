@@ -79,6 +79,24 @@ def _temp_name(final_name: str) -> str:
 
 
 _libc = None
+_UMASK = -1
+
+
+def _umask() -> int:
+    """This process's umask, read without changing it (os.umask sets it, for a moment,
+    for every thread); 0o7777 where it cannot be read: every mode is then set by chmod."""
+    global _UMASK
+    if _UMASK < 0:
+        _UMASK = 0o7777
+        try:
+            with open("/proc/self/status", "rb") as fh:
+                for line in fh:
+                    if line.startswith(b"Umask:"):
+                        _UMASK = int(line.split()[1], 8)
+                        break
+        except (OSError, ValueError, IndexError):
+            pass
+    return _UMASK
 
 
 def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, Any]:
@@ -776,7 +794,7 @@ class _Batch:
             finally:
                 os.close(fd)
             return M.Result()
-        if any(is_temp(part) for part in op.path.split("/")):
+        if TEMP_MARK in op.path and any(is_temp(part) for part in op.path.split("/")):
             # our temporaries' names: never synced, and removed by the cleanup
             raise PathError("%r uses a name reserved for fetchsync's temporaries" % op.path)
         s._resolver.check_parents(op.path)
@@ -797,8 +815,10 @@ class _Batch:
                 cur = None
             if cur is None:
                 os.mkdir(full, op.mode or 0o755)
-            os.chmod(full, op.mode or 0o755)
-            item = s.current(op.path)
+                item = s.current(op.path)  # made with the mode asked, unless umask or setgid say otherwise
+            if cur is not None or item is None or item.mode != (op.mode or 0o755):
+                os.chmod(full, op.mode or 0o755)
+                item = s.current(op.path)
             s._record(op.path, item)
             return M.Result(preserved=preserved, written=item.to_wire() if item else None)
         if op.kind == M.CHMOD:
@@ -859,10 +879,12 @@ class _Batch:
                 data = fh.read()
         if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
             raise DeltaError("reconstructed content does not match its hash")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, op.mode or 0o644)
+        mode = op.mode or 0o644
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
         try:
             _write_all(fd, data)
-            os.fchmod(fd, op.mode or 0o644)
+            if mode & _umask() or mode & ~0o777:  # else open() made it so already
+                os.fchmod(fd, mode)
         except BaseException:
             os.close(fd)
             os.unlink(tmp)
