@@ -44,6 +44,23 @@ def test_a_push_of_many_batches_lands_whole_in_one_round(syncer):
     assert tree_of(src) == tree_of(robot_src)
 
 
+@pytest.mark.parametrize("deflate", ["isal", "zlib"])
+def test_compressed_batches_inflate_on_the_robot_from_either_compressor(syncer, monkeypatch, deflate):
+    """The laptop deflates with ISA-L when it can, else with zlib; the robot's
+    standard library inflates both."""
+    import zlib
+    if deflate == "isal":
+        from isal import isal_zlib  # a dependency: never skipped
+        monkeypatch.setattr(sync, "_deflate", isal_zlib)
+    else:
+        monkeypatch.setattr(sync, "_deflate", zlib)
+    s, src, robot_src = syncer
+    report = s.push()
+    assert report.errors == [] and report.files == 360
+    assert tree_of(src) == tree_of(robot_src)
+    assert report.bytes_sent < sum(f.stat().st_size for f in src.rglob("*.txt")) // 2  # compressed
+
+
 def test_another_writer_between_batches_is_detected_and_survived(syncer, tmp_path):
     s, src, robot_src = syncer
     s.push()
