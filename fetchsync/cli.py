@@ -195,6 +195,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     from fetchsync.session import connect, open_state
     from fetchsync.sync import Syncer, build_rules, raise_for
 
+    _collect_less()
     target = _resolve(robot, user, workspace, remote_workspace)
     src = target.workspace / "src"
     if not force:
@@ -253,6 +254,7 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
     <workspace>/.fetchsync/trash/ and .fetchsync/conflicts/.
     With --build or --install-deps, then builds here.
     """
+    _collect_less()
     from fetchsync.errors import UsageError
     from fetchsync.session import connect, open_state
     from fetchsync.sync import build_rules, raise_for
@@ -306,6 +308,19 @@ def _return_big_buffers() -> None:
         ctypes.CDLL(None).mallopt(-3, 256 * 1024)  # M_MMAP_THRESHOLD
     except (OSError, AttributeError):
         pass  # not glibc: its own allocator's defaults
+
+
+def _collect_less() -> None:
+    """Let a one-shot push or pull run (nearly) without the cyclic garbage collector.
+
+    It builds a few objects per file and no cycles worth the name, yet the default
+    thresholds ran ~200 collections in a 7,000-file push: 0.1-0.2 s of CPU
+    (bench/README.md). Not for the watch agent, which lives on.
+    """
+    import gc
+
+    gc.freeze()  # what the imports made stays, unexamined
+    gc.set_threshold(100_000, 50, 100)
 
 
 def main() -> None:
