@@ -15,6 +15,7 @@ import os
 import queue
 import threading
 import time
+import types
 import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
@@ -33,12 +34,13 @@ from fetchsync.state import State, Synced
 
 log = logging.getLogger(__name__)
 
+_deflate: types.ModuleType
 try:
     # ISA-L's deflate: the same zlib streams the robot's standard library inflates,
     # made ~7x faster than zlib's level 1 at the same size (bench/README.md)
     from isal import isal_zlib as _deflate
 except ImportError:  # no wheel for this platform: the standard library's
-    _deflate = zlib  # type: ignore[no-redef]
+    _deflate = zlib
 
 SIG_MIN = 16 * 1024            # smaller files are sent whole: a delta saves too little
 BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
