@@ -79,13 +79,22 @@ class Connection:
 
     # ------------------------------------------------------------------ setup
     @classmethod
-    def open(cls, transport: Transport, *, python: str | None = None) -> Connection:
+    def open(cls, transport: Transport, *, python: str | None = None,
+             meanwhile: Callable[[], Any] | None = None) -> Connection:
+        """Start the endpoint on the robot and exchange hellos.
+
+        ``meanwhile`` runs once the endpoint's command is sent, while the robot
+        starts its shell and Python (a few tenths of a second on a direct
+        connection): work that needs no answer from the robot.
+        """
         python = python or remote_python()
         command, archive = loader_spec(python)
         channel = transport.exec(command)
         reader = wire.Reader(channel.recv)
         sent = 0
         try:
+            if meanwhile is not None:
+                meanwhile()
             sent += cls._deliver(channel, reader, archive)
             hello = reader.read_hello()
         except EOFError as exc:

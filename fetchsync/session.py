@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
@@ -95,10 +95,15 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
 
 
 @contextmanager
-def connect(target: Target, *, accept_fingerprint: str | None = None) -> Iterator[Connection]:
+def connect(target: Target, *, accept_fingerprint: str | None = None,
+            meanwhile: Callable[[], Any] | None = None) -> Iterator[Connection]:
+    """A connection to the target's endpoint; ``meanwhile`` runs while the endpoint
+    starts, unless a connection master's endpoint is ready (a wait of ~0)."""
     transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
-        conn = Connection.open(transport, python=remote_python())
+        if getattr(transport, "local_scan", None) is not None:
+            meanwhile = None
+        conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
         try:
             yield conn
         finally:

@@ -549,6 +549,12 @@ class Syncer:
         entries = local_scan(self.local_root, self.rules.to_wire()) if local_scan is not None else None
         return ScanResult(entries, []) if entries is not None else None
 
+    @staticmethod
+    def prescan(local_root: str, rules: IgnoreRules) -> ScanResult:
+        """The local tree's scan, made ahead (while the robot's endpoint starts): pass
+        it to the next :meth:`push` as ``scanned``."""
+        return scan_tree(local_root, rules)
+
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
             synced = self.state.entries()
@@ -557,8 +563,12 @@ class Syncer:
             self._synced = synced
         return self._synced
 
-    def push(self, *, dry_run: bool = False, progress: Progress | None = None) -> Report:
-        """Make the robot's tree identical to the local one, after asking it what changed there."""
+    def push(self, *, dry_run: bool = False, progress: Progress | None = None,
+             scanned: ScanResult | None = None) -> Report:
+        """Make the robot's tree identical to the local one, after asking it what changed there.
+
+        ``scanned``: a :meth:`prescan` of the local tree made since the last push.
+        """
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
@@ -570,8 +580,11 @@ class Syncer:
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
-        scanned = self._warm_scan()
-        report.scan = "watched" if scanned is not None else "scanned"
+        if scanned is None:
+            scanned = self._warm_scan()
+            report.scan = "watched" if scanned is not None else "scanned"
+        else:
+            report.scan = "scanned"
         if scanned is None:
             scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:

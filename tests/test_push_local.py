@@ -229,3 +229,42 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
     assert proc.returncode == 0, proc.stderr
     assert report(proc)["files"] == 5005
     assert tree_of(src) == tree_of(robot_ws(env) / "src")
+
+
+def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch):
+    """Connection.open runs ``meanwhile`` once the endpoint's command is sent and before
+    its hello is read; a push given that scan lands the same tree."""
+    from fetchsync import sync
+    from fetchsync.connection import Connection
+    from fetchsync.protocol import wire
+    from fetchsync.state import State
+    from fetchsync.transport import LocalTransport
+
+    make_workspace(tmp_path / "ws")
+    src = tmp_path / "ws" / "src"
+    events: list[str] = []
+    real_hello = wire.Reader.read_hello
+
+    def read_hello(self):
+        events.append("hello")
+        return real_hello(self)
+
+    monkeypatch.setattr(wire.Reader, "read_hello", read_hello)
+    rules = sync.build_rules()
+    ahead = []
+
+    def meanwhile() -> None:
+        events.append("scan")
+        ahead.append(sync.Syncer.prescan(str(src), rules))
+
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"), meanwhile=meanwhile)
+    state = State(tmp_path / "state.sqlite")
+    try:
+        assert events == ["scan", "hello"]
+        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
+                        rules=rules).push(scanned=ahead[0])
+        assert r.errors == [] and r.files == 5 and r.scan == "scanned"
+        assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
+    finally:
+        conn.close()
+        state.close()
