@@ -192,20 +192,16 @@ class Server:
         of a 150 MB initial push's time on the robot, its critical path.
         """
         h = frame.header
-        store = self.store
-        if h.get("op") != "sync" or h.get("verify") or store is None \
+        if h.get("op") != "sync" or h.get("verify") or self.store is None \
                 or (self.held is None and frames.empty()):
             return False
         try:
-            store.lock()
-            if h.get("require_fresh") and not self._fresh(store, h):
-                return False
-            ops = [M.Op.from_wire(o) for o in h["ops"]]
+            parsed = self._sync_request(h)
         except Exception:  # served as usual, which answers what is wrong
             return False
-        policy = h.get("policy", "preserve")
-        if policy not in ("preserve", "refuse"):
-            return False
+        if parsed is None:
+            return False  # stale: answered as usual, after what is held
+        store, ops, policy = parsed
         if self.held is not None and self.held[1].blocks(ops):
             self._settle(unlock=False)
         unpacked, self.unpacked = self.unpacked, None
@@ -377,10 +373,11 @@ class Server:
         store.save_index()
         return out, b""
 
-    def do_sync(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def _sync_request(self, h: Dict[str, Any]) -> Optional[Tuple[Store, List[M.Op], str]]:
+        """A sync request's store (locked), operations and policy; None if it is stale."""
         store = self._store()
         if h.get("require_fresh") and not self._fresh(store, h):
-            return {"stale": True, "epoch": store.epoch, "gen": store.gen}, b""
+            return None
         raw = h.get("ops")
         if not isinstance(raw, list):
             raise ProtocolError("sync without an operation list")
@@ -388,6 +385,14 @@ class Server:
         policy = h.get("policy", "preserve")
         if policy not in ("preserve", "refuse"):
             raise ProtocolError("unknown conflict policy %r" % (policy,))
+        return store, ops, policy
+
+    def do_sync(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        parsed = self._sync_request(h)
+        if parsed is None:
+            store = self._store()
+            return {"stale": True, "epoch": store.epoch, "gen": store.gen}, b""
+        store, ops, policy = parsed
         unpacked, self.unpacked = self.unpacked, None
         batch = store.begin(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
         store.finish(batch)
