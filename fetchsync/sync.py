@@ -381,8 +381,7 @@ class _Batcher:
         self.stale = False
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.pack(
-            data[:16384] + data[len(data) // 2:len(data) // 2 + 16384])[1])
+        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(data))
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)

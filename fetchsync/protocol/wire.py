@@ -149,12 +149,17 @@ def inflate(data: "bytes | memoryview", limit: int) -> bytes:
 WORTH_COMPRESSING = 0.85
 
 
+def compressible(data: bytes, *, level: int = 1) -> bool:
+    """Whether a sample of ``data`` (32 KiB: its start, and its middle when it is
+    larger) shrinks enough to make compressing all of it worth the time."""
+    half = len(data) // 2
+    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[half:half + 16384]
+    return len(zlib.compress(sample, level)) <= WORTH_COMPRESSING * len(sample)
+
+
 def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
     """``data`` zlib-compressed when a sample shows it shrinks, and whether it was."""
-    if len(data) < COMPRESS_MIN:
-        return data, False
-    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[len(data) // 2:len(data) // 2 + 16384]
-    if len(zlib.compress(sample, level)) > WORTH_COMPRESSING * len(sample):
+    if len(data) < COMPRESS_MIN or not compressible(data, level=level):
         return data, False  # already compressed (images, archives, bags): do not waste time
     packed = zlib.compress(data, level)
     return (packed, True) if len(packed) < len(data) else (data, False)
