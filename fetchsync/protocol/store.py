@@ -635,7 +635,7 @@ class Store:
 
     def sync_in_background(self) -> "_BackgroundSync":
         """:meth:`sync` in a thread, so the next batch's files are written meanwhile."""
-        return _BackgroundSync(self.root)
+        return _BackgroundSync(self.sync)
 
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
@@ -953,22 +953,26 @@ class _Refused(Exception):
 
 
 class _BackgroundSync:
-    """One syncfs of a filesystem, in a thread (ctypes lets go of the GIL meanwhile)."""
+    """``sync()`` run in a thread (the syncfs call lets go of the GIL meanwhile)."""
 
-    def __init__(self, root: str) -> None:
-        self._fd = os.open(root, os.O_RDONLY)
+    def __init__(self, sync: Any) -> None:
+        self._sync = sync
         self._done = threading.Event()
+        self._error = None  # type: Optional[BaseException]
         threading.Thread(target=self._run, name="fetchsync-syncfs", daemon=True).start()
 
     def _run(self) -> None:
         try:
-            syncfs(self._fd)
+            self._sync()
+        except BaseException as exc:  # raised by wait(): nothing is reported unsynced
+            self._error = exc
         finally:
-            os.close(self._fd)
             self._done.set()
 
     def wait(self) -> None:
         self._done.wait()
+        if self._error is not None:
+            raise self._error
 
 
 def _write_all(fd: int, data: Any) -> None:
