@@ -219,14 +219,14 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     if report is None:
         progress = _Progress(not as_json)
         state = open_state(target)
-        ahead: list[Any] = []  # the local scan, made while the robot's endpoint starts
+        ahead: list[Any] = []  # the local scan and plan, made while the robot's endpoint starts
         try:
             with connect(target, accept_fingerprint=accept_host_key,
-                         meanwhile=lambda: ahead.append(Syncer.prescan(str(src), rules))) as conn:
+                         meanwhile=lambda: ahead.append(Syncer.prepare(str(src), rules, state))) as conn:
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,
-                                     scanned=ahead[0] if ahead else None)
+                                     ahead=ahead[0] if ahead else None)
                 report.connection = _connection_kind(conn)
         finally:
             progress.close()

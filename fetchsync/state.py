@@ -101,6 +101,9 @@ class State:
             out[_decode(row[0])] = Synced(*row[1:])
         return out
 
+    def has_entries(self) -> bool:
+        return self.db.execute("SELECT 1 FROM entries LIMIT 1").fetchone() is not None
+
     def signature(self, path: str) -> bytes | None:
         row = self.db.execute("SELECT sig FROM entries WHERE path=?", (_encode(path),)).fetchone()
         return bytes(row[0]) if row and row[0] is not None else None

@@ -117,6 +117,14 @@ def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
 
 # --------------------------------------------------------------------------- local side
 @dataclass
+class Ahead:
+    """A push's work done before the robot answered: see :meth:`Syncer.prepare`."""
+    scanned: ScanResult
+    local: LocalTree | None = None
+    planned: list[Planned] | None = None  # against an empty robot, for an empty state
+
+
+@dataclass
 class LocalTree:
     items: dict[str, M.Listed]
     stats: dict[str, Entry]
@@ -549,10 +557,20 @@ class Syncer:
         return ScanResult(entries, []) if entries is not None else None
 
     @staticmethod
-    def prescan(local_root: str, rules: IgnoreRules) -> ScanResult:
-        """The local tree's scan, made ahead (while the robot's endpoint starts): pass
-        it to the next :meth:`push` as ``scanned``."""
-        return scan_tree(local_root, rules)
+    def prepare(local_root: str, rules: IgnoreRules, state: State) -> Ahead:
+        """What the next :meth:`push` can do before the robot answers, done while its
+        endpoint starts (its shell and Python take a few tenths of a second): the local
+        scan and, when the state knows no path (a first push), the plan against an
+        empty robot. Pass it to :meth:`push` as ``ahead``; the push checks the robot's
+        listing before it uses the plan."""
+        scanned = scan_tree(local_root, rules)
+        if state.has_entries():
+            return Ahead(scanned)
+        # lazy: nothing is hashed, so the plan holds whatever algorithm is negotiated
+        local = scan_local(local_root, rules, {}, "", lazy=True, scanned=scanned)
+        guarded = local.guarded()
+        planned = [p for p in plan(local.items, {}, lambda _path: M.ABSENT) if not guarded(p.op.path)]
+        return Ahead(scanned, local, planned)
 
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
@@ -563,10 +581,10 @@ class Syncer:
         return self._synced
 
     def push(self, *, dry_run: bool = False, progress: Progress | None = None,
-             scanned: ScanResult | None = None) -> Report:
+             ahead: Ahead | None = None) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
-        ``scanned``: a :meth:`prescan` of the local tree made since the last push.
+        ``ahead``: what :meth:`prepare` made since the last push.
         """
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
@@ -579,6 +597,7 @@ class Syncer:
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
+        scanned = ahead.scanned if ahead is not None else None
         if scanned is None:
             scanned = self._warm_scan()
             report.scan = "watched" if scanned is not None else "scanned"
@@ -600,16 +619,23 @@ class Syncer:
                 done.seconds, done.scan = time.monotonic() - t0, report.scan
                 return done
         else:
-            local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
-                               scanned=scanned)
             remote = self._apply_listing(listing, synced)
+            first: list[Planned] | None = None
+            if (ahead is not None and ahead.local is not None and ahead.planned is not None
+                    and not synced and not remote):
+                # what prepare() assumed holds: no state, and nothing on the robot
+                local, first = ahead.local, ahead.planned
+                ahead.planned = None  # its operations are consumed as they are sent
+            else:
+                local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
+                                   scanned=scanned)
             epoch, gen = listing["epoch"], listing["gen"]
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
             self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
                            progress=progress,
                            listed=remote if listing.get("full") else
-                           [x[0] for x in listing.get("entries", [])])
+                           [x[0] for x in listing.get("entries", [])], first=first)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -654,12 +680,14 @@ class Syncer:
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
                   progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None) -> bool:
+                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None,
+                  first: list[Planned] | None = None) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer.
 
         ``listed``: the paths the robot's listing reported (all, after a full one),
-        which its index does not vouch for; those found identical are adopted there."""
+        which its index does not vouch for; those found identical are adopted there.
+        ``first``: the first round's plan, made ahead for these very inputs."""
         robot_listed = set(listed or ())
         adopt_all = False
         if self._signed is None:
@@ -686,8 +714,11 @@ class Syncer:
 
         for _round in range(MAX_ROUNDS):
             # what the laptop could not read is left as the robot has it
-            planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
-                       if not guarded(p.op.path)]
+            if first is not None:
+                planned, first = first, None
+            else:
+                planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
+                           if not guarded(p.op.path)]
             if dry_run:
                 for p in planned:
                     report.count(p)

@@ -233,7 +233,8 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
 
 def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch):
     """Connection.open runs ``meanwhile`` once the endpoint's command is sent and before
-    its hello is read; a push given that scan lands the same tree."""
+    its hello is read; a first push given that scan and plan lands the same tree and
+    plans nothing more once the robot has answered."""
     from fetchsync import sync
     from fetchsync.connection import Connection
     from fetchsync.protocol import wire
@@ -244,27 +245,70 @@ def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch)
     src = tmp_path / "ws" / "src"
     events: list[str] = []
     real_hello = wire.Reader.read_hello
+    real_plan = sync.plan
 
     def read_hello(self):
         events.append("hello")
         return real_hello(self)
 
+    def plan(*a, **k):
+        events.append("plan")
+        return real_plan(*a, **k)
+
     monkeypatch.setattr(wire.Reader, "read_hello", read_hello)
+    monkeypatch.setattr(sync, "plan", plan)
     rules = sync.build_rules()
     ahead = []
+    state = State(tmp_path / "state.sqlite")
 
     def meanwhile() -> None:
-        events.append("scan")
-        ahead.append(sync.Syncer.prescan(str(src), rules))
+        events.append("prepare")
+        ahead.append(sync.Syncer.prepare(str(src), rules, state))
 
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"), meanwhile=meanwhile)
-    state = State(tmp_path / "state.sqlite")
     try:
-        assert events == ["scan", "hello"]
+        assert events == ["prepare", "plan", "hello"]
         r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push(scanned=ahead[0])
+                        rules=rules).push(ahead=ahead[0])
         assert r.errors == [] and r.files == 5 and r.scan == "scanned"
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
+        # one more plan: the check after the round that all is there, none before it
+        assert events == ["prepare", "plan", "hello", "plan"]
+        # the state now knows the tree: the next preparation is the scan alone
+        assert sync.Syncer.prepare(str(src), rules, state).planned is None
+    finally:
+        conn.close()
+        state.close()
+
+
+def test_a_plan_made_ahead_is_dropped_when_the_robot_holds_files(tmp_path):
+    """prepare() plans against an empty robot; a robot that turns out to hold files (here
+    edited there, with no state on this laptop) gets a plan made from its listing: its
+    version is kept as a conflict, its extra file goes to the trash, and the trees match."""
+    from fetchsync import sync
+    from fetchsync.connection import Connection
+    from fetchsync.state import State
+    from fetchsync.transport import LocalTransport
+
+    make_workspace(tmp_path / "ws")
+    src = tmp_path / "ws" / "src"
+    robot_src = tmp_path / "robot-home" / "ws" / "src"
+    (robot_src / "my_pkg").mkdir(parents=True)
+    (robot_src / "my_pkg" / "package.xml").write_text("<edited on the robot/>")
+    (robot_src / "only-on-robot.txt").write_text("robot")
+    rules = sync.build_rules()
+    state = State(tmp_path / "state.sqlite")
+    ahead = sync.Syncer.prepare(str(src), rules, state)
+    assert ahead.planned  # made for an empty robot
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    try:
+        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
+                        rules=rules).push(ahead=ahead)
+        assert r.errors == []
+        assert tree_of(src) == tree_of(robot_src)
+        kept = [p for p in (tmp_path / "robot-home" / "ws" / ".fetchsync").rglob("*") if p.is_file()]
+        assert any(p.read_bytes() == b"<edited on the robot/>" for p in kept)
+        assert any(p.read_bytes() == b"robot" for p in kept)
     finally:
         conn.close()
         state.close()
