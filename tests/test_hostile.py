@@ -190,6 +190,32 @@ def test_fuzz_decode_body(ftype, flags, body, bounded_memory):
         pass
 
 
+@given(kind=st.sampled_from(M.OP_KINDS), path=st.sampled_from(["a", "a/b c", "d/\udcff"]),
+       mode=st.integers(0, 0o7777), size=st.integers(0, 1 << 40), z=st.integers(0, 1))
+def test_op_from_wire_is_the_op_sent(kind, path, mode, size, z):
+    """Decoding builds the instance's fields at once (not through the frozen dataclass's
+    __init__): what arrives must equal, hash and behave as the operation sent."""
+    op = M.Op(kind=kind, path=path, expect=M.ABSENT, mode=mode, target="t" if kind == M.SYMLINK else "",
+              hash="ab", size=size, source=M.SRC_DATA if kind == M.WRITE else "", blob=(3, 4), z=z,
+              upload="u1" if kind == M.UPLOAD else "")
+    got = M.Op.from_wire(op.to_wire())
+    assert got == op and hash(got) == hash(op) and got.blob == (3, 4)
+    with pytest.raises(__import__("dataclasses").FrozenInstanceError):  # still frozen
+        got.path = "x"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("wire_op, says", [
+    ({"p": "a", "e": "-"}, "lacks 'k'"),
+    ({"k": "write", "p": 5, "e": "-"}, "path is not a string"),
+    ({"k": "write", "p": "a", "e": "-", "h": ["x"]}, "hash is not a string"),
+    ({"k": "write", "p": "a", "e": "-", "bl": [1]}, "bad blob reference"),
+    ("write", "not an object"),
+])
+def test_op_from_wire_refuses_malformed_fields(wire_op, says):
+    with pytest.raises(ProtocolError, match=says):
+        M.Op.from_wire(wire_op)
+
+
 @fuzz(2000)
 @given(obj=op_like)
 def test_fuzz_op_from_wire(obj):
