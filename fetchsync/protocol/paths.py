@@ -81,6 +81,11 @@ class Resolver:
     def check_parents(self, path: str) -> None:
         """Raise PathError unless every ancestor of ``path`` is a real directory."""
         self.full(path)  # valid
+        i = path.rfind("/")
+        if i < 0 or self._dirs_ok.get(path[:i]):
+            # a directory is known good only once its ancestors were, and forget()
+            # drops what lies below a directory with it: the parent vouches for them
+            return
         for anc in ancestors(path):
             if self._dirs_ok.get(anc):
                 continue
