@@ -16,10 +16,8 @@ import json
 import os
 import queue
 import select
-import socket
 import sys
 import threading
-import traceback
 from typing import Any, BinaryIO, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import hashing, wire
@@ -133,7 +131,7 @@ class Server:
             "algorithms": hashing.available(),
             "compression": ["zlib"],
             "python": "%d.%d.%d" % sys.version_info[:3],
-            "host": socket.gethostname(),
+            "host": os.uname().nodename,  # socket.gethostname(), without importing socket
             "home": os.path.expanduser("~"),
         }
 
@@ -547,6 +545,7 @@ def main() -> None:
         sys.stderr.write("fetchsync endpoint: %s\n" % exc)
         sys.exit(3)
     except Exception:
+        import traceback  # only here: it costs every start ~2 ms to import
         traceback.print_exc()
         sys.exit(4)
 

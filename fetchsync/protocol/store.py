@@ -36,7 +36,6 @@ import stat as stat_mod
 import struct
 import threading
 import time
-import uuid
 from typing import Any, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import delta as delta_mod
@@ -201,7 +200,7 @@ class Store:
         if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
                 or data.get("algorithm") != self.algorithm
                 or not all(isinstance(data.get(k), t) for k, t in _INDEX_TYPES)):
-            data = {"v": INDEX_VERSION, "epoch": uuid.uuid4().hex, "gen": 0, "serial": "",
+            data = {"v": INDEX_VERSION, "epoch": os.urandom(16).hex(), "gen": 0, "serial": "",
                     "algorithm": self.algorithm, "synced": {}, "cache": {}, "trash": []}
             self._dirty = True
         else:
@@ -291,7 +290,7 @@ class Store:
         self._loaded_stamp = self._index_stamp()
 
     def _write_snapshot(self) -> None:
-        self._serial = uuid.uuid4().hex
+        self._serial = os.urandom(16).hex()
         blob = marshal.dumps({"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen,
                               "algorithm": self.algorithm, "serial": self._serial,
                               "synced": self.synced, "cache": self.cache, "trash": self.trash_log})
