@@ -312,3 +312,22 @@ def test_a_plan_made_ahead_is_dropped_when_the_robot_holds_files(tmp_path):
     finally:
         conn.close()
         state.close()
+
+
+def test_the_endpoint_widens_the_pipe_it_reads(tmp_path):
+    """The endpoint asks for a 1 MiB pipe on its stdin (64 KiB by default): the ~100 MB of
+    a first push then wake its writer (sshd, or this process for the local robot) a
+    sixteenth as often. Read back from our end of that very pipe."""
+    import fcntl
+
+    from fetchsync.connection import Connection
+    from fetchsync.transport import LocalTransport
+
+    limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    try:
+        conn.request({"op": "ping"})  # answered after main() set it up
+        size = fcntl.fcntl(conn.channel._proc.stdin.fileno(), 1032)  # F_GETPIPE_SZ
+        assert size == min(1 << 20, limit) and size > 65536
+    finally:
+        conn.close()
