@@ -383,6 +383,13 @@ def test_proxy_command(ssh_home: SSHHome, connect: Connect) -> None:
     )
     transport = connect("viaproxy")
     assert run(transport, "echo through") == (b"through\n", b"", 0)
+    # a push streams through the command's pipes: 1 MiB each, not 64 KiB
+    import fcntl
+
+    proxy = transport._transport.sock  # type: ignore[attr-defined]
+    limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+    for pipe in (proxy.process.stdin, proxy.process.stdout):
+        assert fcntl.fcntl(pipe.fileno(), fcntl.F_GETPIPE_SZ) == min(1 << 20, limit)
 
 
 def test_failing_proxy_command_shows_its_error(ssh_home: SSHHome, connect: Connect) -> None:
