@@ -451,11 +451,11 @@ class _Batcher:
             if data:
                 nbytes += len(data)
                 if z:
-                    op = M.Op(**{**op.__dict__, "blob": (zpos, len(data)), "z": 1})
+                    op = op.but(blob=(zpos, len(data)), z=1)
                     packed.append(data)
                     zpos += len(data)
                 else:
-                    op = M.Op(**{**op.__dict__, "blob": (rpos, len(data))})
+                    op = op.but(blob=(rpos, len(data)))
                     raw.append(data)
                     rpos += len(data)
             ops.append(op.to_wire())
@@ -840,7 +840,7 @@ class Syncer:
                 continue
             off, length = ans["bl"]
             robot_sigs[p.op.path] = frame.blob[off:off + length]
-            upgraded[p.op.path] = Planned(M.Op(**{**p.op.__dict__, "source": M.SRC_DELTA, "base": r.hash}),
+            upgraded[p.op.path] = Planned(p.op.but(source=M.SRC_DELTA, base=r.hash),
                                           DELTA, p.item)
         return [upgraded.get(p.op.path, p) if p.op.kind == M.WRITE else p for p in planned]
 
@@ -883,8 +883,7 @@ class Syncer:
         digest = hashing.digest(self.algorithm, data).hex()
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
-            op = M.Op(**{**op.__dict__, "hash": digest, "size": len(data), "source": M.SRC_DATA,
-                         "base": ""})
+            op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
             p = Planned(op, WHOLE, M.Listed(op.path, "f", entry.mode, len(data), hash=digest))
             local.items[op.path] = p.item  # type: ignore[assignment]
         local.stats[op.path] = entry
@@ -897,7 +896,7 @@ class Syncer:
                     batcher.total -= op.size - len(d)  # the progress counts what travels
                     batcher.add(op, d, tag=(p, sig))
                     return False
-            op = M.Op(**{**op.__dict__, "source": M.SRC_DATA, "base": ""})
+            op = op.but(source=M.SRC_DATA, base="")
             p = Planned(op, WHOLE, p.item)
         batcher.add(op, data, tag=(p, sig))
         return False
@@ -954,8 +953,8 @@ class Syncer:
         if not done:
             raise OSError(errno.EBUSY, f"it kept changing while it was read ({READ_TRIES} tries); "
                           "the robot keeps its previous version", full)
-        op = M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": "",
-                     "hash": h.digest().hex(), "size": offset})
+        op = p.op.but(source=M.SRC_UPLOAD, upload=upload, base="", hash=h.digest().hex(),
+                     size=offset)
         entry = entry_from_stat(after)
         item = M.Listed(op.path, "f", p.op.mode, offset, hash=op.hash)
         local.items[op.path] = item
@@ -1168,7 +1167,7 @@ def _fetch(conn: Connection, planned: list[Planned], local_root: str,
                 if up is None:
                     continue
                 for piece_op, piece in up[0]:
-                    ops.append(M.Op(**{**piece_op.__dict__, "blob": (pos, len(piece))}))
+                    ops.append(piece_op.but(blob=(pos, len(piece))))
                     blobs.append(piece)
                     tags.append(None)
                     pos += len(piece)
@@ -1180,9 +1179,8 @@ def _fetch(conn: Connection, planned: list[Planned], local_root: str,
                 ans, data = got
                 listed = M.Listed.from_wire(ans["l"])
                 src = M.SRC_DELTA if ans["src"] == M.SRC_DELTA else M.SRC_DATA
-                op = M.Op(**{**op.__dict__, "hash": listed.hash, "size": listed.size, "mode": listed.mode,
-                             "source": src, "base": op.base if src == M.SRC_DELTA else "",
-                             "blob": (pos, len(data))})
+                op = op.but(hash=listed.hash, size=listed.size, mode=listed.mode, source=src,
+                            base=op.base if src == M.SRC_DELTA else "", blob=(pos, len(data)))
                 blobs.append(data)
                 pos += len(data)
         ops.append(op)
@@ -1210,7 +1208,7 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
     if listed is None or listed.hash != p.op.hash or offset != listed.size:
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
-    return pieces, M.Op(**{**p.op.__dict__, "source": M.SRC_UPLOAD, "upload": upload, "base": ""})
+    return pieces, p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
 
 
 QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted

@@ -204,6 +204,23 @@ def test_op_from_wire_is_the_op_sent(kind, path, mode, size, z):
         got.path = "x"  # type: ignore[misc]
 
 
+def test_op_but_is_dataclasses_replace():
+    """Op.but() copies without the frozen __init__; it must give what replace() gives,
+    leave the original as it was, and refuse a field Op does not have."""
+    import dataclasses
+
+    op = M.Op(kind=M.WRITE, path="a/b", expect=M.ABSENT, mode=0o644, hash="ab", size=3,
+              source=M.SRC_DATA, blob=(0, 3))
+    got = op.but(blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1")
+    assert got == dataclasses.replace(op, blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1")
+    assert hash(got) == hash(dataclasses.replace(op, blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1"))
+    assert op.blob == (0, 3) and op.z == 0 and op.source == M.SRC_DATA
+    with pytest.raises(TypeError, match="no field sizes"):
+        op.but(sizes=1)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        got.z = 0  # type: ignore[misc]
+
+
 @pytest.mark.parametrize("wire_op, says", [
     ({"p": "a", "e": "-"}, "lacks 'k'"),
     ({"k": "write", "p": 5, "e": "-"}, "path is not a string"),

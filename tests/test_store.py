@@ -118,7 +118,7 @@ def test_copy_reuses_content_held_here(store):
 def test_compressed_part_is_inflated_once_and_addressed(store):
     data = b"text " * 1000
     zpart = zlib.compress(data)
-    op = M.Op(**{**write("z.txt", data).__dict__, "z": 1})
+    op = write("z.txt", data).but(z=1)
     [r] = store.apply([op], zpart, zpart=[len(zpart), len(data)])
     assert r.ok and (src(store) / "z.txt").read_bytes() == data
 

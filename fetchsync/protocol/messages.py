@@ -1,7 +1,8 @@
 """Protocol messages: operations on a tree, their results, and tree listings.
 
-Each is a small frozen dataclass with ``validate()`` (raises ProtocolError),
-``to_wire()`` (a JSON-able value) and ``from_wire()`` (validates).
+Each is small and immutable (a frozen dataclass, or a NamedTuple where a push
+makes one per file), with ``to_wire()`` (a JSON-able value) and ``from_wire()``
+(validates; ``Op.validate()`` raises ProtocolError).
 
 An *expectation* is what the receiver should hold at a path before an
 operation applies, written as a string:
@@ -120,6 +121,19 @@ class Op:
                 raise ProtocolError("bad upload id %r" % (self.upload,))
         return self
 
+    def but(self, **changes: Any) -> Op:
+        """A copy with ``changes``: ``dataclasses.replace`` without the frozen __init__'s
+        setattr per field (the laptop makes two or three per file it sends). Like it,
+        no validation: ``validate()`` is the receiver's."""
+        unknown = changes.keys() - _FIELDS
+        if unknown:
+            raise TypeError("Op has no field %s" % ", ".join(sorted(unknown)))
+        new = object.__new__(Op)
+        fields = new.__dict__
+        fields.update(self.__dict__)
+        fields.update(changes)
+        return new
+
     def to_wire(self) -> Dict[str, Any]:
         out = {"k": self.kind, "p": self.path}  # type: Dict[str, Any]
         if self.expect is not None:
@@ -172,10 +186,14 @@ class Op:
 
 
 _STRING_FIELDS = ("path", "target", "hash", "source", "base", "from_path", "upload")
+_FIELDS = frozenset(("kind", "path", "expect", "mode", "target", "hash", "size", "source", "base",
+                     "from_path", "blob", "upload", "z"))
 
 
-@dataclass(frozen=True)
-class Result:
+class Result(NamedTuple):
+    """The outcome of one operation. A NamedTuple, as Listed: a push makes one or two
+    per file on the robot and decodes one per file on the laptop."""
+
     code: str = OK
     message: str = ""
     preserved: str = ""      # where the receiver's conflicting version was moved
@@ -199,8 +217,7 @@ class Result:
     def from_wire(cls, obj: Any) -> Result:
         if not isinstance(obj, dict) or not isinstance(obj.get("c"), str):
             raise ProtocolError("bad result")
-        return cls(code=obj["c"], message=str(obj.get("msg", "")), preserved=str(obj.get("pv", "")),
-                   written=obj.get("w"))
+        return cls(obj["c"], str(obj.get("msg", "")), str(obj.get("pv", "")), obj.get("w"))
 
 
 class Listed(NamedTuple):
