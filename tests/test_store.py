@@ -345,3 +345,30 @@ def test_a_directory_made_in_a_setgid_one_has_the_mode_asked(store):
     [r] = store.apply([M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o755)], b"")
     assert r.ok and os.lstat(src(store) / "d").st_mode & 0o7777 == 0o755
     assert M.Listed.from_wire(r.written).mode == 0o755
+
+
+def test_a_directory_the_batch_made_is_not_looked_into_again(store, monkeypatch):
+    """Paths inside a directory this batch made empty are not lstat'ed before they are
+    written (nothing of the robot's can be there); once the batch moves anything aside
+    it looks again. Either way the tree ends as asked."""
+    store.apply([write("e.txt", b"v1")], b"v1")
+    (src(store) / "e.txt").write_bytes(b"edited on the robot")
+    looked: list[str] = []
+    real = Store.current
+
+    def current(self, path):
+        looked.append(path)
+        return real(self, path)
+
+    monkeypatch.setattr(Store, "current", current)
+    mkdir = lambda p: M.Op(M.MKDIR, p, expect=M.ABSENT, mode=0o755)  # noqa: E731
+    blob = b"abc"
+    results = store.apply([mkdir("d"), write("d/a", b"a"), mkdir("d/s"), write("d/s/b", b"b", at=1),
+                           write("e.txt", b"c", expect=M.expect_file(h(b"v1")), at=2),
+                           write("d/c", b"c", at=2)], blob)
+    assert all(r.ok for r in results) and results[4].preserved
+    before_aside = looked[:looked.index("e.txt")]
+    assert "d" in before_aside and "d/a" not in before_aside and "d/s/b" not in before_aside
+    assert "d/c" in looked  # after e.txt went aside
+    assert (src(store) / "d" / "a").read_bytes() == b"a" and (src(store) / "d" / "s" / "b").read_bytes() == b"b"
+    assert (src(store) / "d" / "c").read_bytes() == b"c"

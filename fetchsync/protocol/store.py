@@ -719,6 +719,10 @@ class _Batch:
         self.changed = False  # an operation other than an upload part may have changed the tree
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
+        # directories this batch made: nothing stood at their paths, so nothing of the
+        # robot's can stand below them either (see _check); emptied when the batch
+        # moves anything aside, as that may take one of them with it
+        self.made = set()  # type: set
 
     def _blob(self, op: M.Op) -> bytes:
         return bytes(self._view(op))
@@ -746,11 +750,21 @@ class _Batch:
             code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
             return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))
 
+    def _move_aside(self, path: str, where: str) -> str:
+        self.made.clear()
+        return self.s._set_aside(path, where)
+
     def _check(self, op: M.Op) -> Tuple[Optional[M.Listed], str]:
         """Compare what stands at op.path with op.expect; preserve or refuse on mismatch.
 
         Returns what now stands there and where a conflicting version went.
         """
+        i = op.path.rfind("/")
+        if i > 0 and op.path[:i] in self.made and op.path not in self.made:
+            # in a directory made empty by this batch, not yet renamed into: what
+            # the lstat below would find is what a concurrent writer could add
+            # between it and the rename as well, so it is not asked for
+            return None, ""
         cur = self.s.current(op.path)
         if cur is None:
             return None, ""  # nothing here: nothing to lose
@@ -766,7 +780,7 @@ class _Batch:
                 raise _Refused("%s was changed here since the last sync" % unsynced[0])
             where = ""
             for path in unsynced:
-                where = self.s._set_aside(path, "conflicts")
+                where = self._move_aside(path, "conflicts")
             return cur, where[: len(where) - len(unsynced[-1])] + op.path
         if op.kind == M.CHMOD or cur.expectation() == op.expect:
             return cur, ""
@@ -777,7 +791,7 @@ class _Batch:
             # link (the rename below replaces only the directory entry) and
             # patch from it
             return cur, self.s._keep_copy(op.path, "conflicts")
-        where = self.s._set_aside(op.path, "conflicts")
+        where = self._move_aside(op.path, "conflicts")
         self.s._forget_below(op.path)
         return None, where
 
@@ -804,16 +818,17 @@ class _Batch:
         full = s._resolver.full(op.path)
         if op.kind == M.DELETE:
             if cur is not None:
-                self.s._set_aside(op.path, "trash")
+                self._move_aside(op.path, "trash")
                 s._forget_below(op.path)
             s._record(op.path, None)
             return M.Result(preserved=preserved)
         if op.kind == M.MKDIR:
             if cur is not None and cur.kind != DIR:
-                self.s._set_aside(op.path, "trash")
+                self._move_aside(op.path, "trash")
                 cur = None
             if cur is None:
                 os.mkdir(full, op.mode or 0o755)
+                self.made.add(op.path)
                 item = s.current(op.path)  # made with the mode asked, unless umask or setgid say otherwise
             if cur is not None or item is None or item.mode != (op.mode or 0o755):
                 os.chmod(full, op.mode or 0o755)
@@ -829,7 +844,7 @@ class _Batch:
             return M.Result(preserved=preserved, written=item.to_wire() if item else None)
         if cur is not None and cur.kind == DIR:
             # a directory becomes a file or link: the old tree goes to the trash
-            self.s._set_aside(op.path, "trash")
+            self._move_aside(op.path, "trash")
             s._forget_below(op.path)
             cur = None
         parent_dir = os.path.dirname(full)
