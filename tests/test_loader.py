@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import pytest
 
@@ -55,3 +56,23 @@ def test_a_wrong_note_is_refused_on_need_and_removed(cache, monkeypatch):
     assert not note.exists()
     monkeypatch.setattr(loader, "_cache", None)
     assert loader.endpoint_digest()[0] == digest
+
+
+def test_the_loader_puts_site_directories_and_a_venvs_on_the_path(tmp_path):
+    """The endpoint runs with -S (no site hooks): the loader adds the site directories
+    itself, including a venv's, which Python finds only through site."""
+    import subprocess
+    import sys
+    import sysconfig
+
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    site_dir = Path(sysconfig.get_path("purelib", vars={"base": str(venv)}))
+    (site_dir / "only_in_the_venv.py").write_text("")
+    head = loader.LOADER.split("h, n = sys.argv[1]")[0]
+    probe = head + "\nimport only_in_the_venv, xxhash\nprint(sys.flags.no_site)"
+    got = subprocess.run([str(venv / "bin" / "python"), "-S", "-c", probe], capture_output=True, text=True)
+    assert got.returncode == 0 and got.stdout == "1\n", got.stderr
+    # the installation's own site-packages, where xxhash was installed, stays reachable
+    base = subprocess.run([sys.executable, "-S", "-c", head + "\nimport xxhash"], capture_output=True, text=True)
+    assert base.returncode == 0, base.stderr

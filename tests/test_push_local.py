@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -329,5 +331,34 @@ def test_the_endpoint_widens_the_pipe_it_reads(tmp_path):
         conn.request({"op": "ping"})  # answered after main() set it up
         size = fcntl.fcntl(conn.channel._proc.stdin.fileno(), 1032)  # F_GETPIPE_SZ
         assert size == min(1 << 20, limit) and size > 65536
+    finally:
+        conn.close()
+
+
+def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
+    """The loader starts Python with -S: a sitecustomize (or a .pth hook) on the robot
+    does not run before the endpoint, which could print into the protocol's stream or
+    cost every start tens of ms; the site directories are still on its path, so an
+    installed xxhash is used."""
+    from fetchsync.connection import Connection
+    from fetchsync.protocol import hashing, wire
+    from fetchsync.transport import LocalTransport
+
+    hooks = tmp_path / "hooks"
+    hooks.mkdir()
+    marker = tmp_path / "sitecustomize-ran"
+    (hooks / "sitecustomize.py").write_text(f"open({str(marker)!r}, 'w').close()\nprint('noise')\n")
+    python = tmp_path / "robot-python3"
+    python.write_text(f"#!/bin/sh\nPYTHONPATH={hooks} exec {sys.executable} \"$@\"\n")
+    python.chmod(0o755)
+    # the same interpreter without -S does run the hook: the test can see it
+    subprocess.run([str(python), "-c", "pass"], check=True)
+    assert marker.exists()
+    marker.unlink()
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"), python=str(python))
+    try:
+        assert conn.request({"op": "ping"}).type == wire.T_RESPONSE
+        assert not marker.exists()
+        assert conn.hello["algorithms"] == hashing.available()  # xxhash found, if installed here
     finally:
         conn.close()

@@ -1,6 +1,6 @@
 """Delivery of the robot-side endpoint over the connection itself.
 
-The client runs a short loader with ``python3 -c`` on the robot. The loader
+The client runs a short loader with ``python3 -S -c`` on the robot. The loader
 refuses a Python older than 3.8 with a message that says so (the endpoint
 itself would fail with a SyntaxError that says nothing useful), then looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
@@ -28,6 +28,11 @@ LOADER = r"""
 import sys, os, hashlib
 if sys.version_info < (3, 8):
     sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.8: install one (apt install python3.8) and set FETCHSYNC_REMOTE_PYTHON=python3.8" % tuple(sys.version_info[:3]))
+if sys.flags.no_site:
+    import site
+    v = os.path.dirname(os.path.dirname(sys.executable))
+    v = [os.path.join(v, "lib", "python%d.%d" % sys.version_info[:2], "site-packages")] if os.path.isfile(os.path.join(v, "pyvenv.cfg")) else []
+    sys.path.extend(d for d in ([site.getusersitepackages()] if not sys.flags.no_user_site and not v else []) + v + site.getsitepackages() if d not in sys.path and os.path.isdir(d))
 h, n = sys.argv[1], int(sys.argv[2])
 d = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "fetchsync")
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
@@ -154,7 +159,11 @@ def endpoint_digest() -> Tuple[str, int]:
 def loader_spec(python: str = "python3") -> Tuple[str, Callable[[], bytes]]:
     """The remote command line that starts the endpoint, and how to get the archive on NEED."""
     digest, length = endpoint_digest()
-    cmd = "%s -c %s %s %d" % (python, shlex.quote(LOADER), digest, length)
+    # -S: no .pth hooks nor sitecustomize run before the endpoint (a robot's
+    # site-packages can hold dozens: 40 ms of every start here, and anything they
+    # print would go down the protocol's stream); the loader puts the site
+    # directories on the path itself, for the optional xxhash
+    cmd = "%s -S -c %s %s %d" % (python, shlex.quote(LOADER), digest, length)
 
     def archive() -> bytes:
         data, actual = endpoint_archive()
