@@ -29,7 +29,7 @@ from fetchsync.protocol import messages as M
 from fetchsync.protocol.ignore import IgnoreRules
 from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
-from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan
+from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan, stat_path
 from fetchsync.state import State, Synced
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,7 @@ BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
 PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
+READ_AHEAD_BYTES = 3 * 1024 * 1024  # of a first push's files, read (and hashed) while the endpoint starts
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
@@ -117,11 +118,46 @@ def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
 
 # --------------------------------------------------------------------------- local side
 @dataclass
+class ReadAhead:
+    """A file read, hashed and signed before the robot answered, with the algorithm
+    guessed for it; used if the file's stat is unchanged when it is sent."""
+    data: bytes
+    entry: Entry
+    algorithm: str
+    digest: str
+    sig: bytes | None
+
+
+@dataclass
 class Ahead:
     """A push's work done before the robot answered: see :meth:`Syncer.prepare`."""
     scanned: ScanResult
     local: LocalTree | None = None
     planned: list[Planned] | None = None  # against an empty robot, for an empty state
+    read: dict[str, ReadAhead] = field(default_factory=dict)  # the first files sent
+
+
+def _read_ahead(root: str, planned: list[Planned], budget: int) -> dict[str, ReadAhead]:
+    """The first whole files of ``planned``, up to ``budget`` bytes, read, hashed and signed
+    with our first choice of algorithm, which the robot shares whenever its Python has
+    xxhash (if not, they are hashed again when sent); a file that cannot be read now is
+    read when sent, as usual."""
+    algorithm = hashing.available()[0]
+    out: dict[str, ReadAhead] = {}
+    for p in planned:
+        op = p.op
+        if op.kind != M.WRITE or p.how != WHOLE or op.size > budget:
+            continue
+        try:
+            data, entry = read_stable(os.path.join(root, op.path), tries=1)
+        except OSError:
+            continue
+        sig = delta_mod.signature(data, algorithm=algorithm).to_bytes() if worth_signing(data) else None
+        out[op.path] = ReadAhead(data, entry, algorithm, hashing.digest(algorithm, data).hex(), sig)
+        budget -= len(data)
+        if budget <= 0:
+            break
+    return out
 
 
 @dataclass
@@ -226,7 +262,6 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
     directory is involved, the set of those paths (so callers need not test
     every path of the state against the predicate)."""
     from fetchsync.protocol.paths import ancestors, is_within
-    from fetchsync.protocol.tree import stat_path
 
     items: dict[str, M.Listed] = {}
     stats: dict[str, Entry] = {}
@@ -545,6 +580,7 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
+        self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -570,7 +606,7 @@ class Syncer:
         local = scan_local(local_root, rules, {}, "", lazy=True, scanned=scanned)
         guarded = local.guarded()
         planned = [p for p in plan(local.items, {}, lambda _path: M.ABSENT) if not guarded(p.op.path)]
-        return Ahead(scanned, local, planned)
+        return Ahead(scanned, local, planned, _read_ahead(local_root, planned, READ_AHEAD_BYTES))
 
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
@@ -625,6 +661,7 @@ class Syncer:
                     and not synced and not remote):
                 # what prepare() assumed holds: no state, and nothing on the robot
                 local, first = ahead.local, ahead.planned
+                self._read_ahead, ahead.read = ahead.read, {}
                 ahead.planned = None  # its operations are consumed as they are sent
             else:
                 local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
@@ -632,10 +669,13 @@ class Syncer:
             epoch, gen = listing["epoch"], listing["gen"]
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
-            self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                           progress=progress,
-                           listed=remote if listing.get("full") else
-                           [x[0] for x in listing.get("entries", [])], first=first)
+            try:
+                self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
+                               progress=progress,
+                               listed=remote if listing.get("full") else
+                               [x[0] for x in listing.get("entries", [])], first=first)
+            finally:
+                self._read_ahead = {}
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -868,7 +908,12 @@ class Syncer:
             if op.size > BIG:
                 self._send_big(batcher, p, full, report, local)
                 return False
-            data, entry = read_stable(full)
+            ready = self._read_ahead.pop(op.path, None) if self._read_ahead else None
+            if ready is not None and stat_path(full) == ready.entry:
+                data, entry = ready.data, ready.entry
+            else:
+                ready = None
+                data, entry = read_stable(full)
         except OSError as exc:
             if _gone(exc):
                 # a mirror of the laptop as it is now: the robot loses it too (into
@@ -880,14 +925,17 @@ class Syncer:
             what = "" if exc.errno == errno.EBUSY else "cannot read: "
             report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
             return False
-        digest = hashing.digest(self.algorithm, data).hex()
+        if ready is not None and ready.algorithm == self.algorithm:
+            digest, sig = ready.digest, ready.sig
+        else:
+            digest = hashing.digest(self.algorithm, data).hex()
+            sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
             op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
             p = Planned(op, WHOLE, M.Listed(op.path, "f", entry.mode, len(data), hash=digest))
             local.items[op.path] = p.item  # type: ignore[assignment]
         local.stats[op.path] = entry
-        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
         if p.how == DELTA:
             stored = self._robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None:

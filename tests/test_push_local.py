@@ -362,3 +362,51 @@ def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
         assert conn.hello["algorithms"] == hashing.available()  # xxhash found, if installed here
     finally:
         conn.close()
+
+
+@pytest.mark.parametrize("meanwhile", ["unchanged", "edited", "other algorithm"])
+def test_the_first_files_are_read_while_the_endpoint_starts(tmp_path, monkeypatch, meanwhile):
+    """prepare() reads, hashes and signs a first push's first files; the push sends them
+    without reading them again, unless the file changed since (its stat differs) or the
+    robot chose another hash algorithm than the one guessed. Either way the robot holds
+    the laptop's tree and its hashes check out there (a wrong one would be refused)."""
+    from fetchsync import sync
+    from fetchsync.connection import Connection
+    from fetchsync.state import State
+    from fetchsync.transport import LocalTransport
+
+    src = make_workspace(tmp_path / "ws") / "src"
+    for i in range(30):
+        (src / f"f{i}.txt").write_text(f"file {i}\n" * (i + 1))
+    rules = sync.build_rules()
+    state = State(tmp_path / "state.sqlite")
+    ahead = sync.Syncer.prepare(str(src), rules, state)
+    assert "f0.txt" in ahead.read and ahead.read["f0.txt"].data == b"file 0\n"
+    if meanwhile == "edited":
+        time.sleep(0.01)
+        (src / "f0.txt").write_text("edited after it was read ahead\n")
+    if meanwhile == "other algorithm":
+        for path, r in ahead.read.items():
+            ahead.read[path] = sync.ReadAhead(r.data, r.entry, "other", "0" * 32, None)
+    reads: list[str] = []
+    real = sync.read_stable
+
+    def read_stable(full, **k):
+        reads.append(os.path.relpath(full, src))
+        return real(full, **k)
+
+    monkeypatch.setattr(sync, "read_stable", read_stable)
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    try:
+        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
+                        rules=rules).push(ahead=ahead)
+        assert r.errors == []
+        assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
+        assert ("f0.txt" in reads) == (meanwhile == "edited")
+        assert "f1.txt" not in reads
+        again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
+                            rules=rules).push()
+        assert again.files == 0 and again.errors == []  # the state holds the right hashes
+    finally:
+        conn.close()
+        state.close()
