@@ -52,3 +52,20 @@ def test_a_config_without_match_exec_leaves_invoke_alone(tmp_path: Path):
         print(ssh.load_ssh_config({str(config)!r}).lookup("robot")["hostname"], "invoke" in sys.modules)
     """)
     assert out == "10.1.2.4 False"
+
+
+def test_paramiko_gets_its_version_without_importlib_metadata():
+    """paramiko's own version is read from its dist-info (importlib.metadata costs
+    ~15-20 ms to import); the real module stays importable and agrees."""
+    out = run("""
+        import sys
+        import fetchsync.ssh
+        import paramiko
+        from paramiko.transport import Transport
+        print("importlib.metadata" in sys.modules)
+        import importlib.metadata
+        print(paramiko.__version__ == importlib.metadata.version("paramiko") != "")
+        print(Transport._CLIENT_ID == "paramiko_" + paramiko.__version__)
+        print(bool(importlib.metadata.version("click")))
+    """)
+    assert out.splitlines() == ["False", "True", "True", "True"]
