@@ -410,3 +410,62 @@ def test_the_first_files_are_read_while_the_endpoint_starts(tmp_path, monkeypatc
     finally:
         conn.close()
         state.close()
+
+
+@pytest.mark.parametrize("killed_before_the_end", [False, True])
+def test_a_large_push_writes_the_state_while_the_last_answers_come(tmp_path, monkeypatch,
+                                                                  killed_before_the_end):
+    """The rows the robot confirmed are written while it applies the last batches, the rest
+    and the new generation at the end. A push stopped between the two leaves rows with the
+    old generation: the next push lists the robot, finds it identical, and sends nothing."""
+    from fetchsync import sync
+    from fetchsync.connection import Connection
+    from fetchsync.state import State
+    from fetchsync.transport import LocalTransport
+
+    src = tmp_path / "ws" / "src"
+    for d in range(12):
+        (src / f"d{d}").mkdir(parents=True)
+        for f in range(60):
+            (src / f"d{d}" / f"{f}.txt").write_text(f"{d} {f}\n" * 300)  # ~5 KiB: many batches
+    monkeypatch.setattr(sync, "FIRST_BATCHES_SMALLER", {k: 6 for k in range(64)})  # 128 KiB batches
+    monkeypatch.setattr(sync, "EARLY_ROWS", 50)
+    real_wait_sent = sync._Batcher.wait_sent
+
+    def wait_sent(self):  # and let the robot answer some: how many are in by then is timing
+        real_wait_sent(self)
+        time.sleep(1.0)
+
+    monkeypatch.setattr(sync._Batcher, "wait_sent", wait_sent)
+    state = State(tmp_path / "state.sqlite")
+    commits: list[bool] = []  # whether each commit carried the generation
+    real_commit = State.commit
+
+    def commit(self, **k):
+        commits.append("meta" in k)
+        if killed_before_the_end and "meta" in k:
+            raise KeyboardInterrupt
+        return real_commit(self, **k)
+
+    monkeypatch.setattr(State, "commit", commit)
+    rules = sync.build_rules()
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    try:
+        syncer = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules)
+        if killed_before_the_end:
+            with pytest.raises(KeyboardInterrupt):
+                syncer.push()
+        else:
+            assert syncer.push().errors == []
+        assert commits[0] is False and commits[-1] is True
+        rows = state.entries()
+        assert len(rows) >= 50 and all(r.hash for r in rows.values() if r.kind == "f")
+        assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
+        monkeypatch.setattr(State, "commit", real_commit)
+        again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
+                            rules=rules).push()
+        assert again.errors == [] and again.files == 0 and again.bytes_sent < 64 * 1024
+        assert len(state.entries()) == 12 + 12 * 60
+    finally:
+        conn.close()
+        state.close()
