@@ -233,3 +233,14 @@ def test_build_type_alone_warns(capsys):
     request = build_options.build_request((), "Release", "auto", False)
     assert not request
     assert "--build-type has no effect without --build" in capsys.readouterr().err
+
+
+def test_a_push_without_build_options_does_not_import_the_build_module():
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom fetchsync.commands.build_options import build_request\n"
+            "print(build_request((), 'default', 'auto', False), 'fetchsync.build' in sys.modules, "
+            "bool(build_request((), 'default', 'auto', True)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["None", "False", "True"]

@@ -75,10 +75,9 @@ def build_options(func: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def build_request(builds: Sequence[str], build_type: str, build_tool: str,
-                  install_deps: bool) -> BuildRequest:
-    """The request these options make (false when they ask for nothing)."""
-    from fetchsync.build import BuildRequest
-
+                  install_deps: bool) -> BuildRequest | None:
+    """The request these options make; None when they ask for nothing (without importing
+    the build module: every push and pull asks this)."""
     if not builds:
         unused = [name for name, value, default in (("--build-type", build_type, "default"),
                                                     ("--build-tool", build_tool, "auto"))
@@ -87,5 +86,9 @@ def build_request(builds: Sequence[str], build_type: str, build_tool: str,
             verb = "has" if len(unused) == 1 else "have"
             click.echo(f"fetchsync: warning: {' and '.join(unused)} {verb} no effect without --build",
                        err=True)
+        if not install_deps:
+            return None
+    from fetchsync.build import BuildRequest
+
     return BuildRequest(builds=tuple(builds), build_type=build_type, tool=build_tool,
                         install_deps=install_deps)
