@@ -135,6 +135,11 @@ class State:
             cur.execute("ROLLBACK")
             raise
 
+    def checkpoint(self) -> None:
+        """Copy the write-ahead log into the database now, without waiting for readers:
+        closing the last connection does it otherwise, at the end of the call."""
+        self.db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+
     def reset(self) -> None:
         self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
 

@@ -886,6 +886,7 @@ class Syncer:
         if len(rows) < EARLY_ROWS:
             return
         self.state.commit(upserts=((p, s, sig) for p, (s, sig) in rows.items()))
+        self.state.checkpoint()  # closing the state then has only the final commit to copy
         self._rows_written.update(rows)
 
     def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
