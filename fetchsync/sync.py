@@ -586,7 +586,7 @@ class Syncer:
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
         self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
-        self._rows_written: dict[str, tuple[Synced, bytes | None]] = {}  # see _write_rows
+        self._rows_written: set[str] = set()  # see _write_rows
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -736,7 +736,6 @@ class Syncer:
         ``first``: the first round's plan, made ahead for these very inputs."""
         robot_listed = set(listed or ())
         adopt_all = False
-        self._rows_written = {}
         if self._signed is None:
             self._signed = self.state.signed_paths()
         signed = self._signed
@@ -760,6 +759,7 @@ class Syncer:
                     and s.hash == dst.hash and dst.size >= SIG_MIN)
 
         for _round in range(MAX_ROUNDS):
+            self._rows_written = set()  # a round may settle a path written early again
             # what the laptop could not read is left as the robot has it
             if first is not None:
                 planned, first = first, None
@@ -867,9 +867,8 @@ class Syncer:
                 elif sig is not None:
                     self._signed.add(path)
             self._signed.difference_update(deletes)
-        written, self._rows_written = self._rows_written, {}
-        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items()
-                                   if written.get(p) is not upserts[p]),
+        written, self._rows_written = self._rows_written, set()
+        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written),
                           deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
                                                  "algorithm": self.algorithm})
         self._synced = new_synced
@@ -878,16 +877,19 @@ class Syncer:
     def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
         """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
         generation as it was: they say what the robot confirmed it holds, durably, and
-        :meth:`_commit` writes only what changed since. Only for large pushes (tens of ms
-        of SQLite at the end of a 7,000-file push); a kill between the two leaves rows
-        with the previous generation, which the next push treats as the robot having
-        changed since: it lists and compares."""
-        rows = {p: v for p, v in upserts.items() if self._rows_written.get(p) is not v}
-        if len(rows) < EARLY_ROWS:
+        :meth:`_commit` writes only the others. Only for large pushes (tens of ms of
+        SQLite at the end of a 7,000-file push); a kill between the two leaves rows with
+        the previous generation, which the next push treats as the robot having changed
+        since: it lists and compares.
+
+        Only paths are remembered (a 100,000-file push holds its memory budget closely):
+        within a round a path is settled once, and each round starts afresh."""
+        written = self._rows_written
+        if sum(1 for p in upserts if p not in written) < EARLY_ROWS:
             return
-        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in rows.items()))
+        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written))
         self.state.checkpoint()  # closing the state then has only the final commit to copy
-        self._rows_written.update(rows)
+        written.update(upserts)
 
     def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
                           robot_sigs: dict[str, bytes], whole_only: set[str]) -> list[Planned]:
