@@ -48,6 +48,7 @@ PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
+EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 READ_AHEAD_BYTES = 3 * 1024 * 1024  # of a first push's files, read (and hashed) while the endpoint starts
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
@@ -882,10 +883,12 @@ class Syncer:
         the previous generation, which the next push treats as the robot having changed
         since: it lists and compares.
 
-        Only paths are remembered (a 100,000-file push holds its memory budget closely):
-        within a round a path is settled once, and each round starts afresh."""
+        Only paths are remembered: within a round a path is settled once, and each round
+        starts afresh. Not past EARLY_ROWS_MAX rows: a push of 100,000 files holds its
+        memory budget closely, and the final commit is a small part of its time."""
         written = self._rows_written
-        if sum(1 for p in upserts if p not in written) < EARLY_ROWS:
+        if not EARLY_ROWS <= len(upserts) <= EARLY_ROWS_MAX \
+                or sum(1 for p in upserts if p not in written) < EARLY_ROWS:
             return
         self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written))
         self.state.checkpoint()  # closing the state then has only the final commit to copy
