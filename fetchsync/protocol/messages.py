@@ -170,22 +170,27 @@ class Op:
             raise ProtocolError("bad blob reference")
         if "k" not in obj:
             raise ProtocolError("operation lacks 'k'")
-        fields = {"kind": obj["k"], "path": get("p", ""), "expect": get("e"), "mode": get("m", 0),
-                  "target": get("t", ""), "hash": get("h", ""), "size": get("s", 0),
-                  "source": get("src", ""), "base": get("b", ""), "from_path": get("fp", ""),
-                  "blob": (blob[0], blob[1]), "upload": get("u", ""), "z": get("z", 0)}
-        for name in _STRING_FIELDS:
-            if type(fields[name]) is not str:  # noqa: E721 (a str subclass is no wire value)
-                raise ProtocolError("operation field %s is not a string" % name)
+        path, target, hash_, source = get("p", ""), get("t", ""), get("h", ""), get("src", "")
+        base, from_path, upload = get("b", ""), get("fp", ""), get("u", "")
+        if not (type(path) is type(target) is type(hash_) is type(source) is type(base)  # noqa: E721
+                is type(from_path) is type(upload) is str):  # a str subclass is no wire value
+            for name, value in (("path", path), ("target", target), ("hash", hash_), ("source", source),
+                                ("base", base), ("from_path", from_path), ("upload", upload)):
+                if type(value) is not str:  # noqa: E721
+                    raise ProtocolError("operation field %s is not a string" % name)
         # the frozen dataclass's __init__ sets each field through object.__setattr__:
         # a request of thousands of operations is decoded faster by filling the
-        # instance's dict at once (same fields, same values, then validated)
+        # instance's dict directly, key by key in field order (which keeps it the
+        # compact dict instances share keys in), then validated as before
         op = object.__new__(cls)
-        op.__dict__.update(fields)
+        d = op.__dict__
+        d["kind"], d["path"], d["expect"], d["mode"], d["target"], d["hash"], d["size"], \
+            d["source"], d["base"], d["from_path"], d["blob"], d["upload"], d["z"] = \
+            obj["k"], path, get("e"), get("m", 0), target, hash_, get("s", 0), \
+            source, base, from_path, (blob[0], blob[1]), upload, get("z", 0)
         return op.validate()
 
 
-_STRING_FIELDS = ("path", "target", "hash", "source", "base", "from_path", "upload")
 _FIELDS = frozenset(("kind", "path", "expect", "mode", "target", "hash", "size", "source", "base",
                      "from_path", "blob", "upload", "z"))
 
