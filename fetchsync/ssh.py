@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import hmac
 import logging
 import os
@@ -54,6 +53,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
+from fetchsync.protocol import wire
 from fetchsync.transport import Channel
 
 log = logging.getLogger(__name__)
@@ -609,17 +609,6 @@ def _tcp_connect(settings: HostSettings, *, timeout: float, keepalive: float) ->
     return sock
 
 
-def _widen_pipes(*pipes: IO[bytes] | None) -> None:
-    """1 MiB pipes to and from a ProxyCommand instead of 64 KiB: a push streams ~100 MB
-    through them, and each full pipe is a wake-up on both ends (Linux only; the kernel
-    caps the size at /proc/sys/fs/pipe-max-size)."""
-    setsize = getattr(fcntl, "F_SETPIPE_SZ", None)
-    for pipe in pipes:
-        if pipe is not None and setsize is not None:
-            with contextlib.suppress(OSError):
-                fcntl.fcntl(pipe.fileno(), setsize, 1 << 20)
-
-
 class _ProxyCommand(paramiko.ProxyCommand):
     """paramiko's ProxyCommand, run by ``/bin/sh`` as ssh does, with EOF and stderr kept.
 
@@ -645,7 +634,9 @@ class _ProxyCommand(paramiko.ProxyCommand):
         except OSError as exc:
             self._stderr.close()
             raise ConnectError(f"cannot run ProxyCommand {command_line!r}: {exc.strerror}") from exc
-        _widen_pipes(self.process.stdin, self.process.stdout)
+        for pipe in (self.process.stdin, self.process.stdout):
+            if pipe is not None:
+                wire.widen_pipe(pipe.fileno())
         self.timeout: float | None = None
 
     def send(self, content: bytes) -> int:

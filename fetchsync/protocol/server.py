@@ -11,7 +11,6 @@ stream ends the endpoint.
 from __future__ import annotations
 
 import ctypes
-import fcntl
 import gc
 import json
 import os
@@ -529,22 +528,9 @@ def _trim_heap() -> None:
             pass
 
 
-def _widen_stdin() -> None:
-    """Give the pipe from sshd (or the local robot's parent) 1 MiB instead of 64 KiB.
-
-    A push streams ~100 MB through it: with the default, its writer and this
-    reader wake each other every 64 KiB. The kernel caps the size
-    (/proc/sys/fs/pipe-max-size, 1 MiB by default) and refuses it on a non-pipe.
-    """
-    try:
-        fcntl.fcntl(0, 1031, 1 << 20)  # F_SETPIPE_SZ (Linux; not named in Python 3.8's fcntl)
-    except (OSError, ValueError):
-        pass  # not a pipe, another OS, or over the limit: the default serves as before
-
-
 def main() -> None:
     _tune_malloc()
-    _widen_stdin()
+    wire.widen_pipe(0)  # the push arrives on stdin
     # a push makes a few objects per file and no cycles worth the name, yet the
     # default thresholds ran ~100 collections in a 7,000-file push
     gc.freeze()
