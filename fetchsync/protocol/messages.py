@@ -17,7 +17,7 @@ A mismatch is a conflict: the receiver's version is preserved, never lost.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from fetchsync.protocol import paths
@@ -129,9 +129,9 @@ class Op:
         if unknown:
             raise TypeError("Op has no field %s" % ", ".join(sorted(unknown)))
         new = object.__new__(Op)
-        fields = new.__dict__
-        fields.update(self.__dict__)
-        fields.update(changes)
+        d = new.__dict__
+        d.update(self.__dict__)
+        d.update(changes)
         return new
 
     def to_wire(self) -> Dict[str, Any]:
@@ -191,8 +191,7 @@ class Op:
         return op.validate()
 
 
-_FIELDS = frozenset(("kind", "path", "expect", "mode", "target", "hash", "size", "source", "base",
-                     "from_path", "blob", "upload", "z"))
+_FIELDS = frozenset(f.name for f in fields(Op))
 
 
 class Result(NamedTuple):
