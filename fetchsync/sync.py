@@ -50,6 +50,9 @@ BATCH_OPS = 4000
 EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
 EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 READ_AHEAD_BYTES = 3 * 1024 * 1024  # of a first push's files, read (and hashed) while the endpoint starts
+# Of a round sending more than a batch, the text files' delta signatures are made once
+# the last batch is out, while the robot applies it, up to this many bytes of them
+SIGN_LATE_MAX = 64 * 1024 * 1024
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
@@ -121,13 +124,12 @@ def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
 # --------------------------------------------------------------------------- local side
 @dataclass
 class ReadAhead:
-    """A file read, hashed and signed before the robot answered, with the algorithm
-    guessed for it; used if the file's stat is unchanged when it is sent."""
+    """A file read and hashed before the robot answered, with the algorithm guessed for
+    it; used if the file's stat is unchanged when it is sent."""
     data: bytes
     entry: Entry
     algorithm: str
     digest: str
-    sig: bytes | None
 
 
 @dataclass
@@ -140,10 +142,10 @@ class Ahead:
 
 
 def _read_ahead(root: str, planned: list[Planned], budget: int) -> dict[str, ReadAhead]:
-    """The first whole files of ``planned``, up to ``budget`` bytes, read, hashed and signed
-    with our first choice of algorithm, which the robot shares whenever its Python has
-    xxhash (if not, they are hashed again when sent); a file that cannot be read now is
-    read when sent, as usual."""
+    """The first whole files of ``planned``, up to ``budget`` bytes, read and hashed with
+    our first choice of algorithm, which the robot shares whenever its Python has xxhash
+    (if not, they are hashed again when sent); a file that cannot be read now is read
+    when sent, as usual. Signing waits for the send, or for the end (_sign_deferred)."""
     algorithm = hashing.available()[0]
     out: dict[str, ReadAhead] = {}
     for p in planned:
@@ -154,8 +156,7 @@ def _read_ahead(root: str, planned: list[Planned], budget: int) -> dict[str, Rea
             data, entry = read_stable(os.path.join(root, op.path), tries=1)
         except OSError:
             continue
-        sig = delta_mod.signature(data, algorithm=algorithm).to_bytes() if worth_signing(data) else None
-        out[op.path] = ReadAhead(data, entry, algorithm, hashing.digest(algorithm, data).hex(), sig)
+        out[op.path] = ReadAhead(data, entry, algorithm, hashing.digest(algorithm, data).hex())
         budget -= len(data)
         if budget <= 0:
             break
@@ -588,6 +589,9 @@ class Syncer:
         self._spare_uploads: dict[str, int] = {}
         self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
         self._rows_written: set[str] = set()  # see _write_rows
+        self._sign_late: list[tuple[str, str, int]] | None = None  # see _sign_deferred
+        self._late_bytes = 0
+        self._late_sigs: dict[str, tuple[str, bytes]] = {}
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -779,6 +783,9 @@ class Syncer:
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
+            # a round of more than one batch signs its text files once they are all sent
+            self._sign_late = [] if batcher.total > BATCH_BYTES and not dry_run else None
+            self._late_bytes, self._late_sigs = 0, {}
             vanished = mismatch = False
 
             def settle(answered: list[tuple[Any, M.Result]]) -> None:
@@ -802,6 +809,7 @@ class Syncer:
                 # while the robot applies the last batches, the rows of what it has
                 # confirmed so far go to the state; the final commit adds the rest
                 batcher.wait_sent()
+                self._sign_deferred(upserts)
                 settle(batcher.answered())
                 self._write_rows(upserts)
             settle(batcher.answered(wait=True))
@@ -874,6 +882,34 @@ class Syncer:
                                                  "algorithm": self.algorithm})
         self._synced = new_synced
         self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+
+    def _sign_deferred(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
+        """Sign the text files this round sent unsigned (see ``SIGN_LATE_MAX``).
+
+        Signing is a fifth of the laptop's CPU in a first push, and while batches
+        stream it competes with reading, compressing and the robot's endpoint for the
+        cores; once the last batch is out, the laptop mostly waits for the robot. The
+        files are read again (from the page cache, as a rule); one that changed since it
+        was sent gets no signature, and its next edit asks the robot to sign its copy.
+        """
+        late, self._sign_late = self._sign_late, None
+        if not late:
+            return
+        algorithm = self.algorithm
+        for path, digest, size in late:
+            try:
+                data, _entry = read_stable(os.path.join(self.local_root, path), tries=1)
+            except OSError:
+                continue
+            if len(data) != size or hashing.digest(algorithm, data).hex() != digest:
+                continue
+            sig = delta_mod.signature(data, algorithm=algorithm).to_bytes()
+            row = upserts.get(path)
+            if row is None:  # not answered yet: _settle takes it
+                self._late_sigs[path] = (digest, sig)
+            elif row[1] is None and row[0].hash == digest:
+                upserts[path] = (row[0], sig)
+                self._rows_written.discard(path)  # written early without it: again
 
     def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
         """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
@@ -960,10 +996,18 @@ class Syncer:
             report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
             return False
         if ready is not None and ready.algorithm == self.algorithm:
-            digest, sig = ready.digest, ready.sig
+            digest = ready.digest
         else:
             digest = hashing.digest(self.algorithm, data).hex()
-            sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
+        sig = None
+        late = self._sign_late
+        if not worth_signing(data):
+            pass
+        elif late is not None and self._late_bytes + len(data) <= SIGN_LATE_MAX:
+            late.append((op.path, digest, len(data)))
+            self._late_bytes += len(data)
+        else:
+            sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes()
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
             op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
@@ -1102,6 +1146,10 @@ class Syncer:
         item = local.items.get(path)
         s = _synced_from(written, local.stats.get(path) if item is not None and item.hash == written.hash
                          else None, now_ns)
+        if sig is None and path in self._late_sigs:
+            digest, late_sig = self._late_sigs.pop(path)
+            if digest == s.hash:
+                sig = late_sig
         new_synced[path] = s
         upserts[path] = (s, sig)
         deletes.discard(path)
