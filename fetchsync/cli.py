@@ -222,7 +222,8 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         ahead: list[Any] = []  # the local scan and plan, made while the robot's endpoint starts
         try:
             with connect(target, accept_fingerprint=accept_host_key,
-                         meanwhile=lambda: ahead.append(Syncer.prepare(str(src), rules, state))) as conn:
+                         meanwhile=lambda answered: ahead.append(
+                             Syncer.prepare(str(src), rules, state, stop=answered))) as conn:
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,

@@ -80,12 +80,14 @@ class Connection:
     # ------------------------------------------------------------------ setup
     @classmethod
     def open(cls, transport: Transport, *, python: str | None = None,
-             meanwhile: Callable[[], Any] | None = None) -> Connection:
+             meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Connection:
         """Start the endpoint on the robot and exchange hellos.
 
         ``meanwhile`` runs once the endpoint's command is sent, while the robot
         starts its shell and Python (a few tenths of a second on a direct
-        connection): work that needs no answer from the robot.
+        connection): work that needs no answer from the robot. It is given a
+        function that tells whether the robot has said something yet (its hello,
+        or that it needs the endpoint sent), for work worth stopping then.
         """
         python = python or remote_python()
         command, archive = loader_spec(python)
@@ -94,7 +96,7 @@ class Connection:
         sent = 0
         try:
             if meanwhile is not None:
-                meanwhile()
+                meanwhile(channel.ready)
             sent += cls._deliver(channel, reader, archive)
             hello = reader.read_hello()
         except EOFError as exc:

@@ -96,9 +96,10 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
 
 @contextmanager
 def connect(target: Target, *, accept_fingerprint: str | None = None,
-            meanwhile: Callable[[], Any] | None = None) -> Iterator[Connection]:
+            meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Iterator[Connection]:
     """A connection to the target's endpoint; ``meanwhile`` runs while the endpoint
-    starts, unless a connection master's endpoint is ready (a wait of ~0)."""
+    starts (see :meth:`Connection.open`), unless a connection master's endpoint is
+    ready (a wait of ~0)."""
     transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
         if getattr(transport, "local_scan", None) is not None:

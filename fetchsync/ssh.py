@@ -195,6 +195,9 @@ class SSHChannel:
             raise self._lost("before the command finished")
         return data
 
+    def ready(self) -> bool:
+        return bool(self._chan.recv_ready() or self._chan.eof_received or self._chan.closed)
+
     def recv_stderr(self, n: int) -> bytes:
         # The stdout side reports a lost link; a stderr drain just ends.
         try:

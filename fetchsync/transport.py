@@ -10,6 +10,7 @@ and the quickstart can use the robot-side endpoint without an SSH server.
 from __future__ import annotations
 
 import os
+import select
 import shlex
 import subprocess
 import threading
@@ -32,6 +33,9 @@ class Channel(Protocol):
 
     def recv_stderr(self, n: int) -> bytes:
         """Up to ``n`` bytes of stderr; ``b""`` at end of stream."""
+
+    def ready(self) -> bool:
+        """Whether ``recv`` would return at once: stdout has bytes, or has ended."""
 
     def shutdown_write(self) -> None:
         """Close the command's stdin (EOF), keep reading."""
@@ -88,6 +92,15 @@ class _ProcessChannel:
             return self._proc.stdout.read1(n)  # type: ignore[attr-defined]
         except (ValueError, OSError) as exc:
             raise LinkLostError("the local robot's endpoint went away") from exc
+
+    def ready(self) -> bool:
+        # a poll of the pipe: right while nothing was read yet, as when the endpoint
+        # starts; after a read, bytes may wait in the reader's buffer instead
+        assert self._proc.stdout is not None
+        try:
+            return bool(select.select([self._proc.stdout], [], [], 0)[0])
+        except (ValueError, OSError):
+            return True  # closed: recv returns at once
 
     def recv_stderr(self, n: int) -> bytes:
         assert self._proc.stderr is not None

@@ -80,6 +80,25 @@ def test_second_call_goes_through_the_master_and_a_dead_master_is_replaced(env, 
     assert r["connection"] == "ssh"
 
 
+def test_a_command_through_the_master_tells_when_output_is_waiting(env):
+    """MuxChannel.ready(): not before the command writes, then at once, and at its end."""
+    from fetchsync.agent.mux import MuxTransport
+
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    transport = MuxTransport.attach(next((runtime / "fetchsync").glob("mux-*.sock")), "robot")
+    assert transport is not None
+    chan = transport.exec("sleep 1; echo hi; sleep 0.5")
+    try:
+        assert not chan.ready()
+        assert wait_for(chan.ready, 10)
+        assert chan.recv(10) == b"hi\n"
+        assert chan.recv(10) == b"" and chan.ready()
+    finally:
+        chan.close()
+
+
 def test_master_exits_when_idle(env):
     env = dict(env, FETCHSYNC_PERSIST="1")
     runtime = Path(env["XDG_RUNTIME_DIR"])

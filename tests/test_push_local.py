@@ -263,9 +263,9 @@ def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch)
     ahead = []
     state = State(tmp_path / "state.sqlite")
 
-    def meanwhile() -> None:
+    def meanwhile(answered) -> None:
         events.append("prepare")
-        ahead.append(sync.Syncer.prepare(str(src), rules, state))
+        ahead.append(sync.Syncer.prepare(str(src), rules, state, stop=answered))
 
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"), meanwhile=meanwhile)
     try:
@@ -362,6 +362,51 @@ def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
         assert conn.hello["algorithms"] == hashing.available()  # xxhash found, if installed here
     finally:
         conn.close()
+
+
+def test_the_local_robots_channel_tells_when_output_is_waiting(tmp_path):
+    """Channel.ready() of the ``local`` robot: not before the command writes, then at
+    once, and at its end."""
+    from fetchsync.transport import LocalTransport
+
+    chan = LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5")
+    try:
+        assert not chan.ready()
+        deadline = time.monotonic() + 10
+        while not chan.ready() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert chan.ready() and chan.recv(10) == b"hi\n"
+        assert chan.recv(10) == b"" and chan.ready()
+    finally:
+        chan.close()
+
+
+def test_the_read_ahead_stops_when_the_robot_answers(tmp_path):
+    """prepare() reads a first push's files until ``stop()`` says the robot answered (it
+    asks every few files), or READ_AHEAD_BYTES are read."""
+    from fetchsync import sync
+    from fetchsync.state import State
+
+    src = make_workspace(tmp_path / "ws") / "src"
+    for i in range(64):
+        (src / f"f{i:02}.txt").write_text(f"file {i}\n")
+    rules = sync.build_rules()
+    state = State(tmp_path / "state.sqlite")
+    asked = []
+
+    def stop() -> bool:
+        asked.append(1)
+        return len(asked) > 2
+
+    try:
+        stopped = sync.Syncer.prepare(str(src), rules, state, stop=stop)
+        assert len(asked) == 3 and 0 < len(stopped.read) <= 16
+        unstopped = sync.Syncer.prepare(str(src), rules, state, stop=lambda: False)
+        assert len(unstopped.read) >= 64  # the budget holds them all
+        assert set(stopped.read) < set(unstopped.read)
+        assert stopped.planned == unstopped.planned  # the plan itself is whole either way
+    finally:
+        state.close()
 
 
 @pytest.mark.parametrize("meanwhile", ["unchanged", "edited", "other algorithm"])

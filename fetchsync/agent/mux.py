@@ -28,6 +28,7 @@ import hashlib
 import json
 import logging
 import os
+import select
 import socket
 import stat
 import struct
@@ -128,6 +129,14 @@ class MuxChannel:
         out = bytes(self._out[:n])
         del self._out[:n]
         return out
+
+    def ready(self) -> bool:
+        if self._out or self._eof or self._status is not None:
+            return True
+        try:
+            return bool(select.select([self.sock], [], [], 0)[0])  # a frame, maybe of stderr
+        except (ValueError, OSError):
+            return True
 
     def recv_stderr(self, n: int) -> bytes:
         while not self._eof and self._status is None:
