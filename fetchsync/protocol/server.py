@@ -131,6 +131,7 @@ class Server:
             "algorithms": hashing.available(),
             "compression": ["zlib"],
             "python": "%d.%d.%d" % sys.version_info[:3],
+            "executable": sys.executable,  # the laptop runs it by this path next time
             "host": os.uname().nodename,  # socket.gethostname(), without importing socket
             "home": os.path.expanduser("~"),
         }
