@@ -123,3 +123,19 @@ def test_the_robots_interpreter_is_run_by_the_path_it_reported(cache, tmp_path, 
     assert interpreter_note(transport, "/opt/py/bin/python3") is None
     assert interpreter_note(transport, "python3.8") not in (None, str(note))
     assert interpreter_note(LocalTransport(tmp_path / "other-home"), "python3") != str(note)
+
+
+def test_the_endpoint_imports_nothing_it_needs_only_later():
+    """Every connection pays the endpoint's imports before its hello: the modules needed
+    only for rare paths (deep removals, a mallopt after the hello, a delivery, a crash)
+    are imported there, not when the endpoint starts."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys; sys.path.insert(0, %r); import fetchsync.protocol.server; "
+            "print(' '.join(sorted(m for m in sys.modules if m in %r)))"
+            % (str(root), ["shutil", "ctypes", "hashlib", "_hashlib", "shlex", "socket", "uuid",
+                           "traceback", "zipfile", "subprocess"]))
+    out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""

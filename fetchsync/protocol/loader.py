@@ -14,10 +14,7 @@ Nothing is installed with root and nothing is downloaded by the robot.
 
 from __future__ import annotations
 
-import hashlib
-import io
 import os
-import shlex
 from typing import Callable, Tuple
 
 from fetchsync.protocol.errors import ProtocolError
@@ -25,7 +22,7 @@ from fetchsync.protocol.errors import ProtocolError
 NEED = b"FSYNC-NEED\n"
 
 LOADER = r"""
-import sys, os, hashlib
+import sys, os
 if sys.version_info < (3, 8):
     sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.8: install one (apt install python3.8) and set FETCHSYNC_REMOTE_PYTHON=python3.8" % tuple(sys.version_info[:3]))
 if sys.flags.no_site:
@@ -41,6 +38,7 @@ if not os.path.isfile(p) or os.path.getsize(p) != n:
     o.write(b"FSYNC-NEED\n")
     o.flush()
     b = sys.stdin.buffer.read(n)
+    import hashlib
     if hashlib.sha256(b).hexdigest() != h:
         sys.exit("fetchsync: the endpoint was damaged in transit")
     os.makedirs(d, exist_ok=True)
@@ -92,6 +90,8 @@ def endpoint_archive() -> Tuple[bytes, str]:
     global _cache
     if _cache is not None:
         return _cache
+    import hashlib
+    import io
     import zipfile
     here = os.path.dirname(os.path.abspath(__file__))
     buf = io.BytesIO()
@@ -119,6 +119,8 @@ def cache_dir() -> str:
 
 def _sources_stamp(here: str) -> str:
     """A key that changes whenever a source of the endpoint does (name, size, mtime)."""
+    import hashlib
+
     stats = []
     for entry in os.scandir(here):
         if entry.name.endswith(".py"):
@@ -163,6 +165,7 @@ def loader_spec(python: str = "python3") -> Tuple[str, Callable[[], bytes]]:
     # site-packages can hold dozens: 40 ms of every start here, and anything they
     # print would go down the protocol's stream); the loader puts the site
     # directories on the path itself, for the optional xxhash
+    import shlex
     cmd = "%s -S -c %s %s %d" % (python, shlex.quote(LOADER), digest, length)
 
     def archive() -> bytes:
