@@ -612,6 +612,23 @@ def _tcp_connect(settings: HostSettings, *, timeout: float, keepalive: float) ->
     return sock
 
 
+def _wait_exit(process: subprocess.Popen[bytes], timeout: float) -> None:
+    """``process.wait(timeout)``, woken by the exit itself where Linux gives a pidfd:
+    Popen.wait polls with growing sleeps, ~16 ms for a ProxyCommand that exits in 1.
+    Raises subprocess.TimeoutExpired."""
+    try:
+        fd = os.pidfd_open(process.pid)
+    except (AttributeError, OSError):  # not Linux >= 5.3, or already reaped
+        process.wait(timeout)
+        return
+    try:
+        select.select([fd], [], [], timeout)
+    finally:
+        os.close(fd)
+    if process.poll() is None:
+        raise subprocess.TimeoutExpired(process.args, timeout)
+
+
 class _ProxyCommand(paramiko.ProxyCommand):
     """paramiko's ProxyCommand, run by ``/bin/sh`` as ssh does, with EOF and stderr kept.
 
@@ -677,7 +694,7 @@ class _ProxyCommand(paramiko.ProxyCommand):
         if self.process.poll() is None:
             self.process.terminate()
             try:
-                self.process.wait(1)
+                _wait_exit(self.process, 1.0)
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()

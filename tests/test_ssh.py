@@ -532,6 +532,25 @@ def test_stalled_link_is_detected_and_reported_lost(ssh_home: SSHHome, connect: 
 # -- pure helpers ----------------------------------------------------------
 
 
+def test_wait_exit_reaps_an_ended_command_and_times_out_on_a_running_one() -> None:
+    from fetchsync.ssh import _wait_exit
+
+    quick = subprocess.Popen(["sh", "-c", "exec sleep 30"])
+    quick.terminate()
+    _wait_exit(quick, 10.0)
+    assert quick.returncode == -signal.SIGTERM
+    stubborn = subprocess.Popen(["sh", "-c", "trap '' TERM; exec sleep 30"])  # TERM stays ignored
+    try:
+        time.sleep(0.2)  # the trap is set
+        stubborn.terminate()
+        with pytest.raises(subprocess.TimeoutExpired):
+            _wait_exit(stubborn, 0.3)
+        assert stubborn.returncode is None
+    finally:
+        stubborn.kill()
+        stubborn.wait()
+
+
 def test_parse_jump() -> None:
     assert parse_jump("bastion") == (None, "bastion", None)
     assert parse_jump("alice@bastion:2222") == ("alice", "bastion", 2222)
