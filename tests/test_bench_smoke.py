@@ -15,11 +15,17 @@ from helpers import run_bench
 def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     stdout, raw = run_bench("run.py", "--quick", tmp_path=tmp_path, needs=("rsync",))
     assert "| scenario | fetchsync | rsync | ratio (fetchsync/rsync) | target |" in stdout
+    assert ("| scenario | fetchsync | rsync | ratio of the medians | median of the rounds' ratios "
+            "| target |") in stdout
     assert "verification: PASS" in stdout
     assert raw["verified"] is True
     scenarios = {s["scenario"] for s in raw["samples"]}
     assert scenarios == {"initial", "noop", "edit", "insert", "rename"}
     assert {s["tool"] for s in raw["samples"]} == {"fetchsync", "rsync"}
+    initial = raw["summary"]["fetchsync"]["initial"]
+    assert len(initial["round_ratios"]) == sum(
+        1 for s in raw["samples"] if s["scenario"] == "initial" and s["tool"] == "fetchsync")
+    assert initial["round_ratio"] > 0
     # both went through the counting proxy
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
 
