@@ -44,8 +44,10 @@ _PATH_CHARS = _NAME_CHARS | frozenset("/@~:,=")
 
 def interpreter_note(transport: Transport, python: str) -> str | None:
     """Where the interpreter behind ``python`` on this robot is noted; None when ``python``
-    is not a bare command name (a path, or a command with arguments, is run as given)."""
-    if not python or not _NAME_CHARS.issuperset(python):
+    is not a bare command name (a path, or a command with arguments, is run as given),
+    and through a connection master: its endpoints are started ahead, by the name, and
+    a call takes one only if its command line is the same."""
+    if not python or not _NAME_CHARS.issuperset(python) or getattr(transport, "keeps_endpoints_warm", False):
         return None
     settings = getattr(transport, "settings", None)
     if settings is not None:

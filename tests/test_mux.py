@@ -234,6 +234,24 @@ def watched_inodes(pid: int) -> set[int]:
     return out
 
 
+def test_calls_through_the_master_take_its_spares_once_the_interpreter_is_noted(env, remote_dir, tmp_path):
+    """A direct connection notes the robot's interpreter (connection.interpreter_note);
+    calls through the master still run ``python3`` by name, the command its spares were
+    started with, so each takes a spare instead of waiting for a new endpoint."""
+    env = dict(env, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "ssh"
+    assert list((tmp_path / "cache" / "fetchsync").glob("python-*"))  # noted
+    assert wait_for(lambda: serving(runtime))
+    for i in range(3):
+        assert wait_for(lambda: len(prewarmed_endpoints()) >= 2, timeout=10)
+        (local / "my_pkg" / f"n{i}.txt").write_text(f"{i}\n")
+        assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
+    assert tree_of(local) == tree_of(remote_dir / "src")
+    assert "no endpoint started ahead" not in Path(env["FETCHSYNC_MUX_LOG"]).read_text()
+
+
 def test_spare_endpoints_follow_the_workspace_opened_last(env, remote_dir, tmp_path):
     """Spares started before the first push to another workspace switch to it."""
     runtime = Path(env["XDG_RUNTIME_DIR"])

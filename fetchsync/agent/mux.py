@@ -169,6 +169,10 @@ class MuxChannel:
 class MuxTransport:
     """A transport whose commands run through a connection master's socket."""
 
+    # the master keeps endpoints started ahead, with the command line a direct
+    # connection would use (``python3`` by name): see connection.interpreter_note
+    keeps_endpoints_warm = True
+
     def __init__(self, path: Path, name: str) -> None:
         self.path = path
         self.name = name
@@ -323,7 +327,10 @@ class Master:
                 self.pool = []
                 self.warm_command = command
         threading.Thread(target=self._refill, daemon=True).start()
-        return found.channel if found is not None else self.transport.exec(command)
+        if found is not None:
+            return found.channel
+        log.info("no endpoint started ahead for this call: starting one")
+        return self.transport.exec(command)
 
     def serve(self) -> None:
         tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
