@@ -221,9 +221,12 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         state = open_state(target)
         ahead: list[Any] = []  # the local scan and plan, made while the robot's endpoint starts
         try:
+            # a connection master left behind watches this tree from the start:
+            # the next push's scan is then ready, not started by it
             with connect(target, accept_fingerprint=accept_host_key,
                          meanwhile=lambda answered: ahead.append(
-                             Syncer.prepare(str(src), rules, state, stop=answered))) as conn:
+                             Syncer.prepare(str(src), rules, state, stop=answered)),
+                         prescan=(str(src), rules.to_wire())) as conn:
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,

@@ -55,12 +55,13 @@ def terminal_prompt() -> Callable[[str], str | None] | None:
 
 
 def open_transport(target: Target, *, accept_fingerprint: str | None = None,
-                   persistent: bool = True) -> Transport:
+                   persistent: bool = True, prescan: tuple[str, Any] | None = None) -> Transport:
     """A transport to the target's robot.
 
     ``persistent`` goes through (or leaves behind) a connection master; pass
     False for commands that need a PTY or an environment, which only a direct
-    SSH connection runs.
+    SSH connection runs. ``prescan``: the local tree (root, rules' wire form) a
+    master left behind starts watching at once (see mux.spawn_master).
     """
     if target.is_local:
         home = local_robot_home()
@@ -90,17 +91,19 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         # spare endpoints opening this very workspace) would take the CPU this
         # call needs, on both ends
         warm = loader_spec(remote_python())[0]
-        transport.after_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm)
+        transport.after_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm,
+                                                         prescan=prescan)
     return transport
 
 
 @contextmanager
 def connect(target: Target, *, accept_fingerprint: str | None = None,
-            meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Iterator[Connection]:
+            meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
+            prescan: tuple[str, Any] | None = None) -> Iterator[Connection]:
     """A connection to the target's endpoint; ``meanwhile`` runs while the endpoint
     starts (see :meth:`Connection.open`), unless a connection master's endpoint is
-    ready (a wait of ~0)."""
-    transport = open_transport(target, accept_fingerprint=accept_fingerprint)
+    ready (a wait of ~0). ``prescan``: see :func:`open_transport`."""
+    transport = open_transport(target, accept_fingerprint=accept_fingerprint, prescan=prescan)
     try:
         if getattr(transport, "local_scan", None) is not None:
             meanwhile = None

@@ -178,6 +178,22 @@ def test_the_master_keeps_the_local_scan_current(env, remote_dir):
     assert r["scan"] == "watched" and r["files"] == r["deleted"] == r["chmods"] == 0
 
 
+def test_the_master_a_push_leaves_behind_watches_its_tree_from_the_start(env, remote_dir):
+    """The push that leaves a master behind names its local tree: the master watches it
+    at once, so the very first push through it has its scan ready, rather than asking
+    for it, scanning for itself meanwhile, and competing with the master's own scan."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    log = Path(env["FETCHSYNC_MUX_LOG"])
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    assert wait_for(lambda: log.exists() and f"watching {local}: its scans are ready" in log.read_text())
+    (local / "my_pkg" / "first.txt").write_text("the first push through the master\n")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "master" and r["scan"] == "watched" and r["files"] == 1
+    assert tree_of(local) == tree_of(remote_dir / "src")
+
+
 def test_the_masters_scan_answers_only_what_a_fresh_scan_would(tmp_path):
     import marshal
 

@@ -247,8 +247,13 @@ class MuxTransport:
         pass
 
 
-def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = None) -> None:
-    """Start a connection master in the background (it authenticates on its own)."""
+def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = None,
+                 prescan: tuple[str, Any] | None = None) -> None:
+    """Start a connection master in the background (it authenticates on its own).
+
+    ``prescan`` (a local root and its rules' wire form, as a push asks for them)
+    is a tree the master starts watching at once, so the next call's scan request
+    finds it ready instead of starting it and scanning for itself meanwhile."""
     seconds = persist_seconds()
     if seconds <= 0:
         return
@@ -258,6 +263,8 @@ def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = 
         argv += ["--user", user]
     if warm:
         argv += ["--warm", warm]
+    if prescan is not None:
+        argv += ["--prescan", json.dumps(list(prescan))]
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
     if log_path:
         with open(log_path, "ab") as err:
@@ -280,8 +287,10 @@ class _Warm:
 class Master:
     WARM = 2  # endpoints kept started: back-to-back calls need not wait for sshd
 
-    def __init__(self, transport: Any, path: Path, idle: float, warm: str | None) -> None:
+    def __init__(self, transport: Any, path: Path, idle: float, warm: str | None,
+                 prescan: tuple[str, Any] | None = None) -> None:
         self.transport = transport
+        self.prescan = prescan
         self.path = path
         self.idle = idle
         self.warm_command = warm
@@ -342,6 +351,10 @@ class Master:
         srv.listen(16)
         srv.settimeout(DRAIN_EVERY)
         threading.Thread(target=self._refill, daemon=True).start()
+        if self.prescan is not None:
+            root, rules = self.prescan
+            with self.trees_lock:
+                self._watch(json.dumps([root, rules]), root, rules)
         try:
             while True:
                 try:
@@ -393,14 +406,7 @@ class Master:
             if key not in self.trees:
                 if time.monotonic() - self.unwatchable.get(key, -UNWATCHABLE_FOR) < UNWATCHABLE_FOR:
                     raise ValueError("that tree cannot be watched (inotify limit?)")
-                if len(self.trees) >= MAX_TREES:
-                    oldest = next(iter(self.trees))
-                    old = self.trees.pop(oldest)
-                    self.scan_replies.pop(oldest, None)
-                    if old is not None:
-                        old.close()
-                self.trees[key] = None
-                threading.Thread(target=self._build_tree, args=(key, root, rules), daemon=True).start()
+                self._watch(key, root, rules)
                 raise ValueError("starting to watch that tree")
             tree = self.trees[key]
             if tree is None:
@@ -413,6 +419,17 @@ class Master:
             if tree.skipped:
                 raise ValueError("that tree has entries a scan skips")
             return self._reply(key, tree)
+
+    def _watch(self, key: str, root: str, rules: Any) -> None:
+        """Start building the watched tree for ``key`` (with trees_lock; not yet there)."""
+        if len(self.trees) >= MAX_TREES:
+            oldest = next(iter(self.trees))
+            old = self.trees.pop(oldest)
+            self.scan_replies.pop(oldest, None)
+            if old is not None:
+                old.close()
+        self.trees[key] = None
+        threading.Thread(target=self._build_tree, args=(key, root, rules), daemon=True).start()
 
     def _reply(self, key: str, tree: Any) -> bytes:
         """The marshalled answer for ``tree`` as it is now (made once per version); with trees_lock."""
@@ -445,6 +462,7 @@ class Master:
         with self.trees_lock:
             if key in self.trees and tree is not None:
                 self.trees[key] = tree
+                log.info("watching %s: its scans are ready", root)
                 return
             self.trees.pop(key, None)
             if tree is None:
@@ -569,6 +587,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--socket", required=True)
     parser.add_argument("--idle", type=float, default=DEFAULT_PERSIST)
     parser.add_argument("--warm")
+    parser.add_argument("--prescan", type=json.loads)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
     try:
@@ -577,7 +596,8 @@ def main(argv: list[str] | None = None) -> int:
         log.error("cannot connect to %s: %s", args.host, exc)
         return 1
     try:
-        Master(transport, Path(args.socket), args.idle, args.warm).serve()
+        prescan = tuple(args.prescan) if isinstance(args.prescan, list) and len(args.prescan) == 2 else None
+        Master(transport, Path(args.socket), args.idle, args.warm, prescan).serve()
     except OSError as exc:
         log.error("cannot serve on %s: %s", args.socket, exc)
         transport.close()
