@@ -110,3 +110,19 @@ def run_bench(script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = 
         timeout=180)
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-5000:]}"
     return proc.stdout, json.loads(out_json.read_text())
+
+
+def check_ready(chan) -> None:
+    """Channel.ready() of ``chan``, running ``sleep 1; echo hi; sleep 0.5``: not before
+    the command writes, then at once, and at its end. Closes ``chan``."""
+    import time
+
+    try:
+        assert not chan.ready()
+        deadline = time.monotonic() + 10
+        while not chan.ready() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert chan.ready() and chan.recv(10) == b"hi\n"
+        assert chan.recv(10) == b"" and chan.ready()
+    finally:
+        chan.close()

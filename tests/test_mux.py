@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, ssh_env, tree_of
+from helpers import check_ready, fetchsync, make_workspace, report, ssh_env, tree_of
 
 pytestmark = pytest.mark.ssh
 
@@ -89,14 +89,7 @@ def test_a_command_through_the_master_tells_when_output_is_waiting(env):
     assert wait_for(lambda: serving(runtime))
     transport = MuxTransport.attach(next((runtime / "fetchsync").glob("mux-*.sock")), "robot")
     assert transport is not None
-    chan = transport.exec("sleep 1; echo hi; sleep 0.5")
-    try:
-        assert not chan.ready()
-        assert wait_for(chan.ready, 10)
-        assert chan.recv(10) == b"hi\n"
-        assert chan.recv(10) == b"" and chan.ready()
-    finally:
-        chan.close()
+    check_ready(transport.exec("sleep 1; echo hi; sleep 0.5"))
 
 
 def test_master_exits_when_idle(env):

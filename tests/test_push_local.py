@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import check_ready, fetchsync, make_workspace, report, tree_of
 
 
 @pytest.fixture
@@ -369,16 +369,7 @@ def test_the_local_robots_channel_tells_when_output_is_waiting(tmp_path):
     once, and at its end."""
     from fetchsync.transport import LocalTransport
 
-    chan = LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5")
-    try:
-        assert not chan.ready()
-        deadline = time.monotonic() + 10
-        while not chan.ready() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert chan.ready() and chan.recv(10) == b"hi\n"
-        assert chan.recv(10) == b"" and chan.ready()
-    finally:
-        chan.close()
+    check_ready(LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5"))
 
 
 def test_the_read_ahead_stops_when_the_robot_answers(tmp_path):

@@ -13,6 +13,7 @@ from typing import Any, Callable, Iterator
 
 import paramiko
 import pytest
+from helpers import check_ready
 from sshd import SSHD, SSHHome
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError
@@ -128,14 +129,7 @@ def test_channel_is_a_byte_stream_both_ways(ssh_home: SSHHome, connect: Connect)
 
 def test_ready_tells_when_output_is_waiting(ssh_home: SSHHome, connect: Connect) -> None:
     """Channel.ready(): not before the command writes, then at once, and at its end."""
-    chan = connect().exec("sleep 1; echo hi; sleep 0.5")
-    assert not chan.ready()
-    deadline = time.monotonic() + 10
-    while not chan.ready() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert chan.ready() and chan.recv(10) == b"hi\n"
-    assert chan.recv(10) == b"" and chan.ready()
-    chan.close()
+    check_ready(connect().exec("sleep 1; echo hi; sleep 0.5"))
 
 
 def test_exit_status_waits_and_times_out(ssh_home: SSHHome, connect: Connect) -> None:
