@@ -50,7 +50,7 @@ BATCH_OPS = 4000
 EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
 EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 # Of a first push's files, read (and hashed) while the endpoint starts, until it
-# answers: 15-33 MB in the benchmark's 0.3 s, the first ~5,000 of its 7,000 files
+# answers: 12-33 MB in the benchmark's ~0.25 s, up to ~5,000 of its 7,000 files
 READ_AHEAD_BYTES = 32 * 1024 * 1024
 # Of a round sending more than a batch, the text files' delta signatures are made once
 # the last batch is out, while the robot applies it, up to this many bytes of them
@@ -146,10 +146,10 @@ class Ahead:
 def _read_ahead(root: str, planned: list[Planned], budget: int, *,
                 stop: Callable[[], bool] | None = None) -> dict[str, ReadAhead]:
     """The first whole files of ``planned``, up to ``budget`` bytes or until ``stop()``
-    (checked every few files), read and hashed with
-    our first choice of algorithm, which the robot shares whenever its Python has xxhash
-    (if not, they are hashed again when sent); a file that cannot be read now is read
-    when sent, as usual. Signing waits for the send, or for the end (_sign_deferred)."""
+    (asked every few files), read and hashed with our first choice of algorithm, which
+    the robot shares whenever its Python has xxhash (if not, they are hashed again when
+    sent); a file that cannot be read now is read when sent, as usual. Signing waits
+    for the send, or for the end (_sign_deferred)."""
     algorithm = hashing.available()[0]
     out: dict[str, ReadAhead] = {}
     for n, p in enumerate(planned):
@@ -917,8 +917,7 @@ class Syncer:
             if row is None:  # not answered yet: _settle takes it
                 self._late_sigs[path] = (digest, sig)
             elif row[1] is None and row[0].hash == digest:
-                upserts[path] = (row[0], sig)
-                self._rows_written.discard(path)  # written early without it: again
+                upserts[path] = (row[0], sig)  # before _write_rows: written with it
 
     def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
         """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
