@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
 from fetchsync.protocol import hashing, wire
-from fetchsync.protocol.loader import NEED, cache_dir, loader_spec
+from fetchsync.protocol.loader import NEED, cache_dir, loader_spec, write_cache_file
 from fetchsync.transport import Channel, Transport
 
 log = logging.getLogger(__name__)
@@ -74,15 +74,11 @@ def _read_note(note: str) -> str | None:
 
 def _write_note(note: str, path: str | None) -> None:
     """Note ``path`` (None: forget the note); only a cache, so failures pass."""
+    if path is not None:
+        write_cache_file(note, path + "\n")
+        return
     try:
-        if path is None:
-            os.unlink(note)
-            return
-        os.makedirs(os.path.dirname(note), exist_ok=True)
-        tmp = f"{note}.{os.getpid()}.tmp"
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(path + "\n")
-        os.replace(tmp, note)
+        os.unlink(note)
     except OSError:
         pass
 

@@ -117,6 +117,19 @@ def cache_dir() -> str:
     return os.path.join(base, "fetchsync")
 
 
+def write_cache_file(path: str, text: str) -> None:
+    """Replace the small cache file ``path`` with ``text`` at once (a reader sees the old
+    or the new one); only a cache, so a failure passes."""
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        tmp = "%s.%d.tmp" % (path, os.getpid())
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
 def _sources_stamp(here: str) -> str:
     """A key that changes whenever a source of the endpoint does (name, size, mtime)."""
     import hashlib
@@ -147,14 +160,7 @@ def endpoint_digest() -> Tuple[str, int]:
     except (OSError, ValueError):
         pass
     data, digest = endpoint_archive()
-    try:
-        os.makedirs(os.path.dirname(note), exist_ok=True)
-        tmp = "%s.%d.tmp" % (note, os.getpid())
-        with open(tmp, "w", encoding="ascii") as fh:
-            fh.write("%s %d\n" % (digest, len(data)))
-        os.replace(tmp, note)
-    except OSError:
-        pass  # only a cache
+    write_cache_file(note, "%s %d\n" % (digest, len(data)))
     return digest, len(data)
 
 

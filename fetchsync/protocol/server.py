@@ -22,7 +22,7 @@ from typing import Any, BinaryIO, Dict, List, Optional, Tuple
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
-from fetchsync.protocol.loader import cache_dir
+from fetchsync.protocol.loader import cache_dir, write_cache_file
 from fetchsync.protocol.store import Store, StoreError, unpack_zpart
 
 MAX_WORKSPACE = 4096
@@ -307,14 +307,7 @@ class Server:
                     return
         except (OSError, ValueError):
             pass
-        try:
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            tmp = "%s.%d.tmp" % (path, os.getpid())
-            with open(tmp, "w", encoding="utf-8") as fh:
-                fh.write(text)
-            os.replace(tmp, path)
-        except OSError:
-            pass  # an optimisation only
+        write_cache_file(path, text)  # an optimisation only
 
     def dispatch(self, frame: wire.Frame) -> wire.Frame:
         op = frame.header.get("op")
