@@ -568,7 +568,8 @@ class _Batcher:
             results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
-            out.extend((t, M.Result.from_wire(r)) for t, r in zip(tags, results))
+            out.extend((t, M.Result.from_wire(r, t[0].op if t is not None else None))
+                       for t, r in zip(tags, results))
         return out
 
 

@@ -372,3 +372,36 @@ def test_a_directory_the_batch_made_is_not_looked_into_again(store, monkeypatch)
     assert "d/c" in looked  # after e.txt went aside
     assert (src(store) / "d" / "a").read_bytes() == b"a" and (src(store) / "d" / "s" / "b").read_bytes() == b"b"
     assert (src(store) / "d" / "c").read_bytes() == b"c"
+
+
+def test_results_done_as_asked_travel_as_one_number(store):
+    """An answer spells out only what differs from what the operation asked: a file,
+    directory or link made exactly as asked is AS_ASKED on the wire, and reads back as
+    the full result with the operation in hand."""
+    store.apply([write("old.txt", b"v1"), write("c.txt", b"c", at=2)], b"v1c")
+    (src(store) / "old.txt").write_bytes(b"edited on the robot")
+    ops = [M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o750),
+           write("d/f", b"data"),
+           M.Op(M.SYMLINK, "d/l", expect=M.ABSENT, target="f"),
+           M.Op(M.CHMOD, "c.txt", expect=M.expect_file(h(b"c")), mode=0o600),
+           write("old.txt", b"v2", expect=M.expect_file(h(b"v1")), at=4)]
+    results = store.apply(ops, b"datav2")
+    assert all(r.ok for r in results)
+    wire_form = [r.to_wire(op) for r, op in zip(results, ops)]
+    assert wire_form[:3] == [M.AS_ASKED] * 3
+    assert wire_form[3]["c"] == M.OK and wire_form[3]["w"][2] == 0o600  # a chmod does not say
+    assert wire_form[4]["pv"] == results[4].preserved  # a kept conflict is spelled out
+    assert [M.Result.from_wire(w, op) for w, op in zip(wire_form, ops)] == results
+    assert results[0].to_wire() == {"c": M.OK, "w": ["d", "d", 0o750, 0, ""]}  # no op: in full
+
+
+def test_a_result_that_differs_from_what_was_asked_is_spelled_out(store):
+    op = write("f", b"data")
+    other_mode = M.Result(M.OK, written=["f", "f", 0o755, 4, h(b"data")])
+    assert other_mode.to_wire(op) == {"c": M.OK, "w": ["f", "f", 0o755, 4, h(b"data")]}
+    with pytest.raises(ProtocolError):
+        M.Result.from_wire(M.AS_ASKED, M.Op(M.CHMOD, "f", expect=M.ABSENT, mode=0o600))
+    with pytest.raises(ProtocolError):
+        M.Result.from_wire(M.AS_ASKED)
+    with pytest.raises(ProtocolError):
+        M.Result.from_wire(True, op)  # JSON true is not the number 0

@@ -194,6 +194,24 @@ class Op:
 _FIELDS = frozenset(f.name for f in fields(Op))
 
 
+# an answer's result that is only this number: the operation succeeded and left exactly
+# what it asked for (see :func:`asked`), so the listing entry is not spelled out again
+# (JSON for each of a 7,000-file push's results was ~5% of the robot's serving thread)
+AS_ASKED = 0
+
+
+def asked(op: Op) -> Optional[List[Any]]:
+    """The listing entry an operation leaves when it does exactly what it asks, as
+    :meth:`Listed.to_wire` spells it; None for kinds that do not say (chmod, delete)."""
+    if op.kind == WRITE:
+        return [op.path, "f", op.mode, op.size, op.hash]
+    if op.kind == MKDIR:
+        return [op.path, "d", op.mode, 0, ""]
+    if op.kind == SYMLINK:
+        return [op.path, "l", 0, 0, op.target]
+    return None
+
+
 class Result(NamedTuple):
     """The outcome of one operation. A NamedTuple, as Listed: a push makes one or two
     per file on the robot and decodes one per file on the laptop."""
@@ -207,7 +225,11 @@ class Result(NamedTuple):
     def ok(self) -> bool:
         return self.code == OK
 
-    def to_wire(self) -> Dict[str, Any]:
+    def to_wire(self, op: Optional[Op] = None) -> Any:
+        """The wire form; with the ``op`` it answers, just AS_ASKED when it did exactly that."""
+        if op is not None and self.code == OK and not self.message and not self.preserved \
+                and self.written is not None and self.written == asked(op):
+            return AS_ASKED
         out = {"c": self.code}  # type: Dict[str, Any]
         if self.message:
             out["msg"] = self.message
@@ -218,7 +240,13 @@ class Result(NamedTuple):
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any) -> Result:
+    def from_wire(cls, obj: Any, op: Optional[Op] = None) -> Result:
+        """The result of ``op`` from its wire form (AS_ASKED needs the ``op``)."""
+        if type(obj) is int and obj == AS_ASKED:
+            written = asked(op) if op is not None else None
+            if written is None:
+                raise ProtocolError("a result says 'as asked' of an operation that does not say")
+            return cls(OK, "", "", written)
         if not isinstance(obj, dict) or not isinstance(obj.get("c"), str):
             raise ProtocolError("bad result")
         return cls(obj["c"], str(obj.get("msg", "")), str(obj.get("pv", "")), obj.get("w"))

@@ -466,7 +466,8 @@ class Server:
 
 
 def _sync_answer(store: Store, batch: Any) -> Dict[str, Any]:
-    return {"results": [r.to_wire() for r in batch.results], "epoch": store.epoch, "gen": batch.gen}
+    return {"results": [r.to_wire(op) for r, op in zip(batch.results, batch.ops)],
+            "epoch": store.epoch, "gen": batch.gen}
 
 
 def _error_frame(req_id: int, exc: Exception) -> wire.Frame:

@@ -599,6 +599,7 @@ class Store:
             with open(os.path.join(self.meta, BATCH_MARK), "wb"):
                 pass
         self._open_batches += 1
+        batch.ops = ops
         try:
             batch.results = [batch.run(op) for op in ops]
         except BaseException:
@@ -730,6 +731,7 @@ class _Batch:
         self.zpart = b""
         self.n = 0
         self.changed = False  # an operation other than an upload part may have changed the tree
+        self.ops = []  # type: List[M.Op]
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
         # directories this batch made: nothing stood at their paths, so nothing of the
