@@ -122,47 +122,6 @@ class _StdinPump:
             os.close(self._stop_w)
 
 
-class _StdoutPump:
-    """Copies the command's output to ``fd`` in a thread; ``wait`` re-raises what stopped it.
-
-    The main thread waits for this one instead of reading the channel itself:
-    Ctrl-C raises KeyboardInterrupt wherever the main thread is, and inside
-    paramiko's buffer code it can leave a lock taken, which the channel's close
-    then waits for forever (``fetchsync run`` hanging after Ctrl-C, once in a
-    full test run). ``Thread.join`` is safe against that (bpo-45274).
-    """
-
-    def __init__(self, channel: Channel, fd: int, stderr: _StderrPump) -> None:
-        self._channel = channel
-        self._fd = fd
-        self._stderr = stderr
-        self._error: BaseException | None = None
-        self.status: int | None = None
-        self._thread = threading.Thread(target=self._run, name="fetchsync-stdout", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _run(self) -> None:
-        try:
-            while True:
-                data = self._channel.recv(_CHUNK)
-                if not data:
-                    break
-                _write_all(self._fd, data)
-            self._stderr.join()
-            self.status = self._channel.exit_status()
-        except BaseException as exc:  # re-raised by wait(), in the main thread
-            self._error = exc
-
-    def wait(self) -> int | None:
-        """The command's exit status, once its output ended (as ``Channel.exit_status``)."""
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self.status
-
-
 class _StderrPump:
     def __init__(self, channel: Channel, fd: int) -> None:
         self._channel = channel
@@ -247,7 +206,11 @@ def attach(channel: Channel, *, pty: bool = False, stdin: int | None = 0, stdout
         if pump is not None:
             pump.start()
             stack.callback(pump.stop)
-        output = _StdoutPump(channel, stdout, errors)
-        output.start()
-        status = output.wait()
+        while True:
+            data = channel.recv(_CHUNK)
+            if not data:
+                break
+            _write_all(stdout, data)
+        errors.join()
+    status = channel.exit_status()
     return NO_STATUS if status is None or status < 0 else status

@@ -8,7 +8,6 @@ import select
 import signal
 import subprocess
 import sys
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -240,56 +239,3 @@ def test_no_tty_gives_pipes_even_at_a_terminal(env):
         assert term.wait() == 0
     finally:
         term.close()
-
-
-# --------------------------------------------------------------------------- console.attach
-class _FakeChannel:
-    """A command that prints ``out`` and exits with 3; records which threads read it."""
-
-    def __init__(self) -> None:
-        self.chunks = [b"out\n", b""]
-        self.callers: list[tuple[str, threading.Thread]] = []
-
-    def recv(self, n: int) -> bytes:
-        self.callers.append(("recv", threading.current_thread()))
-        return self.chunks.pop(0)
-
-    def recv_stderr(self, n: int) -> bytes:
-        return b""
-
-    def shutdown_write(self) -> None:
-        pass
-
-    def exit_status(self, timeout: float | None = None) -> int:
-        self.callers.append(("exit_status", threading.current_thread()))
-        return 3
-
-
-def test_attach_leaves_the_channel_to_other_threads_than_the_main_one():
-    """Ctrl-C raises KeyboardInterrupt in the main thread wherever it is: inside
-    paramiko's buffer code it could leave a lock taken, which closing the channel
-    then waits for forever. The main thread only joins the threads that read."""
-    from fetchsync import console
-
-    channel = _FakeChannel()
-    r, w = os.pipe()
-    try:
-        assert console.attach(channel, stdin=None, stdout=w) == 3  # type: ignore[arg-type]
-        assert os.read(r, 100) == b"out\n"
-    finally:
-        os.close(r)
-        os.close(w)
-    assert [what for what, _t in channel.callers] == ["recv", "recv", "exit_status"]
-    assert all(t is not threading.main_thread() for _what, t in channel.callers)
-
-
-def test_attach_raises_a_closed_stdout_in_the_main_thread():
-    from fetchsync import console
-
-    r, w = os.pipe()
-    os.close(r)
-    try:
-        with pytest.raises(BrokenPipeError):
-            console.attach(_FakeChannel(), stdin=None, stdout=w)  # type: ignore[arg-type]
-    finally:
-        os.close(w)
