@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import io
 import os
+import queue
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -203,3 +205,36 @@ def test_a_begun_batch_keeps_the_lock_until_it_is_finished(tmp_path):
     assert not (tmp_path / "ws" / ".fetchsync" / store_mod.BATCH_MARK).exists()
     assert (tmp_path / "ws" / "src" / "f").read_bytes() == b"data"
     other.unlock()
+
+
+def _blocked(target: Any, *args: Any) -> threading.Thread:
+    """``target(*args)`` in a thread, which it must still be in 0.2 s later."""
+    thread = threading.Thread(target=target, args=args, daemon=True)
+    thread.start()
+    thread.join(0.2)
+    assert thread.is_alive()
+    return thread
+
+
+def test_frames_are_read_ahead_up_to_a_count_and_a_size():
+    q = server_mod._ReadAhead()
+    for i in range(server_mod.READ_AHEAD):
+        q.put(i, 1)
+    waiting = _blocked(q.put, "next", 1)  # full by count
+    assert q.get() == 0
+    waiting.join(5)
+    assert not waiting.is_alive()
+    for i in range(1, server_mod.READ_AHEAD):
+        assert q.get() == i
+    assert q.get() == "next" and q.empty()
+    # by size: one frame holding most of the bound leaves no room for the next
+    q.put("large", server_mod.READ_AHEAD_BYTES - 10)
+    waiting = _blocked(q.put, "more", 20)
+    assert q.get() == "large"
+    waiting.join(5)
+    assert q.get() == "more"
+    # a frame larger than the bound is taken when nothing waits before it
+    q.put("huge", 3 * server_mod.READ_AHEAD_BYTES)
+    assert q.get() == "huge"
+    with pytest.raises(queue.Empty):
+        q.get(timeout=0.01)
