@@ -233,6 +233,8 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                                      ahead=ahead[0] if ahead else None)
                 report.connection = _connection_kind(conn)
         finally:
+            for a in ahead:
+                a.close()
             progress.close()
             state.close()
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"

@@ -13,6 +13,7 @@ import errno
 import logging
 import os
 import queue
+import stat as stat_mod
 import threading
 import time
 import types
@@ -23,6 +24,7 @@ from typing import Any, Callable, Iterable
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
+from fetchsync.prefetch import OPEN_FLAGS, Prefetch
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
@@ -141,10 +143,22 @@ class Ahead:
     local: LocalTree | None = None
     planned: list[Planned] | None = None  # against an empty robot, for an empty state
     read: dict[str, ReadAhead] = field(default_factory=dict)  # the first files sent
+    prefetch: Prefetch | None = None  # the files of ``planned`` the disk reads ahead
+
+    def close(self) -> None:
+        if self.prefetch is not None:
+            self.prefetch.close()
+
+
+def _prefetch(root: str, planned: list[Planned]) -> Prefetch:
+    """The files of ``planned`` that will be read whole (see :meth:`Syncer._send_op`)."""
+    return Prefetch(root, [(p.op.path, p.op.size) for p in planned
+                           if p.op.kind == M.WRITE and p.how in (WHOLE, DELTA) and p.op.size <= BIG])
 
 
 def _read_ahead(root: str, planned: list[Planned], budget: int, *,
-                stop: Callable[[], bool] | None = None) -> dict[str, ReadAhead]:
+                stop: Callable[[], bool] | None = None,
+                prefetch: Prefetch | None = None) -> dict[str, ReadAhead]:
     """The first whole files of ``planned``, up to ``budget`` bytes or until ``stop()``
     (asked every few files), read and hashed with our first choice of algorithm, which
     the robot shares whenever its Python has xxhash (if not, they are hashed again when
@@ -159,7 +173,8 @@ def _read_ahead(root: str, planned: list[Planned], budget: int, *,
         if op.kind != M.WRITE or p.how != WHOLE or op.size > budget:
             continue
         try:
-            data, entry = read_stable(os.path.join(root, op.path), tries=1)
+            data, entry = read_stable(os.path.join(root, op.path), tries=1,
+                                      fd=prefetch.take(op.path) if prefetch is not None else None)
         except OSError:
             continue
         out[op.path] = ReadAhead(data, entry, algorithm, hashing.digest(algorithm, data).hex())
@@ -349,41 +364,59 @@ def _pause(attempt: int) -> None:
         time.sleep(0.025 * (1 << attempt))   # 0.05, 0.1, 0.2, 0.4 s: bounded, lets a save finish
 
 
-def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
+def _not_regular(full: str) -> OSError:
+    return OSError(errno.EBUSY, "it is no longer a regular file; the robot keeps its previous "
+                   "version", full)
+
+
+def read_stable(full: str, *, tries: int = READ_TRIES, fd: int | None = None) -> tuple[bytes, Entry]:
     """Read a whole file that did not change while read and is still the file at ``full``.
 
     A file that changed (or was replaced) meanwhile is read again, up to ``tries``
     times, then ``OSError(EBUSY)``; one that is gone raises FileNotFoundError.
     The read stops at the size the file had when opened, so a file appended to
     faster than it is read does not keep it reading.
+
+    ``fd``: ``full`` opened already (by :class:`~fetchsync.prefetch.Prefetch`), read
+    in the first attempt; it is closed here in any case.
     """
-    for attempt in range(tries):
-        _pause(attempt)
-        if read_hook is not None:
-            read_hook(full, "open")
-        fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-        try:
-            before = os.fstat(fd)
-            chunks = []
-            left = before.st_size
-            while left > 0:
-                chunk = os.read(fd, left)  # one call, one copy for a whole file (they are < BIG)
-                if not chunk:
-                    break
-                chunks.append(chunk)
-                left -= len(chunk)
-                if read_hook is not None:
-                    read_hook(full, "read")
-            after = os.fstat(fd)
-        finally:
-            os.close(fd)
-        data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
-        if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
-            entry = entry_from_stat(after)
-            assert entry is not None
-            return data, entry
-    raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
-                  "the robot keeps its previous version", full)
+    given = fd
+    try:
+        for attempt in range(tries):
+            _pause(attempt)
+            if read_hook is not None:
+                read_hook(full, "open")
+            if given is not None:
+                fd, given = given, None
+            else:
+                fd = os.open(full, OPEN_FLAGS)
+            try:
+                before = os.fstat(fd)
+                if not stat_mod.S_ISREG(before.st_mode):  # a FIFO or a device since the scan
+                    raise _not_regular(full)
+                chunks = []
+                left = before.st_size
+                while left > 0:
+                    chunk = os.read(fd, left)  # one call, one copy for a whole file (they are < BIG)
+                    if not chunk:
+                        break
+                    chunks.append(chunk)
+                    left -= len(chunk)
+                    if read_hook is not None:
+                        read_hook(full, "read")
+                after = os.fstat(fd)
+            finally:
+                os.close(fd)
+            data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
+            if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
+                entry = entry_from_stat(after)
+                assert entry is not None
+                return data, entry
+        raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
+                      "the robot keeps its previous version", full)
+    finally:
+        if given is not None:  # not reached: the hook or the pause raised
+            os.close(given)
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
@@ -595,6 +628,7 @@ class Syncer:
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
         self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
+        self._prefetch: Prefetch | None = None  # the files this round reads, asked of the disk ahead
         self._rows_written: set[str] = set()  # see _write_rows
         self._sign_late: list[tuple[str, str, int]] | None = None  # see _sign_deferred
         self._late_bytes = 0
@@ -626,8 +660,10 @@ class Syncer:
         local = scan_local(local_root, rules, {}, "", lazy=True, scanned=scanned)
         guarded = local.guarded()
         planned = [p for p in plan(local.items, {}, lambda _path: M.ABSENT) if not guarded(p.op.path)]
+        prefetch = _prefetch(local_root, planned)
         return Ahead(scanned, local, planned,
-                     _read_ahead(local_root, planned, READ_AHEAD_BYTES, stop=stop))
+                     _read_ahead(local_root, planned, READ_AHEAD_BYTES, stop=stop, prefetch=prefetch),
+                     prefetch)
 
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
@@ -683,6 +719,7 @@ class Syncer:
                 # what prepare() assumed holds: no state, and nothing on the robot
                 local, first = ahead.local, ahead.planned
                 self._read_ahead, ahead.read = ahead.read, {}
+                self._prefetch, ahead.prefetch = ahead.prefetch, None
                 ahead.planned = None  # its operations are consumed as they are sent
             else:
                 local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
@@ -697,6 +734,9 @@ class Syncer:
                                [x[0] for x in listing.get("entries", [])], first=first)
             finally:
                 self._read_ahead = {}
+                if self._prefetch is not None:
+                    self._prefetch.close()
+                    self._prefetch = None
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -790,6 +830,8 @@ class Syncer:
                 break
             report.rounds += 1
             planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
+            if self._prefetch is None:  # else made with the first plan, ahead
+                self._prefetch = _prefetch(self.local_root, planned)
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
@@ -808,10 +850,14 @@ class Syncer:
             # settled as the robot answers, so a large push never holds every
             # operation and every answer at once
             planned.reverse()
-            while planned:
-                vanished |= self._send_op(batcher, planned.pop(), local, report)
-                if len(planned) % 512 == 0:
-                    settle(batcher.answered())
+            try:
+                while planned:
+                    vanished |= self._send_op(batcher, planned.pop(), local, report)
+                    if len(planned) % 512 == 0:
+                        settle(batcher.answered())
+            finally:
+                self._prefetch.close()
+                self._prefetch = None
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
             batcher.flush()
@@ -992,7 +1038,7 @@ class Syncer:
                 data, entry = ready.data, ready.entry
             else:
                 ready = None
-                data, entry = read_stable(full)
+                data, entry = read_stable(full, fd=self._prefetch.take(op.path) if self._prefetch else None)
         except OSError as exc:
             if _gone(exc):
                 # a mirror of the laptop as it is now: the robot loses it too (into
@@ -1055,9 +1101,11 @@ class Syncer:
                 _pause(attempt)
                 if read_hook is not None:
                     read_hook(full, "open")
-                fd = os.open(full, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+                fd = os.open(full, OPEN_FLAGS)
                 try:
                     before = os.fstat(fd)
+                    if not stat_mod.S_ISREG(before.st_mode):
+                        raise _not_regular(full)
                     if not upload or before.st_size < uploaded:
                         # a longer part's tail would stay past the end: use another one
                         self._spare(upload, uploaded)
