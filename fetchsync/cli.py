@@ -85,11 +85,12 @@ def _push_via_agent(target: Any) -> Any:
     from fetchsync.agent.control import call
     from fetchsync.agent.service import agent_paths
     from fetchsync.errors import SyncError
-    from fetchsync.sync import Report
 
     reply = call(agent_paths(target)[1], {"cmd": "push"}, timeout=3600)
     if reply is None:
         return None
+    from fetchsync.sync import Report
+
     if not reply.get("ok"):
         raise SyncError(f"the watch agent could not push: {reply.get('error') or 'unknown error'}")
     data = reply.get("report") or {}
@@ -192,8 +193,8 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     With --build or --install-deps, then builds on the robot.
     """
     from fetchsync.errors import SyncError
+    from fetchsync.protocol.ignore import build_rules
     from fetchsync.session import connect, open_state
-    from fetchsync.sync import Syncer, build_rules, raise_for
 
     _collect_less()
     target = _resolve(robot, user, workspace, remote_workspace)
@@ -220,13 +221,19 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         progress = _Progress(not as_json)
         state = open_state(target)
         ahead: list[Any] = []  # the local scan and plan, made while the robot's endpoint starts
+
+        def prepare(answered: Callable[[], bool]) -> None:
+            from fetchsync.sync import Syncer  # imported once the robot's command is sent
+
+            ahead.append(Syncer.prepare(str(src), rules, state, stop=answered))
+
         try:
             # a connection master left behind watches this tree from the start:
             # the next push's scan is then ready, not started by it
-            with connect(target, accept_fingerprint=accept_host_key,
-                         meanwhile=lambda answered: ahead.append(
-                             Syncer.prepare(str(src), rules, state, stop=answered)),
+            with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare,
                          prescan=(str(src), rules.to_wire())) as conn:
+                from fetchsync.sync import Syncer
+
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,
@@ -239,6 +246,8 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             state.close()
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
+    from fetchsync.sync import raise_for
+
     raise_for(report, strict=strict)
     request = build_request(builds, build_type, build_tool, install_deps)
     if request and not dry_run:

@@ -28,7 +28,7 @@ from fetchsync.prefetch import OPEN_FLAGS, Prefetch
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
-from fetchsync.protocol.ignore import IgnoreRules
+from fetchsync.protocol.ignore import IgnoreRules, build_rules  # noqa: F401  (the verbs' name for it)
 from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
 from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan, stat_path
@@ -119,10 +119,6 @@ class Report:
             self.deleted += 1
         elif kind == M.CHMOD:
             self.chmods += 1
-
-
-def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
-    return IgnoreRules.build(defaults=True, extra=tuple(excludes))
 
 
 # --------------------------------------------------------------------------- local side

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -595,3 +596,29 @@ def test_a_large_push_signs_its_text_files_once_the_last_batch_is_out(tmp_path, 
     finally:
         conn.close()
         state.close()
+
+
+def test_the_robots_command_is_sent_before_the_sync_engine_is_imported(env):
+    """Each import before the connection delays the robot's start by as much; the sync
+    engine is imported while the robot's endpoint starts (in the connection's
+    ``meanwhile``). A new interpreter, as the test process imported it long ago."""
+    code = textwrap.dedent("""
+        import sys
+        from fetchsync import connection
+        real = connection.Connection.open.__func__
+
+        def spy(cls, transport, **kw):
+            print("sync imported before the connection:", "fetchsync.sync" in sys.modules,
+                  file=sys.stderr, flush=True)
+            return real(cls, transport, **kw)
+
+        connection.Connection.open = classmethod(spy)
+        sys.argv = ["fetchsync", "push", "--json"]
+        from fetchsync.cli import main
+        main()  # exits
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines() == ["sync imported before the connection: False"], proc.stderr
+    assert tree_of(local_src(env)) == tree_of(robot_ws(env) / "src")

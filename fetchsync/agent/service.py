@@ -18,7 +18,6 @@ taken and says where the first one is.
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
 import gc
 import hashlib
@@ -63,6 +62,8 @@ _TRIM: Any = None
 def _malloc_trim() -> Any:
     global _TRIM
     if _TRIM is None:
+        import ctypes  # here: ~4 ms of every push, which asks whether an agent runs
+
         try:
             # the symbols the process has loaded: glibc's, on a glibc system
             _TRIM = getattr(ctypes.CDLL(None), "malloc_trim", False)

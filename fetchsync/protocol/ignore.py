@@ -857,3 +857,8 @@ def _decode(data: bytes, dirpath: str) -> str:
         where = dirpath + "/" + IGNORE_FILENAME if dirpath else IGNORE_FILENAME
         raise ValueError(f"{where} is larger than {MAX_IGNORE_FILE_SIZE} bytes")
     return data.decode("utf-8", "surrogateescape")
+
+
+def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
+    """Every verb's rules: the defaults, the ``.fetchsyncignore`` files, ``--exclude``."""
+    return IgnoreRules.build(defaults=True, extra=tuple(excludes))
