@@ -11,7 +11,7 @@ import pytest
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
-from fetchsync.protocol.store import TRASH_KEEP_BATCHES, Store
+from fetchsync.protocol.store import TRASH_KEEP_BATCHES, WRITE_APART, Store
 
 ALG = "blake2b-128"
 
@@ -405,3 +405,54 @@ def test_a_result_that_differs_from_what_was_asked_is_spelled_out(store):
         M.Result.from_wire(M.AS_ASKED)
     with pytest.raises(ProtocolError):
         M.Result.from_wire(True, op)  # JSON true is not the number 0
+
+
+def test_large_files_written_apart_land_whole_with_their_modes(store):
+    """Files of WRITE_APART bytes and more are written by a second thread while the batch
+    goes on; their results, modes and content are those of the others."""
+    big1, big2 = os.urandom(WRITE_APART), os.urandom(WRITE_APART + 12345)
+    small = b"small\n"
+    blob = big1 + small + big2
+    ops = [write("a/big1.bin", big1), write("a/small.txt", small, at=len(big1)),
+           M.Op(M.WRITE, "a/run.sh", expect=M.ABSENT, mode=0o4755, hash=h(big2), size=len(big2),
+                source=M.SRC_DATA, blob=(len(big1) + len(small), len(big2)))]
+    results = store.apply([M.Op(M.MKDIR, "a", expect=M.ABSENT, mode=0o755)] + ops, blob)
+    assert [r.code for r in results] == [M.OK] * 4
+    root = src(store)
+    assert (root / "a/big1.bin").read_bytes() == big1 and (root / "a/small.txt").read_bytes() == small
+    assert (root / "a/run.sh").read_bytes() == big2
+    assert os.stat(root / "a/run.sh").st_mode & 0o7777 == 0o4755  # past the umask, by fchmod
+    assert not [p for p in root.rglob("*") if "fetchsync-tmp" in p.name]
+
+
+@pytest.fixture
+def tiny_store(tmp_path: Path):
+    """A store on a 1 MiB tmpfs (root only)."""
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    where = tmp_path / "tiny"
+    where.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    s = Store(str(where / "ws"), algorithm=ALG)
+    s.lock()
+    yield s
+    s.unlock()
+    subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_large_write_apart_that_fails_fails_its_operation_only(tiny_store):
+    big1, big2 = os.urandom(WRITE_APART + 1000), os.urandom(WRITE_APART + 2000)
+    small = b"still written\n"
+    blob = big1 + big2 + small
+    results = tiny_store.apply([write("big1.bin", big1), write("big2.bin", big2, at=len(big1)),
+                                write("small.txt", small, at=len(big1) + len(big2))], blob)
+    assert [r.code for r in results] == [M.OK, M.NO_SPACE, M.OK]
+    assert "big2.bin" in results[1].message
+    root = src(tiny_store)
+    assert (root / "big1.bin").read_bytes() == big1 and (root / "small.txt").read_bytes() == small
+    assert not (root / "big2.bin").exists()
+    assert not [p for p in root.rglob("*") if "fetchsync-tmp" in p.name]

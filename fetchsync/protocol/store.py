@@ -55,6 +55,7 @@ OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists 
 _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list),
                 ("serial", str))
 READ_BLOCK = 1 << 20
+WRITE_APART = 512 * 1024  # files this large are written by a second thread (_Writes)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
 
 
@@ -603,8 +604,10 @@ class Store:
         try:
             batch.results = [batch.run(op) for op in ops]
         except BaseException:
+            batch.join_writes()
             self._close(batch)
             raise
+        batch.join_writes()
         batch.blob = batch.zpart = b""  # written: the request's data may go
         self.gen += 1
         batch.gen = self.gen
@@ -738,6 +741,7 @@ class _Batch:
         # robot's can stand below them either (see _check); emptied when the batch
         # moves anything aside, as that may take one of them with it
         self.made = set()  # type: set
+        self.writes = None  # type: Optional[_Writes]
 
     def _blob(self, op: M.Op) -> bytes:
         return bytes(self._view(op))
@@ -762,8 +766,7 @@ class _Batch:
         except DeltaError as exc:
             return M.Result(M.BASE_MISMATCH, "delta does not apply: %s" % exc)
         except OSError as exc:
-            code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
-            return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))
+            return _os_error(op, exc)
 
     def _move_aside(self, path: str, where: str) -> str:
         self.made.clear()
@@ -871,7 +874,7 @@ class _Batch:
             # creating files in one directory spin on its lock in the kernel,
             # and cost more CPU than it saved (measured on a 7,000-file push)
             try:
-                self._write_file(op, cur, tmp)
+                self._write_file(op, cur, tmp, idx)
             except (DeltaError, OSError):
                 raise  # the operation's result, made by run()
             except Exception as exc:  # say, a malformed delta: this operation's failure only
@@ -879,7 +882,7 @@ class _Batch:
         self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
         return M.Result(preserved=preserved)
 
-    def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str) -> None:
+    def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str, idx: int) -> None:
         s = self.s
         if op.source == M.SRC_UPLOAD:
             part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
@@ -909,16 +912,34 @@ class _Batch:
         if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
             raise DeltaError("reconstructed content does not match its hash")
         mode = op.mode or 0o644
+        fix = mode if mode & _umask() or mode & ~0o777 else None  # else open() makes it so
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+        if len(data) >= WRITE_APART:
+            if self.writes is None:
+                self.writes = _Writes()
+            self.writes.put(fd, data, fix, tmp, idx)
+            return
         try:
             _write_all(fd, data)
-            if mode & _umask() or mode & ~0o777:  # else open() made it so already
-                os.fchmod(fd, mode)
+            if fix is not None:
+                os.fchmod(fd, fix)
         except BaseException:
             os.close(fd)
             os.unlink(tmp)
             raise
         os.close(fd)
+
+    def join_writes(self) -> None:
+        """Wait for the large files' content; a write that failed fails its operation."""
+        writes, self.writes = self.writes, None
+        if writes is None:
+            return
+        failed = writes.join()
+        if failed:
+            self.renames = [r for r in self.renames if r[3] not in failed]
+            for idx, exc in failed.items():
+                if idx < len(self.results):  # else the batch failed as a whole
+                    self.results[idx] = _os_error(self.ops[idx], exc)
 
     def commit(self, results: List[M.Result], *, synced: bool = False, durable: bool = True) -> None:
         if not self.changed:
@@ -1002,6 +1023,61 @@ class _BackgroundSync:
         self._done.wait()
         if self._error is not None:
             raise self._error
+
+
+def _os_error(op: M.Op, exc: OSError) -> M.Result:
+    code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
+    return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))
+
+
+class _Writes:
+    """A batch's large files, written to their temporaries by a second thread while the
+    serving thread goes on with the batch's other operations (``os.write`` lets go of
+    the GIL). The robot's serving thread is a push's critical path, and copying the
+    content into the page cache was a third of its time; small files stay on it (a
+    pool of writers creating files in one directory cost more than it saved)."""
+
+    def __init__(self) -> None:
+        self._jobs = []  # type: List[Any]
+        self._cond = threading.Condition()
+        self._failed = {}  # type: Dict[int, OSError]
+        self._thread = threading.Thread(target=self._run, name="fetchsync-write", daemon=True)
+        self._thread.start()
+
+    def put(self, fd: int, data: Any, fix: Optional[int], tmp: str, idx: int) -> None:
+        with self._cond:
+            self._jobs.append((fd, data, fix, tmp, idx))
+            self._cond.notify()
+
+    def join(self) -> Dict[int, OSError]:
+        """Wait for every write; the failed ones by operation index (their temporaries removed)."""
+        self.put(-1, b"", None, "", -1)
+        self._thread.join()
+        return self._failed
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._jobs:
+                    self._cond.wait()
+                fd, data, fix, tmp, idx = self._jobs.pop(0)
+            if fd < 0:
+                return
+            try:
+                _write_all(fd, data)
+                if fix is not None:
+                    os.fchmod(fd, fix)
+            except OSError as exc:
+                self._failed[idx] = exc
+            except BaseException as exc:  # noqa: BLE001  (this thread must not die with fds open)
+                self._failed[idx] = OSError(errno.EIO, str(exc))
+            finally:
+                os.close(fd)
+            if idx in self._failed:
+                try:
+                    os.unlink(tmp)
+                except OSError:
+                    pass
 
 
 def _write_all(fd: int, data: Any) -> None:
