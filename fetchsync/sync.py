@@ -642,14 +642,18 @@ class Syncer:
 
     @staticmethod
     def prepare(local_root: str, rules: IgnoreRules, state: State, *,
-                stop: Callable[[], bool] | None = None) -> Ahead:
+                stop: Callable[[], bool] | None = None,
+                scanned_hook: Callable[[int], None] | None = None) -> Ahead:
         """What the next :meth:`push` can do before the robot answers, done while its
         endpoint starts (its shell and Python take a few tenths of a second): the local
         scan and, when the state knows no path (a first push), the plan against an
         empty robot, and its first files read until ``stop()`` says the robot answered
         (or READ_AHEAD_BYTES). Pass it to :meth:`push` as ``ahead``; the push checks the
-        robot's listing before it uses the plan."""
+        robot's listing before it uses the plan. ``scanned_hook(n)`` is told the number
+        of paths scanned, before any file is read."""
         scanned = scan_tree(local_root, rules)
+        if scanned_hook is not None:
+            scanned_hook(len(scanned.entries))
         if state.has_entries():
             return Ahead(scanned)
         # lazy: nothing is hashed, so the plan holds whatever algorithm is negotiated

@@ -622,3 +622,68 @@ def test_the_robots_command_is_sent_before_the_sync_engine_is_imported(env):
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr.splitlines() == ["sync imported before the connection: False"], proc.stderr
     assert tree_of(local_src(env)) == tree_of(robot_ws(env) / "src")
+
+
+def test_prepare_tells_the_number_of_paths_before_reading_any_file(tmp_path, monkeypatch):
+    """The hook that chooses where a push's large buffers come from hears the scan's size
+    before the first file is read ahead."""
+    from fetchsync import sync
+    from fetchsync.state import State
+
+    make_workspace(tmp_path / "ws")
+    src = tmp_path / "ws" / "src"
+    events: list = []
+    real_read_ahead = sync._read_ahead
+
+    def read_ahead(*a, **k):
+        events.append("read")
+        return real_read_ahead(*a, **k)
+
+    monkeypatch.setattr(sync, "_read_ahead", read_ahead)
+    state = State(tmp_path / "state.sqlite")
+    try:
+        ahead = sync.Syncer.prepare(str(src), sync.build_rules(), state,
+                                    scanned_hook=lambda n: events.append(n))
+        assert events == [len(ahead.scanned.entries), "read"]
+        assert events[0] == len(tree_of(src))
+    finally:
+        state.close()
+
+
+_MMAP_PROBE = textwrap.dedent("""
+    import ctypes, sys
+    from fetchsync import cli
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in
+                    ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    libc = ctypes.CDLL(None)
+    try:
+        libc.mallinfo2.restype = MallInfo2
+    except AttributeError:
+        print("no mallinfo2"); sys.exit(0)
+
+    def mapped_by(size):
+        before = libc.mallinfo2().hblks
+        buf = bytearray(size)
+        return libc.mallinfo2().hblks - before
+
+    cli._return_big_buffers()
+    print(mapped_by(4 << 20), end=" ")
+    cli._buffers_for_tree(cli.HEAP_BUFFERS_MAX_PATHS + 1)
+    print(mapped_by(4 << 20), end=" ")
+    cli._buffers_for_tree(7000)
+    print(mapped_by(4 << 20), mapped_by(16 << 20))
+""")
+
+
+def test_a_small_trees_push_takes_its_large_buffers_from_the_heap():
+    """After the scan of a small tree, 4 and 16 MiB buffers come from the heap, reused,
+    not from a fresh mapping each; a large tree keeps them on mmap, returned at once."""
+    proc = subprocess.run([sys.executable, "-c", _MMAP_PROBE], capture_output=True, text=True,
+                          check=True)
+    if proc.stdout.strip() == "no mallinfo2":
+        pytest.skip("not glibc >= 2.33: no mallinfo2 to see where buffers come from")
+    assert proc.stdout.split() == ["1", "1", "0", "0"]
