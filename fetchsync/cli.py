@@ -321,10 +321,20 @@ def _return_big_buffers() -> None:
     from the heap, which fragments and keeps the high-water mark: a first sync of
     100,000 files ended 15-30 MB higher, in a watch agent that then lives on.
     """
+    _mallopt((M_MMAP_THRESHOLD, 256 * 1024))
+
+
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt() parameters
+
+
+def _mallopt(*settings: tuple[int, int]) -> None:
+    """glibc's ``mallopt(param, value)`` for each pair; nothing elsewhere."""
     import ctypes
 
     try:
-        ctypes.CDLL(None).mallopt(-3, 256 * 1024)  # M_MMAP_THRESHOLD
+        libc = ctypes.CDLL(None)
+        for param, value in settings:
+            libc.mallopt(param, value)
     except (OSError, AttributeError):
         pass  # not glibc: its own allocator's defaults
 
@@ -339,21 +349,14 @@ def _buffers_for_tree(paths: int) -> None:
     On mmap (see :func:`_return_big_buffers`) each file read, each batch and its
     compressed form is fresh memory, page-faulted in and zeroed by the kernel:
     ~55,000 faults on a 7,000-file, 150 MB first push, whose CPU the robot's
-    endpoint needs on a 2-core machine (bench/README.md: 5% of its time). The
+    endpoint needs on a 2-core machine (bench/README.md, session 10). The
     heap's fragmentation, which that function prevents, grows with the number
     of files: it raised a 100,000-file push's peak by ~20 MB, and costs a tree
     this small a few MB. Not for the watch agent, which lives on.
     """
-    if paths > HEAP_BUFFERS_MAX_PATHS:
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None)
-        libc.mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD: glibc's most
-        libc.mallopt(-1, 64 * 1024 * 1024)  # M_TRIM_THRESHOLD: freeing a batch keeps its pages
-    except (OSError, AttributeError):
-        pass  # not glibc: its own allocator's defaults
+    if paths <= HEAP_BUFFERS_MAX_PATHS:
+        # glibc's largest mmap threshold; a trim threshold that keeps a freed batch's pages
+        _mallopt((M_MMAP_THRESHOLD, 32 * 1024 * 1024), (M_TRIM_THRESHOLD, 64 * 1024 * 1024))
 
 
 def _collect_less() -> None:
