@@ -125,3 +125,45 @@ def test_a_frame_in_parts_is_the_frame_with_its_blob_joined(compress):
     assert joined == wire.encode_frame(frame, compress=compress, compress_blob=False)
     got = wire.Reader(io.BytesIO(joined).read).read_frame()
     assert (got.header, got.blob, got.req_id) == (header, frame.blob, 7)
+
+
+class _Trickle:
+    """A stream that hands out at most ``step`` bytes per call, like a pipe."""
+
+    def __init__(self, data: bytes, step: int) -> None:
+        self.data, self.pos, self.step, self.into_calls = data, 0, step, 0
+
+    def read1(self, n: int) -> bytes:
+        out = self.data[self.pos:self.pos + min(n, self.step)]
+        self.pos += len(out)
+        return out
+
+    def readinto(self, view: memoryview) -> int:
+        self.into_calls += 1
+        out = self.read1(len(view))
+        view[:len(out)] = out
+        return len(out)
+
+
+@pytest.mark.parametrize("step", [1000, 300 * 1024, 1 << 30])
+def test_a_large_blob_is_read_in_place_whole(step):
+    big = os.urandom(wire.DIRECT_MIN + 12345)
+    frames = [wire.Frame(wire.T_REQUEST, 1, {"op": "sync"}, big),
+              wire.Frame(wire.T_REQUEST, 2, {"op": "ping"}, b"small"),
+              wire.Frame(wire.T_REQUEST, 3, {"op": "sync"}, big[::-1])]
+    data = b"".join(wire.encode_frame(f) for f in frames)
+    stream = _Trickle(data, step)
+    reader = wire.Reader(stream.read1, stream.readinto)
+    got = [reader.read_frame() for _ in frames]
+    assert got == frames
+    assert isinstance(got[0].blob, bytearray) and isinstance(got[1].blob, bytes)
+    assert stream.into_calls > 0
+    assert reader.read_frame() is None
+    assert reader.bytes_in == len(data)
+
+
+def test_a_large_blob_cut_short_is_eof():
+    data = wire.encode_frame(wire.Frame(wire.T_REQUEST, 1, {}, b"z" * (wire.DIRECT_MIN * 2)))
+    stream = _Trickle(data[:-10], 64 * 1024)
+    with pytest.raises(EOFError):
+        wire.Reader(stream.read1, stream.readinto).read_frame()

@@ -105,7 +105,7 @@ class Server:
     def __init__(self, inp: BinaryIO, out: BinaryIO) -> None:
         self.inp = inp
         self.out = out
-        self.reader = wire.Reader(self._recv)
+        self.reader = wire.Reader(self._recv, getattr(inp, "readinto", None))
         self.store = None  # type: Optional[Store]
         self.compress = False
         self.algorithm = ""
@@ -551,6 +551,12 @@ def _tune_malloc() -> None:
     Every 8 MiB frame, its inflated part and their slices would otherwise be
     new mappings, page-faulted in and zeroed by the kernel: ~70,000 faults and
     ~0.15 s of CPU on a 150 MB push. The heap is trimmed when idle instead.
+
+    One arena for every thread: the reading thread allocates the frames and the
+    serving thread frees them, and a thread's own arena hands an emptied heap
+    back to the kernel whatever the trim threshold says, so each frame was
+    fresh memory again (most of the endpoint's faults). Must run before the
+    first thread starts.
     """
     global _libc
     try:
@@ -558,6 +564,7 @@ def _tune_malloc() -> None:
         _libc = ctypes.CDLL(None)
         _libc.mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD
         _libc.mallopt(-1, 64 * 1024 * 1024)  # M_TRIM_THRESHOLD
+        _libc.mallopt(-8, 1)  # M_ARENA_MAX
     except (OSError, AttributeError):
         _libc = None  # not glibc: its own allocator's defaults
 
