@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -60,6 +61,7 @@ def runtime():
     d = Path(tempfile.mkdtemp(prefix="fsw", dir="/tmp"))  # AF_UNIX paths are short
     d.chmod(0o700)
     yield d
+    shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

@@ -78,11 +78,20 @@ def test_each_tool_builds_only_the_packages():
 
 
 # --------------------------------------------------------------------------- on the robot
+@pytest.fixture
+def short_runtime():
+    """A private XDG_RUNTIME_DIR with a short path (AF_UNIX), removed afterwards."""
+    d = Path(tempfile.mkdtemp(prefix="fswb", dir="/tmp"))
+    d.chmod(0o700)
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
 @pytest.mark.ssh
 @pytest.mark.skipif(shutil.which("catkin_make") is None, reason="catkin not installed")
-def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(ssh_home, remote_dir, tmp_path):
-    runtime = Path(tempfile.mkdtemp(prefix="fswb", dir="/tmp"))
-    runtime.chmod(0o700)
+def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(ssh_home, remote_dir, tmp_path,
+                                                                         short_runtime):
+    runtime = short_runtime
     logs = tmp_path / "logs"
     logs.mkdir()
     ws = tmp_path / "ws"
