@@ -658,6 +658,10 @@ class _ProxyCommand(paramiko.ProxyCommand):
             if pipe is not None:
                 wire.widen_pipe(pipe.fileno())
         self.timeout: float | None = None
+        # paramiko's transport thread closes its socket when the stream ends, and the
+        # caller's thread closes it too: one closing a stream while the other flushed
+        # it raised "I/O operation on closed file" out of a push that had succeeded
+        self._closing = threading.Lock()
 
     def send(self, content: bytes) -> int:
         assert self.process.stdin is not None
@@ -691,17 +695,18 @@ class _ProxyCommand(paramiko.ProxyCommand):
             return ""
 
     def close(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                _wait_exit(self.process, 1.0)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        for stream in (self.process.stdin, self.process.stdout, self._stderr):
-            if stream is not None:
-                with contextlib.suppress(OSError):
-                    stream.close()
+        with self._closing:
+            if self.process.poll() is None:
+                self.process.terminate()
+                try:
+                    _wait_exit(self.process, 1.0)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait()
+            for stream in (self.process.stdin, self.process.stdout, self._stderr):
+                if stream is not None:
+                    with contextlib.suppress(OSError, ValueError):
+                        stream.close()
 
     @property
     def closed(self) -> bool:

@@ -545,6 +545,43 @@ def test_wait_exit_reaps_an_ended_command_and_times_out_on_a_running_one() -> No
         stubborn.wait()
 
 
+def test_proxy_command_close_is_safe_from_two_threads_and_twice() -> None:
+    """paramiko's transport thread and the caller's both close the proxy at the end of
+    a session; a close racing another's flush raised ValueError out of a push that had
+    succeeded."""
+    import threading
+
+    from fetchsync.ssh import _ProxyCommand
+
+    proxy = _ProxyCommand("cat")
+    real = proxy._stderr.close
+    calls = []
+
+    def close_racing() -> None:  # the other thread got there while this one flushed
+        calls.append(1)
+        real()
+        raise ValueError("I/O operation on closed file")
+
+    proxy._stderr.close = close_racing  # type: ignore[method-assign]
+    errors: list[BaseException] = []
+
+    def close() -> None:
+        try:
+            proxy.close()
+        except BaseException as exc:  # noqa: BLE001 - what the test looks for
+            errors.append(exc)
+
+    threads = [threading.Thread(target=close) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    proxy.close()
+    assert errors == []
+    assert calls and proxy.closed
+    assert proxy.process.stdin is not None and proxy.process.stdin.closed
+
+
 def test_parse_jump() -> None:
     assert parse_jump("bastion") == (None, "bastion", None)
     assert parse_jump("alice@bastion:2222") == ("alice", "bastion", 2222)
