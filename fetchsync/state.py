@@ -135,6 +135,19 @@ class State:
             cur.execute("ROLLBACK")
             raise
 
+    def add_signatures(self, rows: Iterable[tuple[str, str, bytes]]) -> None:
+        """Store ``(path, hash, signature)`` where the entry at ``path`` still holds that
+        content and no signature (see :mod:`fetchsync.signer`)."""
+        cur = self.db.cursor()
+        cur.execute("BEGIN IMMEDIATE")
+        try:
+            cur.executemany("UPDATE entries SET sig=? WHERE path=? AND hash=? AND kind='f' AND sig IS NULL",
+                            [(sig, _encode(path), digest) for path, digest, sig in rows])
+            cur.execute("COMMIT")
+        except BaseException:
+            cur.execute("ROLLBACK")
+            raise
+
     def checkpoint(self) -> None:
         """Copy the write-ahead log into the database now, without waiting for readers:
         closing the last connection does it otherwise, at the end of the call."""

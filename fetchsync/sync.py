@@ -21,6 +21,7 @@ import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
 
+from fetchsync import signer
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
@@ -607,7 +608,10 @@ class Syncer:
     """Pushes a local tree to one remote workspace over a connection, keeping state."""
 
     def __init__(self, conn: Connection, state: State, *, local_root: str, remote_workspace: str,
-                 rules: IgnoreRules, policy: str = "preserve") -> None:
+                 rules: IgnoreRules, policy: str = "preserve", sign_apart: bool = False) -> None:
+        """``sign_apart``: the text files a large round sends unsigned are signed by a
+        process of its own once :meth:`sign_apart_now` is called (a one-shot push: see
+        :mod:`fetchsync.signer`), not by this one at the end of the round."""
         self.conn = conn
         self.state = state
         self.local_root = local_root
@@ -629,6 +633,8 @@ class Syncer:
         self._sign_late: list[tuple[str, str, int]] | None = None  # see _sign_deferred
         self._late_bytes = 0
         self._late_sigs: dict[str, tuple[str, bytes]] = {}
+        self.sign_apart = sign_apart
+        self._handed: list[signer.Item] = []  # see sign_apart_now
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -792,6 +798,7 @@ class Syncer:
         robot_listed = set(listed or ())
         adopt_all = False
         if self._signed is None:
+            signer.wait(self.state.path)  # the signatures the push before left to sign
             self._signed = self.state.signed_paths()
         signed = self._signed
         robot_sigs: dict[str, bytes] = {}
@@ -865,7 +872,11 @@ class Syncer:
                 # while the robot applies the last batches, the rows of what it has
                 # confirmed so far go to the state; the final commit adds the rest
                 batcher.wait_sent()
-                self._sign_deferred(upserts)
+                if self.sign_apart:
+                    self._handed += self._sign_late or []
+                    self._sign_late = None
+                else:
+                    self._sign_deferred(upserts)
                 settle(batcher.answered())
                 self._write_rows(upserts)
             settle(batcher.answered(wait=True))
@@ -947,24 +958,26 @@ class Syncer:
         cores; once the last batch is out, the laptop mostly waits for the robot. The
         files are read again (from the page cache, as a rule); one that changed since it
         was sent gets no signature, and its next edit asks the robot to sign its copy.
+        A one-shot push (``sign_apart``) leaves this to :mod:`fetchsync.signer`.
         """
         late, self._sign_late = self._sign_late, None
         if not late:
             return
-        algorithm = self.algorithm
-        for path, digest, size in late:
-            try:
-                data, _entry = read_stable(os.path.join(self.local_root, path), tries=1)
-            except OSError:
-                continue
-            if len(data) != size or hashing.digest(algorithm, data).hex() != digest:
-                continue
-            sig = delta_mod.signature(data, algorithm=algorithm).to_bytes()
+        for path, digest, sig in signer.sign_files(self.local_root, self.algorithm, late):
             row = upserts.get(path)
             if row is None:  # not answered yet: _settle takes it
                 self._late_sigs[path] = (digest, sig)
             elif row[1] is None and row[0].hash == digest:
                 upserts[path] = (row[0], sig)  # before _write_rows: written with it
+
+    def sign_apart_now(self) -> None:
+        """Start signing what the pushes so far left unsigned (``sign_apart``), in a
+        process of its own; here and now if that cannot start. Call it once the state
+        is committed: the signatures are stored only where the state holds the content
+        they were made of."""
+        items, self._handed = self._handed, []
+        if items and not signer.start(self.state.path, self.local_root, self.algorithm, items):
+            self.state.add_signatures(signer.sign_files(self.local_root, self.algorithm, items))
 
     def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
         """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
