@@ -13,12 +13,13 @@ updated in one transaction per batch, so a killed push leaves it consistent.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import re
 import sqlite3
 from pathlib import Path
-from typing import Iterable, NamedTuple
+from typing import Iterable, Iterator, NamedTuple
 
 from fetchsync.protocol import messages as M
 
@@ -117,9 +118,7 @@ class State:
                replace_all: bool = False) -> None:
         """Apply one batch of changes atomically. A ``None`` signature keeps the stored one
         only when the content hash is unchanged."""
-        cur = self.db.cursor()
-        cur.execute("BEGIN IMMEDIATE")
-        try:
+        with self._transaction() as cur:
             if replace_all:
                 cur.execute("DELETE FROM entries")
             # rows are made as SQLite takes them: a first push of 100,000 paths
@@ -130,19 +129,21 @@ class State:
             cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
             for name, value in (meta or {}).items():
                 cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
-            cur.execute("COMMIT")
-        except BaseException:
-            cur.execute("ROLLBACK")
-            raise
 
     def add_signatures(self, rows: Iterable[tuple[str, str, bytes]]) -> None:
         """Store ``(path, hash, signature)`` where the entry at ``path`` still holds that
         content and no signature (see :mod:`fetchsync.signer`)."""
+        with self._transaction() as cur:
+            cur.executemany("UPDATE entries SET sig=? WHERE path=? AND hash=? AND kind='f' AND sig IS NULL",
+                            [(sig, _encode(path), digest) for path, digest, sig in rows])
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Cursor]:
+        """One write transaction: committed at the end, rolled back on any exception."""
         cur = self.db.cursor()
         cur.execute("BEGIN IMMEDIATE")
         try:
-            cur.executemany("UPDATE entries SET sig=? WHERE path=? AND hash=? AND kind='f' AND sig IS NULL",
-                            [(sig, _encode(path), digest) for path, digest, sig in rows])
+            yield cur
             cur.execute("COMMIT")
         except BaseException:
             cur.execute("ROLLBACK")
