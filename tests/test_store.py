@@ -374,6 +374,56 @@ def test_a_directory_the_batch_made_is_not_looked_into_again(store, monkeypatch)
     assert (src(store) / "d" / "c").read_bytes() == b"c"
 
 
+def test_the_next_batches_do_not_look_into_directories_made_moments_ago(store, monkeypatch):
+    """An initial push makes its directories in its first batch and fills them in the
+    next ones: those files are not lstat'ed either, for MADE_FOR seconds. A file this
+    endpoint wrote there since is looked at, as is everything once another writer
+    was here or MADE_FOR has passed; an edit made here is kept either way."""
+    from fetchsync.protocol import store as store_mod
+
+    looked: list[str] = []
+    real = Store.current
+
+    def current(self, path):
+        looked.append(path)
+        return real(self, path)
+
+    monkeypatch.setattr(Store, "current", current)
+    mkdir = lambda p: M.Op(M.MKDIR, p, expect=M.ABSENT, mode=0o755)  # noqa: E731
+    assert all(r.ok for r in store.apply([mkdir("d"), mkdir("d/s")], b""))
+    looked.clear()
+    assert store.apply([write("d/a", b"a"), write("d/s/b", b"b", at=1)], b"ab")[0].ok
+    assert looked == []  # nothing asked: the directories are this endpoint's, and new
+    # the file it wrote is looked at: a robot-side edit of it since is kept
+    (src(store) / "d" / "a").write_bytes(b"edited on the robot")
+    [r] = store.apply([write("d/a", b"A", expect=M.expect_file(h(b"a")))], b"A")
+    assert r.ok and r.preserved and "d/a" in looked
+    assert (src(store) / "d" / "a").read_bytes() == b"A"
+
+    # past MADE_FOR, a directory made is looked into like any other
+    assert store.apply([mkdir("e")], b"")[0].ok
+    monkeypatch.setattr(store_mod, "MADE_FOR", 0.0)
+    looked.clear()
+    (src(store) / "e" / "x").write_bytes(b"put here by someone")
+    [r] = store.apply([write("e/x", b"x")], b"x")
+    assert r.ok and r.preserved and looked == ["e/x"]
+
+    # another writer's index, loaded when the lock is taken again, forgets them
+    monkeypatch.setattr(store_mod, "MADE_FOR", 60.0)
+    assert store.apply([mkdir("f")], b"")[0].ok
+    store.unlock()
+    other = Store(store.workspace, algorithm=ALG)
+    other.lock()
+    other.apply([write("f/y", b"theirs")], b"theirs")
+    other.save_index()
+    other.unlock()
+    store.lock()
+    looked.clear()
+    [r] = store.apply([write("f/y", b"ours")], b"ours")
+    assert r.ok and r.preserved and looked == ["f/y"]
+    assert (src(store) / "f" / "y").read_bytes() == b"ours"
+
+
 def test_results_done_as_asked_travel_as_one_number(store):
     """An answer spells out only what differs from what the operation asked: a file,
     directory or link made exactly as asked is AS_ASKED on the wire, and reads back as

@@ -97,6 +97,11 @@ class Resolver:
                 raise PathError("parent is not a directory (a symlink?): %r" % anc)
             self._dirs_ok[anc] = True
 
+    def known_dir(self, path: str) -> None:
+        """Record ``path`` as a real directory (one just made and checked), whose
+        ancestors ``check_parents`` found real before it was made."""
+        self._dirs_ok[path] = True
+
     def forget(self, path: str) -> None:
         """Drop cached knowledge about ``path`` and below (it was removed or replaced)."""
         for key in [k for k in self._dirs_ok if k and is_within(k, path)]:

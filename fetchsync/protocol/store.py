@@ -57,6 +57,9 @@ _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict),
 READ_BLOCK = 1 << 20
 WRITE_APART = 512 * 1024  # files this large are written by a second thread (_Writes)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
+# how long a directory this endpoint made counts as holding only what it wrote there
+# since (see _Batch._check): the next batches of one push, not the next push
+MADE_FOR = 10.0
 
 
 class StoreError(ProtocolError):
@@ -194,6 +197,8 @@ class Store:
 
     def _load_index(self) -> None:
         path = os.path.join(self.meta, INDEX)
+        # another writer may have put files in the directories we made
+        self.made = {}  # type: Dict[str, float]  # see _Batch._check
         self._loaded_stamp = self._index_stamp()
         self._touched_synced = set()  # type: set  # paths changed since the last save
         self._touched_cache = set()  # type: set
@@ -737,10 +742,8 @@ class _Batch:
         self.ops = []  # type: List[M.Op]
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
-        # directories this batch made: nothing stood at their paths, so nothing of the
-        # robot's can stand below them either (see _check); emptied when the batch
-        # moves anything aside, as that may take one of them with it
-        self.made = set()  # type: set
+        # directories made lately and the files written into them: the store's, see _check
+        self.made = store.made
         self.writes = None  # type: Optional[_Writes]
 
     def _blob(self, op: M.Op) -> bytes:
@@ -778,11 +781,17 @@ class _Batch:
         Returns what now stands there and where a conflicting version went.
         """
         i = op.path.rfind("/")
-        if i > 0 and op.path[:i] in self.made and op.path not in self.made:
-            # in a directory made empty by this batch, not yet renamed into: what
-            # the lstat below would find is what a concurrent writer could add
-            # between it and the rename as well, so it is not asked for
-            return None, ""
+        if i > 0 and op.path not in self.made:
+            made = self.made.get(op.path[:i])
+            if made is not None and time.monotonic() - made < MADE_FOR:
+                # in a directory this endpoint made empty moments ago, at a path
+                # it has not written since: what the lstat below would find is
+                # what a concurrent writer could add between it and the rename
+                # as well, so it is not asked for (an initial push's files, in
+                # the directories its first batch made). The map is emptied when
+                # anything is moved aside, which may take one of them with it,
+                # and when another writer was here (Store._load_index).
+                return None, ""
         cur = self.s.current(op.path)
         if cur is None:
             return None, ""  # nothing here: nothing to lose
@@ -846,8 +855,10 @@ class _Batch:
                 cur = None
             if cur is None:
                 os.mkdir(full, op.mode or 0o755)
-                self.made.add(op.path)
+                self.made[op.path] = time.monotonic()
                 item = s.current(op.path)  # made with the mode asked, unless umask or setgid say otherwise
+                if item is not None and item.kind == DIR:
+                    s._resolver.known_dir(op.path)  # its files' parent needs no lstat of its own
             if cur is not None or item is None or item.mode != (op.mode or 0o755):
                 os.chmod(full, op.mode or 0o755)
                 item = s.current(op.path)
@@ -945,6 +956,7 @@ class _Batch:
         if not self.changed:
             return  # upload parts only: nothing is reported written yet
         rootfd = os.open(self.s.root, os.O_RDONLY)
+        made = self.made
         try:
             if self.renames and not synced:
                 syncfs(rootfd)  # the temporaries' content, before any is renamed into place
@@ -960,6 +972,8 @@ class _Batch:
                     except OSError:
                         pass
                     continue
+                if made and path.rpartition("/")[0] in made:
+                    made[path] = 0.0  # ours now: a later operation on it looks at it
                 item = self.s.written(path, digest)
                 self.s._record(path, item)
                 results[idx] = M.Result(results[idx].code, results[idx].message, results[idx].preserved,
