@@ -389,7 +389,10 @@ def test_the_next_batches_do_not_look_into_directories_made_moments_ago(store, m
         return real(self, path)
 
     monkeypatch.setattr(Store, "current", current)
-    mkdir = lambda p: M.Op(M.MKDIR, p, expect=M.ABSENT, mode=0o755)  # noqa: E731
+
+    def mkdir(path: str) -> M.Op:
+        return M.Op(M.MKDIR, path, expect=M.ABSENT, mode=0o755)
+
     assert all(r.ok for r in store.apply([mkdir("d"), mkdir("d/s")], b""))
     looked.clear()
     assert store.apply([write("d/a", b"a"), write("d/s/b", b"b", at=1)], b"ab")[0].ok
