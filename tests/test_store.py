@@ -347,20 +347,27 @@ def test_a_directory_made_in_a_setgid_one_has_the_mode_asked(store):
     assert M.Listed.from_wire(r.written).mode == 0o755
 
 
-def test_a_directory_the_batch_made_is_not_looked_into_again(store, monkeypatch):
+@pytest.fixture
+def looked(monkeypatch) -> list[str]:
+    """The paths the store looks at (Store.current), in order."""
+    paths: list[str] = []
+    real = Store.current
+
+    def current(self, path):
+        paths.append(path)
+        return real(self, path)
+
+    monkeypatch.setattr(Store, "current", current)
+    return paths
+
+
+def test_a_directory_the_batch_made_is_not_looked_into_again(store, looked):
     """Paths inside a directory this batch made empty are not lstat'ed before they are
     written (nothing of the robot's can be there); once the batch moves anything aside
     it looks again. Either way the tree ends as asked."""
     store.apply([write("e.txt", b"v1")], b"v1")
     (src(store) / "e.txt").write_bytes(b"edited on the robot")
-    looked: list[str] = []
-    real = Store.current
-
-    def current(self, path):
-        looked.append(path)
-        return real(self, path)
-
-    monkeypatch.setattr(Store, "current", current)
+    looked.clear()
     mkdir = lambda p: M.Op(M.MKDIR, p, expect=M.ABSENT, mode=0o755)  # noqa: E731
     blob = b"abc"
     results = store.apply([mkdir("d"), write("d/a", b"a"), mkdir("d/s"), write("d/s/b", b"b", at=1),
@@ -374,21 +381,13 @@ def test_a_directory_the_batch_made_is_not_looked_into_again(store, monkeypatch)
     assert (src(store) / "d" / "c").read_bytes() == b"c"
 
 
-def test_the_next_batches_do_not_look_into_directories_made_moments_ago(store, monkeypatch):
+def test_the_next_batches_do_not_look_into_directories_made_moments_ago(store, looked, monkeypatch):
     """An initial push makes its directories in its first batch and fills them in the
     next ones: those files are not lstat'ed either, for MADE_FOR seconds. A file this
     endpoint wrote there since is looked at, as is everything once another writer
     was here or MADE_FOR has passed; an edit made here is kept either way."""
     from fetchsync.protocol import store as store_mod
 
-    looked: list[str] = []
-    real = Store.current
-
-    def current(self, path):
-        looked.append(path)
-        return real(self, path)
-
-    monkeypatch.setattr(Store, "current", current)
 
     def mkdir(path: str) -> M.Op:
         return M.Op(M.MKDIR, path, expect=M.ABSENT, mode=0o755)
