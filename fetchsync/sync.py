@@ -430,6 +430,13 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 # --------------------------------------------------------------------------- batching
 SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
+# While the robot has the next requests before it is ready for them (its answers say
+# "queued"), the link is not what holds the push back: its CPU is, and inflating is
+# the largest part of it per byte (zlib inflates ~250-400 MB/s; a fast link carries a
+# byte for less). Then only what shrinks to this or less is compressed: source text
+# (~0.2) and maps still are, meshes of floats (~0.5) go as they are. On a slow link
+# the robot waits for each request, and everything worth it is compressed again.
+WORTH_WHEN_QUEUED = 0.3
 
 
 class _Batcher:
@@ -438,7 +445,8 @@ class _Batcher:
     The main thread reads files and adds operations; a sender thread packs
     each batch (the compressible data as one zlib stream, the rest, such as
     meshes and archives, raw) and sends it, while the robot applies the
-    previous one.
+    previous one. What counts as compressible depends on the robot's last
+    answer: see ``WORTH_WHEN_QUEUED``.
     """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
@@ -461,9 +469,11 @@ class _Batcher:
         self._taken = 0  # batches in ``sent`` whose answer was read
         self.last: dict[str, Any] = {}
         self.stale = False
+        self.worth = wire.WORTH_COMPRESSING  # see WORTH_WHEN_QUEUED
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(data))
+        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM
+                                                   or wire.compressible(data, worth=self.worth))
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
@@ -595,6 +605,7 @@ class _Batcher:
                 self.stale = True
                 continue
             self.last = frame.header
+            self.worth = WORTH_WHEN_QUEUED if frame.header.get("queued") else wire.WORTH_COMPRESSING
             results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")

@@ -169,3 +169,68 @@ def test_a_few_local_changes_are_pushed_path_by_path_with_reuse(syncer):
     assert r.errors == [] and r.reused == 1 and r.deleted == 2 and r.files == 3 and r.dirs == 2, r
     assert tree_of(src) == tree_of(robot_src)
     assert s.push().changed == 0
+
+
+class _AnsweringConnection:
+    """Just enough of a Connection for a _Batcher: every request is answered at once,
+    with ``queued`` as the robot would say it (see the endpoint's test_pipeline)."""
+
+    compress = True
+    bytes_out = bytes_in = 0
+
+    def __init__(self) -> None:
+        self.queued = False
+        self.headers: list[dict] = []
+
+    def send(self, header, blob=b"", *, blob_parts=None, sent=None) -> int:
+        self.headers.append(header)
+        return len(self.headers)
+
+    def answered(self, req_id: int) -> bool:
+        return True
+
+    def wait(self, req_id: int):
+        from fetchsync.protocol import messages as M
+        from fetchsync.protocol import wire
+        ops = self.headers[req_id - 1]["ops"]
+        answer = {"results": [M.Result().to_wire()] * len(ops), "epoch": "e", "gen": req_id}
+        if self.queued:
+            answer["queued"] = True
+        return wire.Frame(wire.T_RESPONSE, req_id, answer)
+
+
+def test_what_is_compressed_follows_whether_the_robot_had_requests_queued():
+    """Data that shrinks only to about half (meshes of floats, hex dumps) is compressed
+    while the robot waits for each request (a slow link), and sent as it is once the
+    robot answers that requests were queued before it was ready (its CPU holds the
+    push back; inflating costs it more than the link saves). Text that shrinks to a
+    fifth is compressed either way, and so is anything under SAMPLE_FROM."""
+    import os as os_mod
+
+    from fetchsync.protocol import messages as M
+    from fetchsync.protocol import wire
+
+    conn = _AnsweringConnection()
+    batcher = sync._Batcher(conn, {"gen": 0}, None, 0)
+    half = os_mod.urandom(64 * 1024).hex().encode()  # 4 bits a byte: shrinks to ~0.55
+    text = b"".join(b"int value_%d = compute(%d);\n" % (i, i * 7) for i in range(8000))
+    assert 0.4 < len(wire.zlib.compress(half, 1)) / len(half) < 0.7
+    assert len(wire.zlib.compress(text, 1)) / len(text) < 0.25
+    small = half[:sync.SAMPLE_FROM - 1]
+
+    def compressed(data: bytes) -> bool:
+        batcher.add(M.Op(M.WRITE, f"f{len(batcher.tags)}", size=len(data)), data, tag=None)
+        z = batcher.items[-1][2]
+        batcher.flush()
+        batcher.wait_sent()
+        batcher.answered()  # the robot's answer to what was just sent
+        return z
+
+    assert compressed(half) and compressed(text) and compressed(small)
+    conn.queued = True
+    compressed(text)  # the answer that says so
+    assert not compressed(half)
+    assert compressed(text) and compressed(small)
+    conn.queued = False
+    compressed(text)
+    assert compressed(half)

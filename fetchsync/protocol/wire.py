@@ -150,12 +150,13 @@ def inflate(data: "bytes | memoryview", limit: int) -> bytes:
 WORTH_COMPRESSING = 0.85
 
 
-def compressible(data: bytes, *, level: int = 1) -> bool:
+def compressible(data: bytes, *, level: int = 1, worth: float = WORTH_COMPRESSING) -> bool:
     """Whether a sample of ``data`` (32 KiB: its start, and its middle when it is
-    larger) shrinks enough to make compressing all of it worth the time."""
+    larger) shrinks to ``worth`` of its size or less, enough to make compressing all
+    of it worth the time."""
     half = len(data) // 2
     sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[half:half + 16384]
-    return len(zlib.compress(sample, level)) <= WORTH_COMPRESSING * len(sample)
+    return len(zlib.compress(sample, level)) <= worth * len(sample)
 
 
 def pack(data: bytes, *, level: int = 1) -> "tuple[bytes, bool]":
