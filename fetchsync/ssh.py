@@ -30,14 +30,13 @@ import shlex
 import shutil
 import socket
 import subprocess
-import tempfile
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from fetchsync import paramiko_import
+from fetchsync import paramiko_import, preconnect
 
 paramiko_import.load()  # without invoke (see there); the imports below find it loaded
 
@@ -53,7 +52,6 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.protocol import wire
 from fetchsync.transport import Channel
 
 log = logging.getLogger(__name__)
@@ -274,6 +272,7 @@ class SSHTransport:
         keepalive: float = 5.0,
         accept_fingerprint: str | None = None,
         password_callback: PasswordCallback | None = None,
+        early: preconnect.Early | None = None,
     ) -> SSHTransport:
         """Connect and authenticate to ``host`` (an ssh config alias, a name or an address).
 
@@ -282,17 +281,24 @@ class SSHTransport:
         for key passphrases and, when keys fail, the login password.
         ``user`` and ``port`` win over the config's User and Port (a config
         ProxyCommand's ``%p`` still stands for the config's Port).
+        ``early``: a connection begun before paramiko was imported
+        (:func:`fetchsync.preconnect.begin`), used if it goes where the config
+        says, else closed.
         """
-        config = load_ssh_config(config_path)
-        settings = resolve_host(host, config=config, user=user, port=port)
-        opener = _Opener(
-            config=config,
-            timeout=connect_timeout,
-            keepalive=keepalive,
-            accept_fingerprint=accept_fingerprint,
-            password_callback=password_callback,
-        )
-        transport = opener.open(settings)
+        try:
+            config = load_ssh_config(config_path)
+            settings = resolve_host(host, config=config, user=user, port=port)
+            opener = _Opener(
+                config=config,
+                timeout=connect_timeout,
+                keepalive=keepalive,
+                accept_fingerprint=accept_fingerprint,
+                password_callback=password_callback,
+            )
+            transport = opener.open(settings, early=early)
+        finally:
+            if early is not None:
+                early.close()
         return cls(
             transport,
             settings=settings,
@@ -421,24 +427,28 @@ class _Opener:
         self.password_callback = password_callback
         self.hops: list[paramiko.Transport] = []
 
-    def open(self, settings: HostSettings, *, depth: int = 0) -> paramiko.Transport:
+    def open(
+        self, settings: HostSettings, *, depth: int = 0, early: preconnect.Early | None = None
+    ) -> paramiko.Transport:
         """Connect, check the host key and authenticate; on failure close all opened."""
         try:
-            return self._open(settings, depth)
+            return self._open(settings, depth, early)
         except BaseException:
             for hop in reversed(self.hops):
                 hop.close()
             self.hops.clear()
             raise
 
-    def _open(self, settings: HostSettings, depth: int) -> paramiko.Transport:
+    def _open(
+        self, settings: HostSettings, depth: int, early: preconnect.Early | None = None
+    ) -> paramiko.Transport:
         if depth > _MAX_HOPS:
             raise ConfigError(
                 f"more than {_MAX_HOPS} ProxyJump hops to reach {settings.alias}: "
                 "does the ssh config send a jump host through itself?"
             )
         host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint)
-        sock = self._sock(settings, depth)
+        sock = self._sock(settings, depth, early)
         try:
             transport = _Transport(sock)
         except Exception:
@@ -456,9 +466,23 @@ class _Opener:
             transport.set_keepalive(self.keepalive)
         return transport
 
-    def _sock(self, settings: HostSettings, depth: int) -> Any:
+    def _sock(self, settings: HostSettings, depth: int, early: preconnect.Early | None) -> Any:
         if settings.proxy_jump:
             return self._jump(settings, depth)
+        if early is not None and early.matches(
+            settings.hostname, settings.port, settings.proxy_command
+        ):
+            if settings.proxy_command:
+                started = early.take_process()
+                if started is not None:
+                    return _ProxyCommand(settings.proxy_command, started=started)
+            else:
+                try:
+                    sock = early.take_socket(self.timeout)
+                except OSError as exc:
+                    raise _tcp_error(settings, exc, self.timeout) from exc
+                if sock is not None:
+                    return _tune_tcp(sock, self.keepalive)
         if settings.proxy_command:
             return _ProxyCommand(settings.proxy_command)
         return _tcp_connect(settings, timeout=self.timeout, keepalive=self.keepalive)
@@ -585,20 +609,26 @@ def _incompatible(transport: paramiko.Transport, settings: HostSettings,
 
 
 def _tcp_connect(settings: HostSettings, *, timeout: float, keepalive: float) -> socket.socket:
-    where = f"{settings.hostname} port {settings.port}"
     try:
         sock = socket.create_connection((settings.hostname, settings.port), timeout=timeout)
-    except socket.gaierror as exc:
-        alias = f" (for {settings.alias})" if settings.alias != settings.hostname else ""
-        raise ConnectError(
-            f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}"
-        ) from exc
-    except ConnectionRefusedError as exc:
-        raise ConnectError(f"connection refused by {where} ({settings.alias})") from exc
-    except TimeoutError as exc:  # socket.timeout is TimeoutError since Python 3.10
-        raise ConnectError(f"timed out after {timeout:g} s connecting to {where}") from exc
     except OSError as exc:
-        raise ConnectError(f"cannot connect to {where}: {exc.strerror or exc}") from exc
+        raise _tcp_error(settings, exc, timeout) from exc
+    return _tune_tcp(sock, keepalive)
+
+
+def _tcp_error(settings: HostSettings, exc: OSError, timeout: float) -> ConnectError:
+    where = f"{settings.hostname} port {settings.port}"
+    if isinstance(exc, socket.gaierror):
+        alias = f" (for {settings.alias})" if settings.alias != settings.hostname else ""
+        return ConnectError(f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}")
+    if isinstance(exc, ConnectionRefusedError):
+        return ConnectError(f"connection refused by {where} ({settings.alias})")
+    if isinstance(exc, TimeoutError):  # socket.timeout is TimeoutError since Python 3.10
+        return ConnectError(f"timed out after {timeout:g} s connecting to {where}")
+    return ConnectError(f"cannot connect to {where}: {exc.strerror or exc}")
+
+
+def _tune_tcp(sock: socket.socket, keepalive: float) -> socket.socket:
     # Small request/response frames: never wait for Nagle.
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     if keepalive > 0 and hasattr(socket, "TCP_USER_TIMEOUT"):
@@ -637,26 +667,25 @@ class _ProxyCommand(paramiko.ProxyCommand):
     transport ends, and keeps the command's stderr for the error message.
     """
 
-    def __init__(self, command_line: str) -> None:
+    def __init__(
+        self,
+        command_line: str,
+        *,
+        started: tuple[subprocess.Popen[bytes], IO[bytes]] | None = None,
+    ) -> None:
+        """``started``: this very command already started by :func:`preconnect.spawn_proxy`
+        (the process and its stderr file), taken over."""
         # Replaces the parent's: OpenSSH runs ProxyCommand with the shell, via exec.
         self.cmd = ["/bin/sh", "-c", "exec " + command_line]
         self._command_line = command_line
-        self._stderr: IO[bytes] = tempfile.TemporaryFile()  # noqa: SIM115 - closed in close()
-        try:
-            self.process = subprocess.Popen(
-                self.cmd,
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=self._stderr,
-                bufsize=0,
-                start_new_session=True,
-            )
-        except OSError as exc:
-            self._stderr.close()
-            raise ConnectError(f"cannot run ProxyCommand {command_line!r}: {exc.strerror}") from exc
-        for pipe in (self.process.stdin, self.process.stdout):
-            if pipe is not None:
-                wire.widen_pipe(pipe.fileno())
+        if started is None:
+            try:
+                started = preconnect.spawn_proxy(command_line)
+            except OSError as exc:
+                raise ConnectError(
+                    f"cannot run ProxyCommand {command_line!r}: {exc.strerror}"
+                ) from exc
+        self.process, self._stderr = started
         self.timeout: float | None = None
         # paramiko's transport thread closes its socket when the stream ends, and the
         # caller's thread closes it too: one closing a stream while the other flushed
