@@ -582,6 +582,27 @@ def test_proxy_command_close_is_safe_from_two_threads_and_twice() -> None:
     assert proxy.process.stdin is not None and proxy.process.stdin.closed
 
 
+def test_proxy_command_close_does_not_wait_for_it_yet_it_is_reaped_or_killed() -> None:
+    """Closing returns at once, as ssh does (SIGHUP, no wait); the command is reaped in
+    the background, and one that ignores SIGTERM is killed a second later."""
+    from fetchsync.ssh import _ProxyCommand
+
+    stubborn = _ProxyCommand("sh -c \"trap '' TERM; exec sleep 30\"")
+    polite = _ProxyCommand("cat")
+    time.sleep(0.2)  # the trap is set
+    stubborn.close()
+    polite.close()
+    assert stubborn.closed and polite.closed
+    assert stubborn.process.returncode is None  # still there: not waited for
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and (
+        stubborn.process.returncode is None or polite.process.returncode is None
+    ):
+        time.sleep(0.05)
+    assert stubborn.process.returncode == -signal.SIGKILL
+    assert polite.process.returncode is not None
+
+
 def test_parse_jump() -> None:
     assert parse_jump("bastion") == (None, "bastion", None)
     assert parse_jump("alice@bastion:2222") == ("alice", "bastion", 2222)
