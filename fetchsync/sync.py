@@ -53,8 +53,12 @@ BATCH_OPS = 4000
 EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
 EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 # Of a first push's files, read (and hashed) while the endpoint starts, until it
-# answers: 12-33 MB in the benchmark's ~0.25 s, up to ~5,000 of its 7,000 files
-READ_AHEAD_BYTES = 32 * 1024 * 1024
+# answers: the first batch's worth (BATCH_BYTES >> 3), so it goes out at the hello.
+# More buys nothing: the robot's first batch (the directories, and a first push has
+# hundreds) keeps it busy while the next ones are read. Reading 32 MiB ahead, as
+# before, took fresh memory (~4 us a page here), and where laptop and robot share
+# CPUs it slowed the robot's start: 4% more CPU and ~1.6% more time in the benchmark.
+READ_AHEAD_BYTES = 1024 * 1024
 # Of a round sending more than a batch, the text files' delta signatures are made once
 # the last batch is out, while the robot applies it, up to this many bytes of them
 SIGN_LATE_MAX = 64 * 1024 * 1024

@@ -397,6 +397,13 @@ def test_the_read_ahead_stops_when_the_robot_answers(tmp_path):
         assert len(unstopped.read) >= 64  # the budget holds them all
         assert set(stopped.read) < set(unstopped.read)
         assert stopped.planned == unstopped.planned  # the plan itself is whole either way
+        # past READ_AHEAD_BYTES it stops by itself: the rest is read as it is sent
+        for i in range(8):
+            (src / f"big{i}.bin").write_bytes(bytes([i]) * (sync.READ_AHEAD_BYTES // 4))
+        bounded = sync.Syncer.prepare(str(src), rules, state, stop=lambda: False)
+        read = sum(len(r.data) for r in bounded.read.values())
+        assert sync.READ_AHEAD_BYTES <= read < sync.READ_AHEAD_BYTES + sync.READ_AHEAD_BYTES // 4
+        assert len(bounded.read) < len(bounded.planned)
     finally:
         state.close()
 
