@@ -434,13 +434,18 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 # --------------------------------------------------------------------------- batching
 SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
-# While the robot has the next requests before it is ready for them (its answers say
-# "queued"), the link is not what holds the push back: its CPU is, and inflating is
-# the largest part of it per byte (zlib inflates ~250-400 MB/s; a fast link carries a
-# byte for less). Then only what shrinks to this or less is compressed: source text
-# (~0.2) and maps still are, meshes of floats (~0.5) go as they are. On a slow link
-# the robot waits for each request, and everything worth it is compressed again.
-WORTH_WHEN_QUEUED = 0.3
+# Where the link is not what holds a push back, compressing data that only halves
+# (meshes of floats) costs more than it saves: deflating here and inflating on the
+# robot (zlib, 250-400 MB/s) take ~7 ns a byte, more than a link faster than ~70 MB/s
+# takes to carry the half it spares. Then only what shrinks to WORTH_WHEN_FAST or less
+# is compressed: source text (~0.2) and maps still are. The link counts as fast while
+# the robot's last answer says the request had arrived before it was ready for it
+# ("queued": its CPU holds the push back), or the last large request went out at
+# FAST_LINK or faster; else (the robot waited, for a slow link) everything worth it is
+# compressed, as on Wi-Fi it must be.
+WORTH_WHEN_FAST = 0.3
+FAST_LINK = 64 * 1024 * 1024  # bytes a second
+LINK_SAMPLE = 4 * 1024 * 1024  # a request this large outlasts the buffers on the way
 
 
 class _Batcher:
@@ -449,8 +454,8 @@ class _Batcher:
     The main thread reads files and adds operations; a sender thread packs
     each batch (the compressible data as one zlib stream, the rest, such as
     meshes and archives, raw) and sends it, while the robot applies the
-    previous one. What counts as compressible depends on the robot's last
-    answer: see ``WORTH_WHEN_QUEUED``.
+    previous one. What counts as compressible depends on the link and the
+    robot's last answer: see ``WORTH_WHEN_FAST``.
     """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
@@ -473,11 +478,13 @@ class _Batcher:
         self._taken = 0  # batches in ``sent`` whose answer was read
         self.last: dict[str, Any] = {}
         self.stale = False
-        self.worth = wire.WORTH_COMPRESSING  # see WORTH_WHEN_QUEUED
+        # see WORTH_WHEN_FAST: the last large request went out at FAST_LINK or faster,
+        # the robot's last answer said "queued"
+        self.link_fast = self.robot_behind = False
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM
-                                                   or wire.compressible(data, worth=self.worth))
+        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(
+            data, worth=WORTH_WHEN_FAST if self.link_fast or self.robot_behind else wire.WORTH_COMPRESSING))
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
@@ -563,7 +570,11 @@ class _Batcher:
             if progress is not None:
                 progress(base + nbytes * k // max(n, 1), self.total)
 
+        size = sum(len(p) for p in zparts) + rpos
+        t0 = time.monotonic()
         req = self.conn.send(header, blob_parts=zparts + raw, sent=sent)
+        if size >= LINK_SAMPLE:
+            self.link_fast = size >= FAST_LINK * (time.monotonic() - t0)
         self.sent.append((req, tags))
         self.done += nbytes
 
@@ -609,7 +620,7 @@ class _Batcher:
                 self.stale = True
                 continue
             self.last = frame.header
-            self.worth = WORTH_WHEN_QUEUED if frame.header.get("queued") else wire.WORTH_COMPRESSING
+            self.robot_behind = bool(frame.header.get("queued"))
             results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
@@ -874,8 +885,11 @@ class Syncer:
             planned.reverse()
             try:
                 while planned:
+                    flushed = batcher.batches
                     vanished |= self._send_op(batcher, planned.pop(), local, report)
-                    if len(planned) % 512 == 0:
+                    # the answers come in as batches go out: read them then too, for
+                    # what they say of the robot (see WORTH_WHEN_FAST)
+                    if len(planned) % 512 == 0 or batcher.batches != flushed:
                         settle(batcher.answered())
             finally:
                 self._prefetch.close()

@@ -171,18 +171,32 @@ def test_a_few_local_changes_are_pushed_path_by_path_with_reuse(syncer):
     assert s.push().changed == 0
 
 
+class _Clock:
+    """sync's time, advanced by the fake link below as it carries bytes."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+
 class _AnsweringConnection:
     """Just enough of a Connection for a _Batcher: every request is answered at once,
-    with ``queued`` as the robot would say it (see the endpoint's test_pipeline)."""
+    with ``queued`` as the robot would say it (see the endpoint's test_pipeline), and
+    sent at ``rate`` bytes a second of the clock."""
 
     compress = True
     bytes_out = bytes_in = 0
 
-    def __init__(self) -> None:
+    def __init__(self, clock: _Clock) -> None:
+        self.clock = clock
         self.queued = False
+        self.rate = 1e12
         self.headers: list[dict] = []
 
     def send(self, header, blob=b"", *, blob_parts=None, sent=None) -> int:
+        self.clock.now += sum(len(p) for p in blob_parts or [blob]) / self.rate
         self.headers.append(header)
         return len(self.headers)
 
@@ -199,38 +213,61 @@ class _AnsweringConnection:
         return wire.Frame(wire.T_RESPONSE, req_id, answer)
 
 
-def test_what_is_compressed_follows_whether_the_robot_had_requests_queued():
+def test_what_is_compressed_follows_whether_the_link_holds_the_push_back(monkeypatch):
     """Data that shrinks only to about half (meshes of floats, hex dumps) is compressed
-    while the robot waits for each request (a slow link), and sent as it is once the
+    while the robot waits for each request over a slow link, and sent as it is once the
     robot answers that requests were queued before it was ready (its CPU holds the
-    push back; inflating costs it more than the link saves). Text that shrinks to a
-    fifth is compressed either way, and so is anything under SAMPLE_FROM."""
+    push back), or once a large request went out fast (inflating and deflating cost
+    more than such a link saves). Text that shrinks to a fifth is compressed either
+    way, and so is anything under SAMPLE_FROM."""
+    import itertools
     import os as os_mod
 
     from fetchsync.protocol import messages as M
     from fetchsync.protocol import wire
 
-    conn = _AnsweringConnection()
+    clock = _Clock()
+    monkeypatch.setattr(sync, "time", clock)
+    conn = _AnsweringConnection(clock)
     batcher = sync._Batcher(conn, {"gen": 0}, None, 0)
     half = os_mod.urandom(64 * 1024).hex().encode()  # 4 bits a byte: shrinks to ~0.55
     text = b"".join(b"int value_%d = compute(%d);\n" % (i, i * 7) for i in range(8000))
+    noise = os_mod.urandom(sync.LINK_SAMPLE)  # not compressible: a large request as it is
     assert 0.4 < len(wire.zlib.compress(half, 1)) / len(half) < 0.7
     assert len(wire.zlib.compress(text, 1)) / len(text) < 0.25
     small = half[:sync.SAMPLE_FROM - 1]
+    names = itertools.count()
 
     def compressed(data: bytes) -> bool:
-        batcher.add(M.Op(M.WRITE, f"f{len(batcher.tags)}", size=len(data)), data, tag=None)
-        z = batcher.items[-1][2]
+        z = []
+        real_send = batcher._send
+
+        def send(header, items, tags):
+            z.extend(flag for _op, _data, flag in items)
+            real_send(header, items, tags)
+
+        batcher._send = send  # type: ignore[method-assign]
+        batcher.add(M.Op(M.WRITE, f"f{next(names)}", size=len(data)), data, tag=None)
         batcher.flush()
         batcher.wait_sent()
         batcher.answered()  # the robot's answer to what was just sent
-        return z
+        (flag,) = z
+        return flag
 
+    conn.rate = 20e6  # Wi-Fi
+    compressed(noise)
     assert compressed(half) and compressed(text) and compressed(small)
-    conn.queued = True
-    compressed(text)  # the answer that says so
+    conn.queued = True  # the robot falls behind the link
+    compressed(text)
     assert not compressed(half)
     assert compressed(text) and compressed(small)
     conn.queued = False
     compressed(text)
+    assert compressed(half)
+    conn.rate = 200e6  # a fast link, and the robot keeps up with it
+    compressed(noise)
+    assert not compressed(half)
+    assert compressed(text) and compressed(small)
+    conn.rate = 20e6
+    compressed(noise)
     assert compressed(half)
