@@ -9,6 +9,7 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 
 from __future__ import annotations
 
+import collections
 import errno
 import logging
 import os
@@ -434,18 +435,19 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 # --------------------------------------------------------------------------- batching
 SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
-# Where the link is not what holds a push back, compressing data that only halves
-# (meshes of floats) costs more than it saves: deflating here and inflating on the
-# robot (zlib, 250-400 MB/s) take ~7 ns a byte, more than a link faster than ~70 MB/s
-# takes to carry the half it spares. Then only what shrinks to WORTH_WHEN_FAST or less
-# is compressed: source text (~0.2) and maps still are. The link counts as fast while
-# the robot's last answer says the request had arrived before it was ready for it
-# ("queued": its CPU holds the push back), or the last large request went out at
-# FAST_LINK or faster; else (the robot waited, for a slow link) everything worth it is
-# compressed, as on Wi-Fi it must be.
+# On a fast link, compressing data that only halves (meshes of floats) costs more than
+# it saves: deflating here and inflating on the robot (zlib, 250-400 MB/s) take ~7 ns a
+# byte, more than a link faster than ~70 MB/s takes to carry the half it spares. So
+# once the link has proved fast, only what shrinks to WORTH_WHEN_FAST or less is
+# compressed: source text (~0.2) and maps still are. Its proof: one of the last
+# LINK_SAMPLES requests of LINK_SAMPLE bytes or more on the wire went out at FAST_LINK
+# or faster. A request can seem up to twice as fast as its link (the 2 MB SSH window
+# takes its first half at once), hence 128 MB/s; a slower robot only makes requests
+# seem slower. On Wi-Fi (~5-40 MB/s) everything worth it is compressed, as before.
 WORTH_WHEN_FAST = 0.3
-FAST_LINK = 64 * 1024 * 1024  # bytes a second
-LINK_SAMPLE = 4 * 1024 * 1024  # a request this large outlasts the buffers on the way
+FAST_LINK = 128 * 1000 * 1000  # bytes a second
+LINK_SAMPLE = 4 * 1024 * 1024
+LINK_SAMPLES = 4
 
 
 class _Batcher:
@@ -454,8 +456,8 @@ class _Batcher:
     The main thread reads files and adds operations; a sender thread packs
     each batch (the compressible data as one zlib stream, the rest, such as
     meshes and archives, raw) and sends it, while the robot applies the
-    previous one. What counts as compressible depends on the link and the
-    robot's last answer: see ``WORTH_WHEN_FAST``.
+    previous one. What counts as compressible depends on the link: see
+    ``WORTH_WHEN_FAST``.
     """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
@@ -478,13 +480,12 @@ class _Batcher:
         self._taken = 0  # batches in ``sent`` whose answer was read
         self.last: dict[str, Any] = {}
         self.stale = False
-        # see WORTH_WHEN_FAST: the last large request went out at FAST_LINK or faster,
-        # the robot's last answer said "queued"
-        self.link_fast = self.robot_behind = False
+        self._rates: collections.deque[float] = collections.deque(maxlen=LINK_SAMPLES)
+        self.link_fast = False  # see WORTH_WHEN_FAST
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
         z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(
-            data, worth=WORTH_WHEN_FAST if self.link_fast or self.robot_behind else wire.WORTH_COMPRESSING))
+            data, worth=WORTH_WHEN_FAST if self.link_fast else wire.WORTH_COMPRESSING))
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
@@ -574,7 +575,8 @@ class _Batcher:
         t0 = time.monotonic()
         req = self.conn.send(header, blob_parts=zparts + raw, sent=sent)
         if size >= LINK_SAMPLE:
-            self.link_fast = size >= FAST_LINK * (time.monotonic() - t0)
+            self._rates.append(size / max(time.monotonic() - t0, 1e-6))
+            self.link_fast = max(self._rates) >= FAST_LINK
         self.sent.append((req, tags))
         self.done += nbytes
 
@@ -620,7 +622,6 @@ class _Batcher:
                 self.stale = True
                 continue
             self.last = frame.header
-            self.robot_behind = bool(frame.header.get("queued"))
             results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
@@ -885,11 +886,8 @@ class Syncer:
             planned.reverse()
             try:
                 while planned:
-                    flushed = batcher.batches
                     vanished |= self._send_op(batcher, planned.pop(), local, report)
-                    # the answers come in as batches go out: read them then too, for
-                    # what they say of the robot (see WORTH_WHEN_FAST)
-                    if len(planned) % 512 == 0 or batcher.batches != flushed:
+                    if len(planned) % 512 == 0:
                         settle(batcher.answered())
             finally:
                 self._prefetch.close()

@@ -139,6 +139,29 @@ def test_slow_link_push_is_correct(env, fault_proxy, remote_dir):
     assert temporaries(remote_dir) == []
 
 
+def test_a_slow_link_keeps_compressing_what_only_halves(env, fault_proxy, remote_dir):
+    """Over a slow link, data that shrinks only to about half (hex dumps here, meshes of
+    floats in a workspace) is compressed, even after large requests went out and were
+    timed: only a link proved fast leaves it as it is (sync.WORTH_WHEN_FAST)."""
+    fault_proxy.throttle(bytes_per_second=8_000_000)
+    src = local_src(env)
+    big = src / "big"
+    big.mkdir(parents=True)
+    noise = 0
+    for i in range(3):  # each a request of its own, timed; the third waits for the first
+        blob = os.urandom(4 * 1024 * 1024 + 65536)
+        (big / f"a{i}.bin").write_bytes(blob)
+        noise += len(blob)
+    hexed = 0
+    for i in range(8):
+        text = os.urandom(128 * 1024).hex().encode()
+        (big / f"b{i}.txt").write_bytes(text)
+        hexed += len(text)
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["ok"] and tree_of(src) == tree_of(remote_dir / "src")
+    assert r["bytes_sent"] < noise + 0.75 * hexed  # compressed: ~0.55 of it
+
+
 def test_slow_link_shows_progress_on_a_terminal(env, fault_proxy, remote_dir):
     """A transfer longer than a second draws a progress bar on a terminal: the initial
     push, and a later push of a few changed files (the path-by-path one) too."""

@@ -13,7 +13,6 @@ import io
 import os
 import queue
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -239,60 +238,3 @@ def test_frames_are_read_ahead_up_to_a_count_and_a_size():
     assert q.get() == "huge"
     with pytest.raises(queue.Empty):
         q.get(timeout=0.01)
-
-
-def test_answers_say_whether_the_request_had_arrived_before_the_endpoint_was_ready(tmp_path, monkeypatch):
-    """A sync request the endpoint had to wait for is answered without "queued"; one
-    that had arrived whole while the endpoint still applied the one before is answered
-    with it, on the plain path and the pipelined one alike (the client then compresses
-    less: the robot, not the link, holds the push back)."""
-    release, read = threading.Event(), {4: threading.Event(), 5: threading.Event()}
-    real_begin, real_unpacked = store_mod.Store.begin, server_mod._unpacked
-
-    def begin(self: Any, ops: list[M.Op], *args: Any, **kwargs: Any) -> Any:
-        if any(op.path.startswith("slow") for op in ops):
-            assert release.wait(10)  # busy with this one until the next ones are in
-        return real_begin(self, ops, *args, **kwargs)
-
-    def unpacked(frame: Any) -> Any:
-        if frame is not None and frame.req_id in read:
-            read[frame.req_id].set()  # read whole (the reader's arrival time is taken)
-        return real_unpacked(frame)
-
-    monkeypatch.setattr(store_mod.Store, "begin", begin)
-    monkeypatch.setattr(server_mod, "_unpacked", unpacked)
-    in_r, in_w = os.pipe()
-    out_r, out_w = os.pipe()
-    inp, out = os.fdopen(in_r, "rb"), os.fdopen(out_w, "wb")
-    served = threading.Thread(target=server_mod.Server(inp, out).serve, daemon=True)
-    served.start()
-    answers = wire.Reader(os.fdopen(out_r, "rb").read1)
-    answers.read_hello()
-
-    def request(req_id: int, header: dict[str, Any], blob: bytes = b"") -> None:
-        os.write(in_w, wire.encode_frame(wire.Frame(wire.T_REQUEST, req_id, header, blob)))
-
-    os.write(in_w, wire.encode_hello({"algorithm": ALG}))
-    request(1, {"op": "open", "workspace": str(tmp_path / "ws")})
-    assert answers.read_frame().req_id == 1
-    request(2, *files(3, "a"))
-    first = answers.read_frame()
-    assert first.req_id == 2 and "queued" not in first.header
-    time.sleep(0.2)  # the endpoint waits for the next request: it arrives later
-    request(3, *files(3, "slow"))
-    request(4, *files(3, "b"))
-    request(5, *files(3, "c"))
-    assert read[4].wait(10) and read[5].wait(10)
-    release.set()
-    got = {}
-    for _ in range(3):
-        frame = answers.read_frame()
-        got[frame.req_id] = frame.header
-    os.close(in_w)
-    served.join(10)
-    assert set(got) == {3, 4, 5}
-    assert all(r == M.AS_ASKED for header in got.values() for r in header["results"])
-    assert "queued" not in got[3]  # the endpoint was waiting when it came
-    assert got[4].get("queued") is True and got[5].get("queued") is True
-    for name in ("a", "slow", "b", "c"):
-        assert (tmp_path / "ws" / "src" / name / "f2").read_bytes() == (f"{name} 2\n" * 50).encode()

@@ -181,17 +181,15 @@ class _Clock:
         return self.now
 
 
-class _AnsweringConnection:
+class _Link:
     """Just enough of a Connection for a _Batcher: every request is answered at once,
-    with ``queued`` as the robot would say it (see the endpoint's test_pipeline), and
-    sent at ``rate`` bytes a second of the clock."""
+    and sent at ``rate`` bytes a second of the clock."""
 
     compress = True
     bytes_out = bytes_in = 0
 
     def __init__(self, clock: _Clock) -> None:
         self.clock = clock
-        self.queued = False
         self.rate = 1e12
         self.headers: list[dict] = []
 
@@ -207,19 +205,16 @@ class _AnsweringConnection:
         from fetchsync.protocol import messages as M
         from fetchsync.protocol import wire
         ops = self.headers[req_id - 1]["ops"]
-        answer = {"results": [M.Result().to_wire()] * len(ops), "epoch": "e", "gen": req_id}
-        if self.queued:
-            answer["queued"] = True
-        return wire.Frame(wire.T_RESPONSE, req_id, answer)
+        return wire.Frame(wire.T_RESPONSE, req_id,
+                          {"results": [M.Result().to_wire()] * len(ops), "epoch": "e", "gen": req_id})
 
 
-def test_what_is_compressed_follows_whether_the_link_holds_the_push_back(monkeypatch):
+def test_what_is_compressed_follows_the_speed_of_the_link(monkeypatch):
     """Data that shrinks only to about half (meshes of floats, hex dumps) is compressed
-    while the robot waits for each request over a slow link, and sent as it is once the
-    robot answers that requests were queued before it was ready (its CPU holds the
-    push back), or once a large request went out fast (inflating and deflating cost
-    more than such a link saves). Text that shrinks to a fifth is compressed either
-    way, and so is anything under SAMPLE_FROM."""
+    over a slow link, and sent as it is once one of the last few large requests went
+    out fast: deflating and inflating it then cost more than the link saves. Text that
+    shrinks to a fifth is compressed either way, and so is anything under SAMPLE_FROM;
+    small requests, which the buffers on the way take at once, prove nothing."""
     import itertools
     import os as os_mod
 
@@ -228,8 +223,8 @@ def test_what_is_compressed_follows_whether_the_link_holds_the_push_back(monkeyp
 
     clock = _Clock()
     monkeypatch.setattr(sync, "time", clock)
-    conn = _AnsweringConnection(clock)
-    batcher = sync._Batcher(conn, {"gen": 0}, None, 0)
+    link = _Link(clock)
+    batcher = sync._Batcher(link, {"gen": 0}, None, 0)
     half = os_mod.urandom(64 * 1024).hex().encode()  # 4 bits a byte: shrinks to ~0.55
     text = b"".join(b"int value_%d = compute(%d);\n" % (i, i * 7) for i in range(8000))
     noise = os_mod.urandom(sync.LINK_SAMPLE)  # not compressible: a large request as it is
@@ -250,24 +245,21 @@ def test_what_is_compressed_follows_whether_the_link_holds_the_push_back(monkeyp
         batcher.add(M.Op(M.WRITE, f"f{next(names)}", size=len(data)), data, tag=None)
         batcher.flush()
         batcher.wait_sent()
-        batcher.answered()  # the robot's answer to what was just sent
         (flag,) = z
         return flag
 
-    conn.rate = 20e6  # Wi-Fi
+    link.rate = 20e6  # Wi-Fi
     compressed(noise)
     assert compressed(half) and compressed(text) and compressed(small)
-    conn.queued = True  # the robot falls behind the link
-    compressed(text)
-    assert not compressed(half)
-    assert compressed(text) and compressed(small)
-    conn.queued = False
-    compressed(text)
+    link.rate = 1e12  # instant, but small: the buffers took it
     assert compressed(half)
-    conn.rate = 200e6  # a fast link, and the robot keeps up with it
+    link.rate = 200e6  # a fast link
     compressed(noise)
     assert not compressed(half)
     assert compressed(text) and compressed(small)
-    conn.rate = 20e6
+    link.rate = 20e6  # the robot falls behind, or the link slows: one slow request
     compressed(noise)
+    assert not compressed(half)  # the fast one is among the last few still
+    for _ in range(sync.LINK_SAMPLES):
+        compressed(noise)
     assert compressed(half)

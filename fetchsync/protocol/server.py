@@ -18,7 +18,6 @@ import queue
 import select
 import sys
 import threading
-import time
 from typing import Any, BinaryIO, Deque, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import hashing, wire
@@ -113,12 +112,8 @@ class Server:
         self.prewarm = None  # type: Optional[_Prewarm]
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
         # the sync request whose files are written and being synced while the next
-        # one's are written: (its id, its batch, the syncfs under way, whether it was
-        # queued), see _pipeline
-        self.held = None  # type: Optional[Tuple[int, Any, Any, bool]]
-        # whether the request being served had arrived whole before this endpoint was
-        # ready for it: told to the client, which compresses less while it is so
-        self.queued = False
+        # one's are written: (its id, its batch, the syncfs under way), see _pipeline
+        self.held = None  # type: Optional[Tuple[int, Any, Any]]
         # answers to requests whose renames are done, sent once a syncfs begun after
         # them completes: nothing is reported written before it is durable
         self.unsent = []  # type: List[wire.Frame]
@@ -167,7 +162,6 @@ class Server:
         while True:
             if self.held is not None and frames.empty():
                 self._settle()  # nothing follows yet: the held request is answered now
-            ready_at = time.monotonic()
             try:
                 item = frames.get(timeout=IDLE_TRIM_AFTER)
             except queue.Empty:
@@ -175,8 +169,7 @@ class Server:
                 item = frames.get()
             if isinstance(item, BaseException):
                 raise item
-            frame, self.unpacked, arrived_at = item
-            self.queued = arrived_at <= ready_at
+            frame, self.unpacked = item
             if frame is None:
                 self._settle(quiet=True)
                 return
@@ -219,13 +212,13 @@ class Server:
             self._send(_error_frame(frame.req_id, exc))
             return True
         if self.held is not None:
-            req_id, prev, syncing, queued = self.held
+            req_id, prev, syncing = self.held
             syncing.wait()  # prev's temporaries, and the renames before, are durable
             self._send_unsent()
             store.finish(prev, synced=True, durable=False)
             store.save_index()
-            self.unsent.append(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, prev, queued)))
-        self.held = (frame.req_id, batch, store.sync_in_background(), self.queued)
+            self.unsent.append(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, prev)))
+        self.held = (frame.req_id, batch, store.sync_in_background())
         return True
 
     def _settle(self, *, unlock: bool = True, quiet: bool = False) -> None:
@@ -233,13 +226,13 @@ class Server:
         store = self.store
         try:
             if self.held is not None and store is not None:
-                req_id, batch, syncing, queued = self.held
+                req_id, batch, syncing = self.held
                 self.held = None
                 syncing.wait()
                 self._send_unsent()
                 store.finish(batch, synced=True)
                 store.save_index()
-                self._send(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, batch, queued)))
+                self._send(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, batch)))
             elif self.unsent and store is not None:
                 store.sync()
                 self._send_unsent()
@@ -259,10 +252,9 @@ class Server:
         try:
             while True:
                 frame = self.reader.read_frame()
-                arrived_at = time.monotonic()  # before inflating: that is this end's work
                 unpacked = _unpacked(frame)
                 size = len(frame.blob) if frame is not None else 0
-                frames.put((frame, unpacked, arrived_at), size + (len(unpacked[0]) if unpacked else 0))
+                frames.put((frame, unpacked), size + (len(unpacked[0]) if unpacked else 0))
                 if frame is None:
                     return
         except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
@@ -399,7 +391,7 @@ class Server:
         unpacked, self.unpacked = self.unpacked, None
         batch = store.begin(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
         store.finish(batch)
-        out = _sync_answer(store, batch, self.queued)
+        out = _sync_answer(store, batch)
         if h.get("verify"):
             changed, gone = store.drift()
             out.update(drift=[e.to_wire() for e in changed], gone=gone)
@@ -476,14 +468,9 @@ class Server:
         return {}, b""
 
 
-def _sync_answer(store: Store, batch: Any, queued: bool) -> Dict[str, Any]:
-    """``queued``: the request had arrived whole before the endpoint was ready for it, so
-    this end, not the link, held the push back (see the client's ``_Batcher``)."""
-    out = {"results": [r.to_wire(op) for r, op in zip(batch.results, batch.ops)],
-           "epoch": store.epoch, "gen": batch.gen}  # type: Dict[str, Any]
-    if queued:
-        out["queued"] = True
-    return out
+def _sync_answer(store: Store, batch: Any) -> Dict[str, Any]:
+    return {"results": [r.to_wire(op) for r, op in zip(batch.results, batch.ops)],
+            "epoch": store.epoch, "gen": batch.gen}
 
 
 def _error_frame(req_id: int, exc: Exception) -> wire.Frame:
