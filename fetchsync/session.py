@@ -100,8 +100,8 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         # spare endpoints opening this very workspace) would take the CPU this
         # call needs, on both ends
         warm = loader_spec(remote_python())[0]
-        transport.after_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm,
-                                                         prescan=prescan)
+        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm,
+                                                      prescan=prescan)
     return transport
 
 

@@ -257,8 +257,9 @@ class SSHTransport:
         self._keepalive = keepalive
         self._timeout = timeout
         self._probe_lock = threading.Lock()
-        self.after_close: Callable[[], None] | None = None
-        """Called once when this connection is closed (say, to leave a master behind)."""
+        self.on_close: Callable[[], None] | None = None
+        """Called once when this connection is closed, just before it goes (say, to leave
+        a master behind)."""
 
     @classmethod
     def connect(
@@ -376,12 +377,16 @@ class SSHTransport:
         return False
 
     def close(self) -> None:
-        self._transport.close()
-        for hop in reversed(self._hops):
-            hop.close()
-        after, self.after_close = self.after_close, None
-        if after is not None:
-            after()
+        # on_close first: a process started (by on_close) while a ProxyCommand was
+        # ending took ~80 ms to start in 4 of 10 pushes here, ~1 ms otherwise
+        on_close, self.on_close = self.on_close, None
+        try:
+            if on_close is not None:
+                on_close()
+        finally:
+            self._transport.close()
+            for hop in reversed(self._hops):
+                hop.close()
 
     def __repr__(self) -> str:
         return f"SSHTransport({self.settings.user}@{self.settings.display})"
