@@ -245,7 +245,9 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             for a in ahead:
                 a.close()
             progress.close()
-            state.close()
+            # this process ends soon (see _exit): the signer it started, or the next
+            # call, copies the state's log into its database
+            state.close(checkpoint=False)
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
     from fetchsync.sync import raise_for
