@@ -927,8 +927,9 @@ class Syncer:
                 break
         if not dry_run and report.rounds:  # no round: the first plan was empty already
             failed = {e["path"] for e in report.errors}
-            left = [p for p in plan(local.items, remote, expect)
-                    if p.op.path not in failed and not guarded(p.op.path)]
+            left = [] if _same_tree(local.items, remote) else \
+                [p for p in plan(local.items, remote, expect)
+                 if p.op.path not in failed and not guarded(p.op.path)]
             if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
                 report.errors.append({"path": left[0].op.path, "error":
                                       f"{len(left)} path(s) still differ on the robot after "
@@ -1469,6 +1470,20 @@ def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict
         if len(out) > QUICK_MAX:
             return None
     return out
+
+
+def _same_tree(local: dict[str, M.Listed], remote: dict[str, M.Listed]) -> bool:
+    """Whether the robot holds exactly ``local`` as far as its answers said: then a plan
+    would be empty (~1 ms for 9,000 paths, against ~8 for the plan; each entry is, as a
+    rule, the very item sent)."""
+    if len(local) != len(remote):
+        return False
+    get = remote.get
+    for path, item in local.items():
+        r = get(path)
+        if r is not item and r != item:
+            return False
+    return True
 
 
 def _as_sent(wire: Any, item: M.Listed | None) -> M.Listed:

@@ -275,8 +275,9 @@ def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch)
                         rules=rules).push(ahead=ahead[0])
         assert r.errors == [] and r.files == 5 and r.scan == "scanned"
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
-        # one more plan: the check after the round that all is there, none before it
-        assert events == ["prepare", "plan", "hello", "plan"]
+        # no plan after the hello: the round used the one made ahead, and the check after
+        # it found the robot's answers matching the tree (a plan is made only if not)
+        assert events == ["prepare", "plan", "hello"]
         # the state now knows the tree: the next preparation is the scan alone
         assert sync.Syncer.prepare(str(src), rules, state).planned is None
     finally:

@@ -263,3 +263,36 @@ def test_what_is_compressed_follows_the_speed_of_the_link(monkeypatch):
     for _ in range(sync.LINK_SAMPLES):
         compressed(noise)
     assert compressed(half)
+
+
+def test_a_robot_that_reports_holding_something_else_is_an_error(syncer, monkeypatch):
+    """After a round, the laptop checks that what the robot's answers say it now holds is
+    the local tree (quickly when every answer is what was sent); a path it reports
+    otherwise is a failure of the push, not a silent success."""
+    s, src, _robot_src = syncer
+    real = sync._as_sent
+    odd = "pkg3/f7.txt"
+
+    def as_sent(wire, item):
+        got = real(wire, item)
+        return got._replace(mode=0o600) if got.path == odd else got
+
+    monkeypatch.setattr(sync, "_as_sent", as_sent)
+    report = s.push()
+    assert [e["path"] for e in report.errors] == [odd]
+    assert "still differ on the robot" in report.errors[0]["error"]
+    monkeypatch.setattr(sync, "_as_sent", real)
+    assert s.push().errors == []  # and the next push sets it right
+
+
+def test_same_tree_compares_every_path_and_entry():
+    from fetchsync.protocol import messages as M
+
+    a = {"d": M.Listed("d", "d", 0o755), "d/f": M.Listed("d/f", "f", 0o644, 3, hash="ab")}
+    assert sync._same_tree(a, dict(a))
+    assert sync._same_tree(a, {k: M.Listed(*v) for k, v in a.items()})  # equal, not the same objects
+    assert not sync._same_tree(a, {**a, "d/f": a["d/f"]._replace(mode=0o600)})
+    assert not sync._same_tree(a, {**a, "d/g": a["d/f"]._replace(path="d/g")})
+    assert not sync._same_tree(a, {"d": a["d"]})
+    assert not sync._same_tree(a, {"d": a["d"], "d/g": a["d/f"]._replace(path="d/g")})
+
