@@ -237,6 +237,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
 
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve", sign_apart=True)
+                syncer.on_sent = _release_heap
                 report = syncer.push(dry_run=dry_run, progress=progress,
                                      ahead=ahead[0] if ahead else None)
                 syncer.sign_apart_now()
@@ -328,6 +329,21 @@ def _return_big_buffers() -> None:
 
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt() parameters
+
+
+def _release_heap() -> None:
+    """Give the heap's free pages back to the kernel (glibc's ``malloc_trim``).
+
+    Called while the robot applies a push's last batches: the buffers of the batches
+    are free by then, and a process exits the slower the more memory it holds (~8 ms
+    of a first push's end here for ~60 MB of them, which this does while it waits).
+    """
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass  # not glibc
 
 
 def _mallopt(*settings: tuple[int, int]) -> None:

@@ -662,6 +662,9 @@ class Syncer:
         self._late_sigs: dict[str, tuple[str, bytes]] = {}
         self.sign_apart = sign_apart
         self._handed: list[signer.Item] = []  # see sign_apart_now
+        # called once a round's last batch is out, while the robot applies the last ones
+        # (the CLI gives the heap's free pages back then, not at its exit)
+        self.on_sent: Callable[[], None] | None = None
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -904,6 +907,8 @@ class Syncer:
                     self._sign_late = None
                 else:
                     self._sign_deferred(upserts)
+                if self.on_sent is not None:
+                    self.on_sent()
                 settle(batcher.answered())
                 self._write_rows(upserts)
             settle(batcher.answered(wait=True))

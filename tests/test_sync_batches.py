@@ -296,3 +296,47 @@ def test_same_tree_compares_every_path_and_entry():
     assert not sync._same_tree(a, {"d": a["d"]})
     assert not sync._same_tree(a, {"d": a["d"], "d/g": a["d/f"]._replace(path="d/g")})
 
+
+def test_on_sent_is_called_once_the_last_batch_is_out_before_the_last_answers(syncer, monkeypatch):
+    """The CLI gives the heap's free pages back there (cli._release_heap), while the
+    robot still applies the last batches."""
+    s, _src, _robot_src = syncer
+    seen: list[tuple[int, int]] = []
+    real = sync._Batcher.wait_sent
+
+    def wait_sent(self):
+        real(self)
+        seen.append((len(self.sent), self._taken))
+
+    monkeypatch.setattr(sync._Batcher, "wait_sent", wait_sent)
+    calls: list[int] = []
+    s.on_sent = lambda: calls.append(len(seen))
+    assert s.push().errors == []
+    assert calls == [1]  # once, right after every batch went out
+    assert seen[0][0] > 1  # many batches (see the fixture)
+    assert s.push().files == 0 and calls == [1]  # nothing to send: no round
+
+
+def test_release_heap_gives_the_free_heap_back() -> None:
+    """With a one-shot push's malloc settings (cli._buffers_for_tree), freed batch-sized
+    buffers stay in the heap; cli._release_heap returns them to the kernel. In a process
+    of its own: malloc's settings are process-wide."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os\nfrom fetchsync import cli\n"
+        "def rss():\n"
+        "    return int([l for l in open('/proc/self/status') if l.startswith('VmRSS')][0].split()[1])\n"
+        "cli._buffers_for_tree(10)\n"
+        "chunks = [os.urandom(1 << 20) for _ in range(48)]\n"
+        "held = rss()\n"
+        "del chunks\n"
+        "freed = rss()\n"
+        "cli._release_heap()\n"
+        "print(held, freed, rss())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    held, freed, released = map(int, out.stdout.split())
+    assert freed > held - 16 * 1024  # kept by the heap: the trim threshold is above it
+    assert released < freed - 32 * 1024  # given back (in KiB)
