@@ -680,8 +680,7 @@ class _ProxyCommand(paramiko.ProxyCommand):
     ) -> None:
         """``started``: this very command already started by :func:`preconnect.spawn_proxy`
         (the process and its stderr file), taken over."""
-        # Replaces the parent's: OpenSSH runs ProxyCommand with the shell, via exec.
-        self.cmd = ["/bin/sh", "-c", "exec " + command_line]
+        # not the parent's __init__: spawn_proxy runs it with the shell, as OpenSSH does
         self._command_line = command_line
         if started is None:
             try:
