@@ -600,10 +600,16 @@ class _Batcher:
         if self._failure is not None:
             raise self._failure
 
-    def answered(self, *, wait: bool = False) -> list[tuple[Any, M.Result]]:
+    @property
+    def waiting(self) -> bool:
+        """Whether a batch sent is not answered yet (or its answer not read)."""
+        return self._taken < len(self.sent)
+
+    def answered(self, *, wait: bool = False, one: bool = False) -> list[tuple[Any, M.Result]]:
         """The results of the batches answered since the last call, in order (with ``wait``,
-        of every batch sent, once the last is out). Each batch is let go of once read, so
-        a push of 100,000 operations does not hold them all, nor all their answers.
+        of every batch sent, once the last is out; with ``one`` too, of the next one only).
+        Each batch is let go of once read, so a push of 100,000 operations does not hold
+        them all, nor all their answers.
 
         ``last`` then holds the last answer that applied, ``stale`` whether one was refused
         as stale (someone else wrote to the robot meanwhile; later batches are refused too).
@@ -627,6 +633,8 @@ class _Batcher:
                 raise SyncError("the robot answered a different number of operations")
             out.extend((t, M.Result.from_wire(r, t[0].op if t is not None else None))
                        for t, r in zip(tags, results))
+            if one:
+                break
         return out
 
 
@@ -911,6 +919,9 @@ class Syncer:
                     self.on_sent()
                 settle(batcher.answered())
                 self._write_rows(upserts)
+                while batcher.waiting:  # the rows of each answer as it comes
+                    settle(batcher.answered(wait=True, one=True))
+                    self._write_rows(upserts, checkpoint=False)
             settle(batcher.answered(wait=True))
             stale = batcher.stale
             if batcher.last:
@@ -1012,7 +1023,8 @@ class Syncer:
         if items and not signer.start(self.state.path, self.local_root, self.algorithm, items):
             self.state.add_signatures(signer.sign_files(self.local_root, self.algorithm, items))
 
-    def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
+    def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]], *,
+                    checkpoint: bool = True) -> None:
         """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
         generation as it was: they say what the robot confirmed it holds, durably, and
         :meth:`_commit` writes only the others. Only for large pushes (tens of ms of
@@ -1022,13 +1034,18 @@ class Syncer:
 
         Only paths are remembered: within a round a path is settled once, and each round
         starts afresh. Not past EARLY_ROWS_MAX rows: a push of 100,000 files holds its
-        memory budget closely, and the final commit is a small part of its time."""
+        memory budget closely, and the final commit is a small part of its time.
+
+        ``checkpoint``: also copy the state's log into its database (an fsync or two),
+        once, before the last answers come; the rows of each of those are written as it
+        comes, so the final commit holds the last batch's alone."""
         written = self._rows_written
         if not EARLY_ROWS <= len(upserts) <= EARLY_ROWS_MAX \
                 or sum(1 for p in upserts if p not in written) < EARLY_ROWS:
             return
         self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written))
-        self.state.checkpoint()  # closing the state then has only the final commit to copy
+        if checkpoint:
+            self.state.checkpoint()  # a close that checkpoints then has little to copy
         written.update(upserts)
 
     def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
