@@ -204,7 +204,7 @@ class LocalTree:
     def hash_where_needed(self, root: str, remote: dict[str, M.Listed], algorithm: str) -> None:
         """Hash the new files the robot could hold already: at the same path, or the same size
         elsewhere (content to reuse). The others are hashed as they are read to be sent."""
-        if not self.unhashed:
+        if not self.unhashed or not remote:  # an empty robot holds nothing to compare
             return
         sizes = {r.size for r in remote.values() if r.kind == "f"}
         for path in sorted(self.unhashed):
