@@ -188,6 +188,47 @@ def test_an_error_or_a_stale_request_between_pipelined_ones_is_answered_in_its_p
         assert len(os.listdir(tmp_path / "ws" / "src" / d)) == 5
 
 
+def test_the_next_request_is_served_while_the_large_files_before_are_written(tmp_path, monkeypatch):
+    """A request's large files are written by a second thread; the serving thread goes
+    on to the next request meanwhile, and the large files are durable before they are
+    renamed into place and answered."""
+    big = os.urandom(store_mod.WRITE_APART + 1)
+    first = sync([{"k": M.MKDIR, "p": "big", "e": M.ABSENT, "m": 0o755}, write("big/mesh.stl", big, 0)], big)
+    requests = [files(3, "p0"), first, files(3, "p1"), files(3, "p2")]
+    next_one = threading.Event()
+    order: list[str] = []
+    real_write_all = store_mod._write_all
+
+    def write_all(fd: int, data: Any) -> None:
+        if len(data) >= store_mod.WRITE_APART:
+            # held until the serving thread writes a file of the request after
+            # (at most 5 s: the serving thread may instead wait for this one)
+            next_one.wait(5)
+            order.append("large written")
+        elif not next_one.is_set() and "large begun" in order:
+            order.append("next request")
+            next_one.set()
+        real_write_all(fd, data)
+
+    real_put = store_mod._Writes.put
+
+    def put(self: Any, fd: int, *args: Any) -> None:
+        if fd >= 0:  # not the end mark
+            order.append("large begun")
+        real_put(self, fd, *args)
+
+    monkeypatch.setattr(store_mod, "_write_all", write_all)
+    monkeypatch.setattr(store_mod._Writes, "put", put)
+    run = Run(tmp_path / "ws", requests, monkeypatch)
+    assert order == ["large begun", "next request", "large written"]
+    assert [a.req_id for a in run.answers] == list(range(1, 6))
+    assert all(r == M.AS_ASKED for r in run.answer(3).header["results"])
+    assert (tmp_path / "ws" / "src" / "big" / "mesh.stl").read_bytes() == big
+    ev = run.events
+    renamed, answered = ev.index(("rename", "big/mesh.stl")), ev.index(("answer", 3))
+    assert ("sync<",) in ev[:renamed] and ("sync>",) in ev[renamed:answered]
+
+
 def test_a_begun_batch_keeps_the_lock_until_it_is_finished(tmp_path):
     """Another writer taking the lock between two pipelined requests would take the
     held one's temporaries for a dead writer's, and delete them."""

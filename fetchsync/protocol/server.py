@@ -206,7 +206,8 @@ class Server:
             self._settle(unlock=False)
         unpacked, self.unpacked = self.unpacked, None
         try:
-            batch = store.begin(ops, frame.blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
+            batch = store.begin(ops, frame.blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked,
+                                join=False)
         except (ProtocolError, OSError) as exc:
             self._settle()
             self._send(_error_frame(frame.req_id, exc))
@@ -218,7 +219,7 @@ class Server:
             store.finish(prev, synced=True, durable=False)
             store.save_index()
             self.unsent.append(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, prev)))
-        self.held = (frame.req_id, batch, store.sync_in_background())
+        self.held = (frame.req_id, batch, store.sync_in_background(batch))
         return True
 
     def _settle(self, *, unlock: bool = True, quiet: bool = False) -> None:

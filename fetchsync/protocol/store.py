@@ -589,12 +589,14 @@ class Store:
 
     def begin(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
               zpart: Optional[List[int]] = None,
-              unpacked: Optional[Tuple[bytes, Any]] = None) -> "_Batch":
+              unpacked: Optional[Tuple[bytes, Any]] = None, join: bool = True) -> "_Batch":
         """The first half of :meth:`apply`: run ``ops``, their content written to
         temporaries; nothing is renamed into place until :meth:`finish`.
 
         A batch begun while another awaits its ``finish`` must not touch the
-        paths that one will rename (see :meth:`_Batch.blocks`).
+        paths that one will rename (see :meth:`_Batch.blocks`). ``join=False``
+        returns while its large files may still be written by a second thread:
+        the caller calls the batch's ``join_writes`` before anything else of it.
         """
         if unpacked is not None:  # the blob's compressed part, inflated while it waited
             packed, blob = unpacked
@@ -615,8 +617,8 @@ class Store:
             batch.join_writes()
             self._close(batch)
             raise
-        batch.join_writes()
-        batch.blob = batch.zpart = b""  # written: the request's data may go
+        if join:
+            batch.join_writes()
         self.gen += 1
         batch.gen = self.gen
         self._dirty = True
@@ -655,9 +657,16 @@ class Store:
         finally:
             os.close(rootfd)
 
-    def sync_in_background(self) -> "_BackgroundSync":
-        """:meth:`sync` in a thread, so the next batch's files are written meanwhile."""
-        return _BackgroundSync(self.sync)
+    def sync_in_background(self, batch: "Optional[_Batch]" = None) -> "_BackgroundSync":
+        """:meth:`sync` in a thread, so the next batch's files are written meanwhile;
+        after ``batch``'s large files are written, when it was begun without joining them."""
+        if batch is None:
+            return _BackgroundSync(self.sync)
+
+        def run() -> None:
+            batch.join_writes()
+            self.sync()
+        return _BackgroundSync(run)
 
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
@@ -950,6 +959,7 @@ class _Batch:
     def join_writes(self) -> None:
         """Wait for the large files' content; a write that failed fails its operation."""
         writes, self.writes = self.writes, None
+        self.blob = self.zpart = b""  # written: the request's data may go
         if writes is None:
             return
         failed = writes.join()
