@@ -74,6 +74,16 @@ SCENARIOS = (
     ("insert", "insert a line at the top of a 2 MiB file"),
     ("rename", "rename the 2 MiB file"),
 )
+# Creating a file costs ext4 without a journal (as on the machine these numbers are from)
+# a scan past every inode of its block group freed in the last minute, or the last
+# six while that inode table is dirty (ialloc.c, recently_deleted): after a run's
+# trees are deleted, creating files near them measured 10-25x slower for minutes,
+# for both tools alike, and rounds then swung between 1.2 s and 3.5 s a push.
+CREATE_PROBE_FILES = 1000
+CREATE_SLOW = 8.0  # times tmpfs's time a file: too slow to measure in
+CREATE_WAIT = 420.0  # seconds at most to wait for it to pass
+CREATE_POLL = 30.0
+
 # Time targets: fetchsync/rsync wall-time ratio at most this.
 TIME_TARGETS = {"initial": 1.0, "noop": 0.5, "edit": 0.5}
 # Byte targets: fetchsync's bytes on the wire beyond a no-op push, at most this.
@@ -343,6 +353,8 @@ class Params:
     seed: int
     cold: bool
     """Also run fetchsync without its connection master (FETCHSYNC_PERSIST=0)."""
+    settle: float = CREATE_WAIT
+    """Seconds at most to wait for file creation to run at its usual speed (see settle_allocator)."""
 
 
 class Bench:
@@ -393,6 +405,7 @@ class Bench:
             )
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
         self.samples: list[Sample] = []
+        self.allocator: dict[str, float] | None = None  # see settle_allocator
         self.verified: dict[str, dict[str, list[str]]] = {}
         self.repairs: dict[str, dict[str, dict[str, Any]]] = {}
         self.edits = Edits(ws)
@@ -519,6 +532,8 @@ class Bench:
 
     def run(self) -> None:
         p = self.params
+        self.allocator = settle_allocator(self.workdir / "robot", self.graveyard, self.log,
+                                          wait=p.settle)
         for tool in self.tools:
             tool.reset()
 
@@ -607,6 +622,45 @@ def _ratio(x: float | None) -> str:
 
 def _verdict(ok: bool) -> str:
     return "**PASS**" if ok else "**MISS**"
+
+
+def _create_time(where: Path, n: int = CREATE_PROBE_FILES) -> tuple[float, Path]:
+    """Seconds a file to create ``n`` empty files in a new directory under ``where``; the directory."""
+    where.mkdir(parents=True, exist_ok=True)
+    d = Path(tempfile.mkdtemp(prefix="create-probe-", dir=where))
+    start = time.perf_counter()
+    for i in range(n):
+        os.close(os.open(d / f"f{i}", os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o644))
+    return (time.perf_counter() - start) / n, d
+
+
+def settle_allocator(where: Path, graveyard: Path, log: Callable[[str], None], *,
+                     wait: float = CREATE_WAIT) -> dict[str, float]:
+    """Wait (at most ``wait`` seconds) until files are created in ``where`` at a usual speed,
+    against tmpfs's on this machine. The probes' files go to ``graveyard``: deleting
+    them would slow the next creates down again. Returns what was measured."""
+    base = None
+    shm = Path("/dev/shm")
+    if shm.is_dir() and os.access(shm, os.W_OK):
+        base, d = _create_time(shm)
+        shutil.rmtree(d, ignore_errors=True)
+    graveyard.mkdir(parents=True, exist_ok=True)
+    waited = 0.0
+    while True:
+        took, d = _create_time(where)
+        d.rename(graveyard / d.name)
+        ratio = took / base if base else 0.0
+        if base is None or ratio <= CREATE_SLOW or waited >= wait:
+            break
+        log(f"creating a file in {where} takes {took * 1e6:.0f} us, {ratio:.0f}x tmpfs's: files were "
+            f"deleted near it lately (ext4 skips inodes freed in the last minutes); waiting")
+        time.sleep(CREATE_POLL)
+        waited += CREATE_POLL
+    log(f"file creation where the robot's trees go: {took * 1e6:.0f} us a file"
+        + (f", {ratio:.1f}x tmpfs's" if base else ""))
+    if base is not None and ratio > CREATE_SLOW:
+        log(f"warning: file creation is still {ratio:.0f}x slower than on tmpfs: this run's times are noisy")
+    return {"create_us": round(took * 1e6, 1), "create_vs_tmpfs": round(ratio, 1), "waited_s": waited}
 
 
 def machine_info() -> dict[str, str]:
@@ -702,6 +756,14 @@ def _tables(
     return out
 
 
+def _allocator_line(probe: dict[str, float] | None) -> str:
+    if not probe:
+        return "File creation on the robot's disk was not probed."
+    vs = f", {probe['create_vs_tmpfs']:.1f}x tmpfs's" if probe["create_vs_tmpfs"] else ""
+    waited = f", after waiting {probe['waited_s']:.0f} s for it to settle" if probe["waited_s"] else ""
+    return f"File creation on the robot's disk at the start: {probe['create_us']:.0f} us a file{vs}{waited}."
+
+
 def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> str:
     p = bench.params
     out = [
@@ -716,6 +778,8 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
             f"(seed {p.seed}); medians of {p.reps_small} runs ({p.reps_initial} for the initial push), "
             f"each push a new process, tools interleaved; rsync {RSYNC_FLAGS} --delete."
         ),
+        "",
+        _allocator_line(bench.allocator),
         "",
         (
             "Wall time of `fetchsync push` (as installed: its connection master persists "
@@ -912,6 +976,7 @@ def main(argv: list[str] | None = None) -> int:
         reps_initial=a.reps_initial or (1 if a.quick else 2),
         seed=a.seed,
         cold=(not a.quick) if a.cold is None else a.cold,
+        settle=0.0 if a.quick else CREATE_WAIT,  # a smoke run measures nothing
     )
 
     def log(msg: str) -> None:
@@ -958,6 +1023,7 @@ def main(argv: list[str] | None = None) -> int:
                         },
                         "verification": bench.verified,
                         "repairs": bench.repairs,
+                        "allocator": bench.allocator,
                         "verified": bench.verified_ok(),
                     },
                     indent=1,
