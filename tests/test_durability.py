@@ -60,8 +60,28 @@ TRACED = ("write,pwrite64,writev,openat,fchmod,ftruncate,rename,renameat,renamea
           "rmdir,mkdir,mkdirat,symlink,symlinkat,link,linkat,chmod,fchmodat,syncfs,sync,fsync,fdatasync")
 
 SHIM_C = """\
-/* syncfs that does nothing: the endpoint without its durability */
+/* the endpoint without its durability: syncfs does nothing, and O_DIRECT is
+   refused (as tmpfs refuses it), so what it writes reaches the disk only when
+   someone else syncs */
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <stdarg.h>
 int syncfs(int fd) { (void)fd; return 0; }
+static int forward(const char *name, int fd, int cmd, long arg) {
+    int (*real)(int, int, ...) = (int (*)(int, int, ...))dlsym(RTLD_NEXT, name);
+    if (cmd == F_SETFL && (arg & O_DIRECT)) { errno = EINVAL; return -1; }
+    return real(fd, cmd, arg);
+}
+int fcntl(int fd, int cmd, ...) {
+    va_list ap; va_start(ap, cmd); long arg = va_arg(ap, long); va_end(ap);
+    return forward("fcntl", fd, cmd, arg);
+}
+int fcntl64(int fd, int cmd, ...) {
+    va_list ap; va_start(ap, cmd); long arg = va_arg(ap, long); va_end(ap);
+    return forward("fcntl64", fd, cmd, arg);
+}
 """
 
 

@@ -197,15 +197,18 @@ def test_the_next_request_is_served_while_the_large_files_before_are_written(tmp
     requests = [files(3, "p0"), first, files(3, "p1"), files(3, "p2")]
     next_one = threading.Event()
     order: list[str] = []
-    real_write_all = store_mod._write_all
+    real_write_all, real_write_large = store_mod._write_all, store_mod._write_large
+
+    def write_large(fd: int, data: Any) -> None:
+        # held until the serving thread writes a file of the request after
+        # (at most 5 s: the serving thread may instead wait for this one)
+        next_one.wait(5)
+        order.append("large written")
+        real_write_large(fd, data)
 
     def write_all(fd: int, data: Any) -> None:
-        if len(data) >= store_mod.WRITE_APART:
-            # held until the serving thread writes a file of the request after
-            # (at most 5 s: the serving thread may instead wait for this one)
-            next_one.wait(5)
-            order.append("large written")
-        elif not next_one.is_set() and "large begun" in order:
+        serving = threading.current_thread() is threading.main_thread()
+        if serving and not next_one.is_set() and "large begun" in order:
             order.append("next request")
             next_one.set()
         real_write_all(fd, data)
@@ -218,6 +221,7 @@ def test_the_next_request_is_served_while_the_large_files_before_are_written(tmp
         real_put(self, fd, *args)
 
     monkeypatch.setattr(store_mod, "_write_all", write_all)
+    monkeypatch.setattr(store_mod, "_write_large", write_large)
     monkeypatch.setattr(store_mod._Writes, "put", put)
     run = Run(tmp_path / "ws", requests, monkeypatch)
     assert order == ["large begun", "next request", "large written"]

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import zlib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from fetchsync.protocol import hashing, wire
+from fetchsync.protocol import store as store_mod
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import TRASH_KEEP_BATCHES, WRITE_APART, Store
@@ -508,3 +511,100 @@ def test_a_large_write_apart_that_fails_fails_its_operation_only(tiny_store):
     assert (root / "big1.bin").read_bytes() == big1 and (root / "small.txt").read_bytes() == small
     assert not (root / "big2.bin").exists()
     assert not [p for p in root.rglob("*") if "fetchsync-tmp" in p.name]
+
+
+
+def _resident_pages(path: Path) -> int:
+    """How many of the file's pages are in the page cache (mincore(2) on a mapping of it)."""
+    import ctypes
+    import mmap
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.mmap.restype = ctypes.c_void_p
+    libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+                          ctypes.c_long]
+    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
+    size = path.stat().st_size
+    vec = ctypes.create_string_buffer((size + mmap.PAGESIZE - 1) // mmap.PAGESIZE)
+    with open(path, "rb") as fh:
+        addr = libc.mmap(None, size, mmap.PROT_READ, mmap.MAP_SHARED, fh.fileno(), 0)
+        assert addr is not None and addr != ctypes.c_void_p(-1).value, os.strerror(ctypes.get_errno())
+        try:
+            assert libc.mincore(addr, size, vec) == 0, os.strerror(ctypes.get_errno())
+        finally:
+            libc.munmap(addr, size)
+    return sum(b & 1 for b in vec.raw)
+
+
+def _takes_direct_io(where: Path) -> bool:
+    try:
+        fd = os.open(where / "probe", os.O_WRONLY | os.O_CREAT | getattr(os, "O_DIRECT", 0), 0o644)
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(where / "probe")
+    return hasattr(os, "O_DIRECT")
+
+
+@pytest.mark.parametrize("size", [store_mod.DIRECT_ALIGN * 200, store_mod.DIRECT_ALIGN * 200 + 123,
+                                  3 * store_mod.DIRECT_PIECE + 5, 100])
+def test_large_files_are_written_around_the_page_cache(tmp_path, size):
+    """A large file's whole blocks go with O_DIRECT, its tail through the page cache: the
+    content is exact, and (where the file system takes O_DIRECT) the page cache holds at
+    most the tail's page of it."""
+    data = os.urandom(size)
+    target = tmp_path / "big.bin"
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        store_mod._write_large(fd, memoryview(b"xx" + data)[2:])  # as it lies in a request: unaligned
+    finally:
+        os.close(fd)
+    resident = _resident_pages(target) if size >= store_mod.DIRECT_ALIGN else None
+    assert target.read_bytes() == data
+    if resident is not None and _takes_direct_io(tmp_path):
+        assert resident <= 1, f"{resident} pages of the file went through the page cache"
+
+
+def test_a_file_system_that_refuses_direct_io_gets_the_page_cache(tmp_path, monkeypatch):
+    data = os.urandom(store_mod.DIRECT_PIECE + 4096 * 3 + 7)
+    real_fcntl = store_mod.fcntl.fcntl
+    refused = []
+
+    def fcntl(fd: int, cmd: int, arg: int = 0) -> int:
+        if cmd == store_mod.fcntl.F_SETFL and arg & store_mod._O_DIRECT:
+            refused.append(fd)
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_fcntl(fd, cmd, arg)
+
+    monkeypatch.setattr(store_mod.fcntl, "fcntl", fcntl)
+    target = tmp_path / "big.bin"
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        store_mod._write_large(fd, data)
+    finally:
+        os.close(fd)
+    assert refused and target.read_bytes() == data
+
+
+def test_a_direct_write_refused_midway_goes_on_through_the_page_cache(tmp_path, monkeypatch):
+    """A file system may take the flag and refuse the write (EINVAL): the rest of the
+    file is written as usual, from where the direct writes stopped."""
+    data = os.urandom(3 * store_mod.DIRECT_PIECE + 99)
+    real_write = store_mod.os.write
+    calls = []
+
+    def write(fd: int, buf: Any) -> int:
+        calls.append(len(buf))
+        if len(calls) == 2:
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_write(fd, buf)
+
+    monkeypatch.setattr(store_mod.os, "write", write)
+    target = tmp_path / "big.bin"
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        store_mod._write_large(fd, data)
+    finally:
+        os.close(fd)
+    assert len(calls) >= 3 and target.read_bytes() == data

@@ -29,6 +29,7 @@ import errno
 import fcntl
 import itertools
 import marshal
+import mmap
 import os
 import stat as stat_mod
 import struct
@@ -55,6 +56,10 @@ _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict),
                 ("serial", str))
 READ_BLOCK = 1 << 20
 WRITE_APART = 512 * 1024  # files this large are written by a second thread (_Writes)
+# ... around the page cache (O_DIRECT), in pieces of this size copied to an aligned buffer
+DIRECT_PIECE = 2 * 1024 * 1024
+DIRECT_ALIGN = 4096  # a multiple of any disk's logical block; the buffer is page-aligned
+_O_DIRECT = getattr(os, "O_DIRECT", 0)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
 # how long a directory this endpoint made counts as holding only what it wrote there
 # since (see _Batch._check): the next batches of one push, not the next push
@@ -842,7 +847,7 @@ class _Batch:
             fd = os.open(part, os.O_WRONLY | os.O_CREAT, 0o600)
             try:
                 os.lseek(fd, op.size, os.SEEK_SET)
-                _write_all(fd, self._view(op))
+                _write_large(fd, self._view(op))
             finally:
                 os.close(fd)
             return M.Result()
@@ -1095,7 +1100,7 @@ class _Writes:
             if fd < 0:
                 return
             try:
-                _write_all(fd, data)
+                _write_large(fd, data)
                 if fix is not None:
                     os.fchmod(fd, fix)
             except OSError as exc:
@@ -1109,6 +1114,57 @@ class _Writes:
                     os.unlink(tmp)
                 except OSError:
                     pass
+
+
+_direct_buffers = []  # type: List[Any]  # aligned buffers not in use (see _write_large)
+_direct_lock = threading.Lock()
+
+
+def _write_large(fd: int, data: Any) -> None:
+    """Write a large file's content (or a piece of it) to ``fd``, at its offset, around the
+    page cache.
+
+    Copying a file's content into the page cache and writing it back costs the
+    robot's CPUs about as much as everything else a push of large files does
+    (100 MB here: 0.25 CPU-s buffered and flushed, 0.02 CPU-s direct; the disk's
+    own DMA does the rest). Its content must reach the disk before the rename
+    anyway (the batch's syncfs, which then only flushes the metadata and the
+    disk's cache). The part of whole blocks goes with O_DIRECT from an aligned
+    buffer; the tail, and everything on a file system that refuses O_DIRECT
+    (tmpfs, ...) or at an unaligned offset, through the page cache."""
+    view = memoryview(data)
+    whole = len(view) - len(view) % DIRECT_ALIGN
+    done = 0
+    if _O_DIRECT and whole:
+        flags = fcntl.fcntl(fd, fcntl.F_GETFL)
+        try:
+            fcntl.fcntl(fd, fcntl.F_SETFL, flags | _O_DIRECT)
+        except OSError:
+            whole = 0  # not on this file system
+        if whole:
+            with _direct_lock:
+                buf = _direct_buffers.pop() if _direct_buffers else None
+            try:
+                if buf is None:
+                    buf = mmap.mmap(-1, DIRECT_PIECE)
+                while done < whole:
+                    n = min(DIRECT_PIECE, whole - done)
+                    buf[:n] = view[done:done + n]
+                    try:
+                        wrote = os.write(fd, memoryview(buf)[:n])
+                    except OSError as exc:
+                        if exc.errno != errno.EINVAL:
+                            raise
+                        break  # the file system took the flag but not the write: the page cache
+                    done += wrote
+                    if wrote != n:
+                        break  # a short write (a full disk): the rest says why, through the page cache
+            finally:
+                fcntl.fcntl(fd, fcntl.F_SETFL, flags)
+                if buf is not None:
+                    with _direct_lock:
+                        _direct_buffers.append(buf)
+    _write_all(fd, view[done:])
 
 
 def _write_all(fd: int, data: Any) -> None:
