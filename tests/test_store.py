@@ -11,8 +11,8 @@ from typing import Any
 import pytest
 
 from fetchsync.protocol import hashing, wire
-from fetchsync.protocol import store as store_mod
 from fetchsync.protocol import messages as M
+from fetchsync.protocol import store as store_mod
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import TRASH_KEEP_BATCHES, WRITE_APART, Store
 
