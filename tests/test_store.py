@@ -537,6 +537,16 @@ def _resident_pages(path: Path) -> int:
     return sum(b & 1 for b in vec.raw)
 
 
+def _write_large(target: Path, data: Any) -> Path:
+    """``data`` written to a new file ``target`` by the endpoint's large-file writer."""
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        store_mod._write_large(fd, data)
+    finally:
+        os.close(fd)
+    return target
+
+
 def _takes_direct_io(where: Path) -> bool:
     try:
         fd = os.open(where / "probe", os.O_WRONLY | os.O_CREAT | getattr(os, "O_DIRECT", 0), 0o644)
@@ -554,12 +564,7 @@ def test_large_files_are_written_around_the_page_cache(tmp_path, size):
     content is exact, and (where the file system takes O_DIRECT) the page cache holds at
     most the tail's page of it."""
     data = os.urandom(size)
-    target = tmp_path / "big.bin"
-    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        store_mod._write_large(fd, memoryview(b"xx" + data)[2:])  # as it lies in a request: unaligned
-    finally:
-        os.close(fd)
+    target = _write_large(tmp_path / "big.bin", memoryview(b"xx" + data)[2:])  # unaligned, as in a request
     resident = _resident_pages(target) if size >= store_mod.DIRECT_ALIGN else None
     assert target.read_bytes() == data
     if resident is not None and _takes_direct_io(tmp_path):
@@ -578,12 +583,7 @@ def test_a_file_system_that_refuses_direct_io_gets_the_page_cache(tmp_path, monk
         return real_fcntl(fd, cmd, arg)
 
     monkeypatch.setattr(store_mod.fcntl, "fcntl", fcntl)
-    target = tmp_path / "big.bin"
-    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        store_mod._write_large(fd, data)
-    finally:
-        os.close(fd)
+    target = _write_large(tmp_path / "big.bin", data)
     assert refused and target.read_bytes() == data
 
 
@@ -601,10 +601,5 @@ def test_a_direct_write_refused_midway_goes_on_through_the_page_cache(tmp_path, 
         return real_write(fd, buf)
 
     monkeypatch.setattr(store_mod.os, "write", write)
-    target = tmp_path / "big.bin"
-    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        store_mod._write_large(fd, data)
-    finally:
-        os.close(fd)
+    target = _write_large(tmp_path / "big.bin", data)
     assert len(calls) >= 3 and target.read_bytes() == data
