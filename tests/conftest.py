@@ -73,12 +73,21 @@ def proxied_home(
     return _use_home(home, monkeypatch)
 
 
+@pytest.fixture(scope="session")
+def _laptop_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("laptop-cache")
+
+
 @pytest.fixture(autouse=True)
-def _no_lingering_masters(tmp_path_factory: pytest.TempPathFactory,
+def _no_lingering_masters(tmp_path_factory: pytest.TempPathFactory, _laptop_cache: Path,
                           monkeypatch: pytest.MonkeyPatch) -> None:
-    """Tests open fresh SSH connections unless they ask for a connection master."""
+    """Tests open fresh SSH connections unless they ask for a connection master, and keep
+    the laptop's cache (the robots' interpreters, the connections noted) in one directory
+    of the session: not in the user's ~/.cache, where each test's own local robot left a
+    note that stayed (1,300 of them after a few runs)."""
     monkeypatch.setenv("FETCHSYNC_PERSIST", "0")
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(_laptop_cache))
 
 
 @pytest.fixture
