@@ -79,8 +79,8 @@ SCENARIOS = (
 # six while that inode table is dirty (ialloc.c, recently_deleted): after a run's
 # trees are deleted, creating files near them measured 10-25x slower for minutes,
 # for both tools alike, and rounds then swung between 1.2 s and 3.5 s a push.
-CREATE_PROBE_FILES = 1000
-CREATE_SLOW = 8.0  # times tmpfs's time a file: too slow to measure in
+CREATE_PROBE = (300, 30)  # directories, files in each: spread over block groups as a push's tree is
+CREATE_SLOW = 4.0  # times tmpfs's time an inode: too slow to measure in (healthy: 1.8-2.5x)
 CREATE_WAIT = 420.0  # seconds at most to wait for it to pass
 CREATE_POLL = 30.0
 
@@ -624,14 +624,21 @@ def _verdict(ok: bool) -> str:
     return "**PASS**" if ok else "**MISS**"
 
 
-def _create_time(where: Path, n: int = CREATE_PROBE_FILES) -> tuple[float, Path]:
-    """Seconds a file to create ``n`` empty files in a new directory under ``where``; the directory."""
+def _create_time(where: Path, shape: tuple[int, int] = CREATE_PROBE) -> tuple[float, Path]:
+    """Seconds an inode to create a tree of ``shape`` (directories, empty files in each)
+    in a new directory under ``where``; that directory. Directories, as a push makes
+    them, land in block groups of their own: a probe of files in one directory met a
+    settled group while the push after it met unsettled ones."""
     where.mkdir(parents=True, exist_ok=True)
-    d = Path(tempfile.mkdtemp(prefix="create-probe-", dir=where))
+    top = Path(tempfile.mkdtemp(prefix="create-probe-", dir=where))
+    dirs, files = shape
     start = time.perf_counter()
-    for i in range(n):
-        os.close(os.open(d / f"f{i}", os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o644))
-    return (time.perf_counter() - start) / n, d
+    for i in range(dirs):
+        d = top / f"d{i}"
+        d.mkdir()
+        for j in range(files):
+            os.close(os.open(d / f"f{j}", os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o644))
+    return (time.perf_counter() - start) / (dirs * (files + 1)), top
 
 
 def settle_allocator(where: Path, graveyard: Path, log: Callable[[str], None], *,
