@@ -659,11 +659,11 @@ def settle_allocator(where: Path, graveyard: Path, log: Callable[[str], None], *
         ratio = took / base if base else 0.0
         if base is None or ratio <= CREATE_SLOW or waited >= wait:
             break
-        log(f"creating a file in {where} takes {took * 1e6:.0f} us, {ratio:.0f}x tmpfs's: files were "
+        log(f"creating files in {where} takes {took * 1e6:.0f} us an inode, {ratio:.0f}x tmpfs's: files were "
             f"deleted near it lately (ext4 skips inodes freed in the last minutes); waiting")
         time.sleep(CREATE_POLL)
         waited += CREATE_POLL
-    log(f"file creation where the robot's trees go: {took * 1e6:.0f} us a file"
+    log(f"file creation where the robot's trees go: {took * 1e6:.0f} us an inode"
         + (f", {ratio:.1f}x tmpfs's" if base else ""))
     if base is not None and ratio > CREATE_SLOW:
         log(f"warning: file creation is still {ratio:.0f}x slower than on tmpfs: this run's times are noisy")
@@ -768,7 +768,7 @@ def _allocator_line(probe: dict[str, float] | None) -> str:
         return "File creation on the robot's disk was not probed."
     vs = f", {probe['create_vs_tmpfs']:.1f}x tmpfs's" if probe["create_vs_tmpfs"] else ""
     waited = f", after waiting {probe['waited_s']:.0f} s for it to settle" if probe["waited_s"] else ""
-    return f"File creation on the robot's disk at the start: {probe['create_us']:.0f} us a file{vs}{waited}."
+    return f"File creation on the robot's disk at the start: {probe['create_us']:.0f} us an inode{vs}{waited}."
 
 
 def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> str:
