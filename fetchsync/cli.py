@@ -236,11 +236,10 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                 from fetchsync.sync import Syncer
 
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
-                                rules=rules, policy="refuse" if strict else "preserve", sign_apart=True)
+                                rules=rules, policy="refuse" if strict else "preserve")
                 syncer.on_sent = _release_heap
                 report = syncer.push(dry_run=dry_run, progress=progress,
                                      ahead=ahead[0] if ahead else None)
-                syncer.sign_apart_now()
                 report.connection = _connection_kind(conn)
         finally:
             for a in ahead:

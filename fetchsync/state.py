@@ -143,13 +143,6 @@ class State:
             for name, value in (meta or {}).items():
                 cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
 
-    def add_signatures(self, rows: Iterable[tuple[str, str, bytes]]) -> None:
-        """Store ``(path, hash, signature)`` where the entry at ``path`` still holds that
-        content and no signature (see :mod:`fetchsync.signer`)."""
-        with self._transaction() as cur:
-            cur.executemany("UPDATE entries SET sig=? WHERE path=? AND hash=? AND kind='f' AND sig IS NULL",
-                            [(sig, _encode(path), digest) for path, digest, sig in rows])
-
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[sqlite3.Cursor]:
         """One write transaction: committed at the end, rolled back on any exception."""

@@ -22,7 +22,6 @@ import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable
 
-from fetchsync import signer
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
@@ -60,9 +59,6 @@ EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 # before, took fresh memory (~4 us a page here), and where laptop and robot share
 # CPUs it slowed the robot's start: 4% more CPU and ~1.6% more time in the benchmark.
 READ_AHEAD_BYTES = 1024 * 1024
-# Of a round sending more than a batch, the text files' delta signatures are made once
-# the last batch is out, while the robot applies it, up to this many bytes of them
-SIGN_LATE_MAX = 64 * 1024 * 1024
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
@@ -643,10 +639,7 @@ class Syncer:
     """Pushes a local tree to one remote workspace over a connection, keeping state."""
 
     def __init__(self, conn: Connection, state: State, *, local_root: str, remote_workspace: str,
-                 rules: IgnoreRules, policy: str = "preserve", sign_apart: bool = False) -> None:
-        """``sign_apart``: the text files a large round sends unsigned are signed by a
-        process of its own once :meth:`sign_apart_now` is called (a one-shot push: see
-        :mod:`fetchsync.signer`), not by this one at the end of the round."""
+                 rules: IgnoreRules, policy: str = "preserve") -> None:
         self.conn = conn
         self.state = state
         self.local_root = local_root
@@ -665,11 +658,6 @@ class Syncer:
         self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
         self._prefetch: Prefetch | None = None  # the files this round reads, asked of the disk ahead
         self._rows_written: set[str] = set()  # see _write_rows
-        self._sign_late: list[tuple[str, str, int]] | None = None  # see _sign_deferred
-        self._late_bytes = 0
-        self._late_sigs: dict[str, tuple[str, bytes]] = {}
-        self.sign_apart = sign_apart
-        self._handed: list[signer.Item] = []  # see sign_apart_now
         # called once a round's last batch is out, while the robot applies the last ones
         # (the CLI gives the heap's free pages back then, not at its exit)
         self.on_sent: Callable[[], None] | None = None
@@ -836,7 +824,6 @@ class Syncer:
         robot_listed = set(listed or ())
         adopt_all = False
         if self._signed is None:
-            signer.wait(self.state.path)  # the signatures the push before left to sign
             self._signed = self.state.signed_paths()
         signed = self._signed
         robot_sigs: dict[str, bytes] = {}
@@ -880,9 +867,6 @@ class Syncer:
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
-            # a round of more than one batch signs its text files once they are all sent
-            self._sign_late = [] if batcher.total > BATCH_BYTES and not dry_run else None
-            self._late_bytes, self._late_sigs = 0, {}
             vanished = mismatch = False
 
             def settle(answered: list[tuple[Any, M.Result]]) -> None:
@@ -910,11 +894,6 @@ class Syncer:
                 # while the robot applies the last batches, the rows of what it has
                 # confirmed so far go to the state; the final commit adds the rest
                 batcher.wait_sent()
-                if self.sign_apart:
-                    self._handed += self._sign_late or []
-                    self._sign_late = None
-                else:
-                    self._sign_deferred(upserts)
                 if self.on_sent is not None:
                     self.on_sent()
                 settle(batcher.answered())
@@ -993,35 +972,6 @@ class Syncer:
                                                  "algorithm": self.algorithm})
         self._synced = new_synced
         self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
-
-    def _sign_deferred(self, upserts: dict[str, tuple[Synced, bytes | None]]) -> None:
-        """Sign the text files this round sent unsigned (see ``SIGN_LATE_MAX``).
-
-        Signing is a fifth of the laptop's CPU in a first push, and while batches
-        stream it competes with reading, compressing and the robot's endpoint for the
-        cores; once the last batch is out, the laptop mostly waits for the robot. The
-        files are read again (from the page cache, as a rule); one that changed since it
-        was sent gets no signature, and its next edit asks the robot to sign its copy.
-        A one-shot push (``sign_apart``) leaves this to :mod:`fetchsync.signer`.
-        """
-        late, self._sign_late = self._sign_late, None
-        if not late:
-            return
-        for path, digest, sig in signer.sign_files(self.local_root, self.algorithm, late):
-            row = upserts.get(path)
-            if row is None:  # not answered yet: _settle takes it
-                self._late_sigs[path] = (digest, sig)
-            elif row[1] is None and row[0].hash == digest:
-                upserts[path] = (row[0], sig)  # before _write_rows: written with it
-
-    def sign_apart_now(self) -> None:
-        """Start signing what the pushes so far left unsigned (``sign_apart``), in a
-        process of its own; here and now if that cannot start. Call it once the state
-        is committed: the signatures are stored only where the state holds the content
-        they were made of."""
-        items, self._handed = self._handed, []
-        if items and not signer.start(self.state.path, self.local_root, self.algorithm, items):
-            self.state.add_signatures(signer.sign_files(self.local_root, self.algorithm, items))
 
     def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]], *,
                     checkpoint: bool = True) -> None:
@@ -1117,15 +1067,7 @@ class Syncer:
             digest = ready.digest
         else:
             digest = hashing.digest(self.algorithm, data).hex()
-        sig = None
-        late = self._sign_late
-        if not worth_signing(data):
-            pass
-        elif late is not None and self._late_bytes + len(data) <= SIGN_LATE_MAX:
-            late.append((op.path, digest, len(data)))
-            self._late_bytes += len(data)
-        else:
-            sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes()
+        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
             op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
@@ -1266,10 +1208,6 @@ class Syncer:
         item = local.items.get(path)
         s = _synced_from(written, local.stats.get(path) if item is not None and item.hash == written.hash
                          else None, now_ns)
-        if sig is None and path in self._late_sigs:
-            digest, late_sig = self._late_sigs.pop(path)
-            if digest == s.hash:
-                sig = late_sig
         new_synced[path] = s
         upserts[path] = (s, sig)
         deletes.discard(path)
