@@ -225,8 +225,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
         def prepare(answered: Callable[[], bool]) -> None:
             from fetchsync.sync import Syncer  # imported once the robot's command is sent
 
-            ahead.append(Syncer.prepare(str(src), rules, state, stop=answered,
-                                        scanned_hook=_buffers_for_tree))
+            ahead.append(Syncer.prepare(str(src), rules, state, stop=answered))
 
         try:
             # a connection master left behind watches this tree from the start:
@@ -237,7 +236,6 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
 
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
-                syncer.on_sent = _release_heap
                 report = syncer.push(dry_run=dry_run, progress=progress,
                                      ahead=ahead[0] if ahead else None)
                 report.connection = _connection_kind(conn)
@@ -317,66 +315,6 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
         build_locally(target.workspace, request, quiet_stdout=as_json)
 
 
-def _return_big_buffers() -> None:
-    """Have glibc serve large allocations (file contents, 8 MiB batches) from mmap always.
-
-    By default its threshold rises to the largest block freed, so later batches come
-    from the heap, which fragments and keeps the high-water mark: a first sync of
-    100,000 files ended 15-30 MB higher, in a watch agent that then lives on.
-    """
-    _mallopt((M_MMAP_THRESHOLD, 256 * 1024))
-
-
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt() parameters
-
-
-def _release_heap() -> None:
-    """Give the heap's free pages back to the kernel (glibc's ``malloc_trim``).
-
-    Called while the robot applies a push's last batches: the buffers of the batches
-    are free by then, and a process exits the slower the more memory it holds (~8 ms
-    of a first push's end here for ~60 MB of them, which this does while it waits).
-    """
-    import ctypes
-
-    try:
-        ctypes.CDLL(None).malloc_trim(0)
-    except (OSError, AttributeError):
-        pass  # not glibc
-
-
-def _mallopt(*settings: tuple[int, int]) -> None:
-    """glibc's ``mallopt(param, value)`` for each pair; nothing elsewhere."""
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None)
-        for param, value in settings:
-            libc.mallopt(param, value)
-    except (OSError, AttributeError):
-        pass  # not glibc: its own allocator's defaults
-
-
-# a one-shot push of a tree of at most this many paths reuses its large buffers
-HEAP_BUFFERS_MAX_PATHS = 20_000
-
-
-def _buffers_for_tree(paths: int) -> None:
-    """Let a one-shot push of a small tree serve its large buffers from the heap.
-
-    On mmap (see :func:`_return_big_buffers`) each file read, each batch and its
-    compressed form is fresh memory, page-faulted in and zeroed by the kernel:
-    ~55,000 faults on a 7,000-file, 150 MB first push, whose CPU the robot's
-    endpoint needs on a 2-core machine (bench/README.md, session 10). The
-    heap's fragmentation, which that function prevents, grows with the number
-    of files: it raised a 100,000-file push's peak by ~20 MB, and costs a tree
-    this small a few MB. Not for the watch agent, which lives on.
-    """
-    if paths <= HEAP_BUFFERS_MAX_PATHS:
-        # glibc's largest mmap threshold; a trim threshold that keeps a freed batch's pages
-        _mallopt((M_MMAP_THRESHOLD, 32 * 1024 * 1024), (M_TRIM_THRESHOLD, 64 * 1024 * 1024))
-
-
 def _collect_less() -> None:
     """Let a one-shot push or pull run (nearly) without the cyclic garbage collector.
 
@@ -391,7 +329,6 @@ def _collect_less() -> None:
 
 
 def main() -> None:
-    _return_big_buffers()
     try:
         cli(prog_name="fetchsync")
         code: Any = 0

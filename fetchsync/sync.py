@@ -658,9 +658,6 @@ class Syncer:
         self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
         self._prefetch: Prefetch | None = None  # the files this round reads, asked of the disk ahead
         self._rows_written: set[str] = set()  # see _write_rows
-        # called once a round's last batch is out, while the robot applies the last ones
-        # (the CLI gives the heap's free pages back then, not at its exit)
-        self.on_sent: Callable[[], None] | None = None
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -674,18 +671,14 @@ class Syncer:
 
     @staticmethod
     def prepare(local_root: str, rules: IgnoreRules, state: State, *,
-                stop: Callable[[], bool] | None = None,
-                scanned_hook: Callable[[int], None] | None = None) -> Ahead:
+                stop: Callable[[], bool] | None = None) -> Ahead:
         """What the next :meth:`push` can do before the robot answers, done while its
         endpoint starts (its shell and Python take a few tenths of a second): the local
         scan and, when the state knows no path (a first push), the plan against an
         empty robot, and its first files read until ``stop()`` says the robot answered
         (or READ_AHEAD_BYTES). Pass it to :meth:`push` as ``ahead``; the push checks the
-        robot's listing before it uses the plan. ``scanned_hook(n)`` is told the number
-        of paths scanned, before any file is read."""
+        robot's listing before it uses the plan."""
         scanned = scan_tree(local_root, rules)
-        if scanned_hook is not None:
-            scanned_hook(len(scanned.entries))
         if state.has_entries():
             return Ahead(scanned)
         # lazy: nothing is hashed, so the plan holds whatever algorithm is negotiated
@@ -894,8 +887,6 @@ class Syncer:
                 # while the robot applies the last batches, the rows of what it has
                 # confirmed so far go to the state; the final commit adds the rest
                 batcher.wait_sent()
-                if self.on_sent is not None:
-                    self.on_sent()
                 settle(batcher.answered())
                 self._write_rows(upserts)
                 while batcher.waiting:  # the rows of each answer as it comes
