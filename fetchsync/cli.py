@@ -220,12 +220,12 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     if report is None:
         progress = _Progress(not as_json)
         state = open_state(target)
-        ahead: list[Any] = []  # the local scan and plan, made while the robot's endpoint starts
+        scanned: list[Any] = []  # the local scan, made while the robot's endpoint starts
 
-        def prepare(answered: Callable[[], bool]) -> None:
-            from fetchsync.sync import Syncer  # imported once the robot's command is sent
+        def prepare(_answered: Callable[[], bool]) -> None:
+            from fetchsync.sync import scan_tree  # imported once the robot's command is sent
 
-            ahead.append(Syncer.prepare(str(src), rules, state, stop=answered))
+            scanned.append(scan_tree(str(src), rules))
 
         try:
             # a connection master left behind watches this tree from the start:
@@ -237,11 +237,9 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,
-                                     ahead=ahead[0] if ahead else None)
+                                     scanned=scanned[0] if scanned else None)
                 report.connection = _connection_kind(conn)
         finally:
-            for a in ahead:
-                a.close()
             progress.close()
             # this process ends soon (see _exit): the signer it started, or the next
             # call, copies the state's log into its database

@@ -25,7 +25,6 @@ from typing import Any, Callable, Iterable
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
 from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
-from fetchsync.prefetch import OPEN_FLAGS, Prefetch
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
@@ -52,13 +51,6 @@ BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
 EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
-# Of a first push's files, read (and hashed) while the endpoint starts, until it
-# answers: the first batch's worth (BATCH_BYTES >> 3), so it goes out at the hello.
-# More buys nothing: the robot's first batch (the directories, and a first push has
-# hundreds) keeps it busy while the next ones are read. Reading 32 MiB ahead, as
-# before, took fresh memory (~4 us a page here), and where laptop and robot share
-# CPUs it slowed the robot's start: 4% more CPU and ~1.6% more time in the benchmark.
-READ_AHEAD_BYTES = 1024 * 1024
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
@@ -124,62 +116,8 @@ class Report:
 
 
 # --------------------------------------------------------------------------- local side
-@dataclass
-class ReadAhead:
-    """A file read and hashed before the robot answered, with the algorithm guessed for
-    it; used if the file's stat is unchanged when it is sent."""
-    data: bytes
-    entry: Entry
-    algorithm: str
-    digest: str
-
-
-@dataclass
-class Ahead:
-    """A push's work done before the robot answered: see :meth:`Syncer.prepare`."""
-    scanned: ScanResult
-    local: LocalTree | None = None
-    planned: list[Planned] | None = None  # against an empty robot, for an empty state
-    read: dict[str, ReadAhead] = field(default_factory=dict)  # the first files sent
-    prefetch: Prefetch | None = None  # the files of ``planned`` the disk reads ahead
-
-    def close(self) -> None:
-        if self.prefetch is not None:
-            self.prefetch.close()
-
-
-def _prefetch(root: str, planned: list[Planned]) -> Prefetch:
-    """The files of ``planned`` that will be read whole (see :meth:`Syncer._send_op`)."""
-    return Prefetch(root, [(p.op.path, p.op.size) for p in planned
-                           if p.op.kind == M.WRITE and p.how in (WHOLE, DELTA) and p.op.size <= BIG])
-
-
-def _read_ahead(root: str, planned: list[Planned], budget: int, *,
-                stop: Callable[[], bool] | None = None,
-                prefetch: Prefetch | None = None) -> dict[str, ReadAhead]:
-    """The first whole files of ``planned``, up to ``budget`` bytes or until ``stop()``
-    (asked every few files), read and hashed with our first choice of algorithm, which
-    the robot shares whenever its Python has xxhash (if not, they are hashed again when
-    sent); a file that cannot be read now is read when sent, as usual. Signing waits
-    for the send, or for the end (_sign_deferred)."""
-    algorithm = hashing.available()[0]
-    out: dict[str, ReadAhead] = {}
-    for n, p in enumerate(planned):
-        if stop is not None and n % 8 == 0 and stop():
-            break
-        op = p.op
-        if op.kind != M.WRITE or p.how != WHOLE or op.size > budget:
-            continue
-        try:
-            data, entry = read_stable(os.path.join(root, op.path), tries=1,
-                                      fd=prefetch.take(op.path) if prefetch is not None else None)
-        except OSError:
-            continue
-        out[op.path] = ReadAhead(data, entry, algorithm, hashing.digest(algorithm, data).hex())
-        budget -= len(data)
-        if budget <= 0:
-            break
-    return out
+#: How a file to read is opened: never through a symlink, never waiting on a FIFO.
+OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
 
 
 @dataclass
@@ -367,54 +305,43 @@ def _not_regular(full: str) -> OSError:
                    "version", full)
 
 
-def read_stable(full: str, *, tries: int = READ_TRIES, fd: int | None = None) -> tuple[bytes, Entry]:
+def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
     """Read a whole file that did not change while read and is still the file at ``full``.
 
     A file that changed (or was replaced) meanwhile is read again, up to ``tries``
     times, then ``OSError(EBUSY)``; one that is gone raises FileNotFoundError.
     The read stops at the size the file had when opened, so a file appended to
     faster than it is read does not keep it reading.
-
-    ``fd``: ``full`` opened already (by :class:`~fetchsync.prefetch.Prefetch`), read
-    in the first attempt; it is closed here in any case.
     """
-    given = fd
-    try:
-        for attempt in range(tries):
-            _pause(attempt)
-            if read_hook is not None:
-                read_hook(full, "open")
-            if given is not None:
-                fd, given = given, None
-            else:
-                fd = os.open(full, OPEN_FLAGS)
-            try:
-                before = os.fstat(fd)
-                if not stat_mod.S_ISREG(before.st_mode):  # a FIFO or a device since the scan
-                    raise _not_regular(full)
-                chunks = []
-                left = before.st_size
-                while left > 0:
-                    chunk = os.read(fd, left)  # one call, one copy for a whole file (they are < BIG)
-                    if not chunk:
-                        break
-                    chunks.append(chunk)
-                    left -= len(chunk)
-                    if read_hook is not None:
-                        read_hook(full, "read")
-                after = os.fstat(fd)
-            finally:
-                os.close(fd)
-            data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
-            if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
-                entry = entry_from_stat(after)
-                assert entry is not None
-                return data, entry
-        raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
-                      "the robot keeps its previous version", full)
-    finally:
-        if given is not None:  # not reached: the hook or the pause raised
-            os.close(given)
+    for attempt in range(tries):
+        _pause(attempt)
+        if read_hook is not None:
+            read_hook(full, "open")
+        fd = os.open(full, OPEN_FLAGS)
+        try:
+            before = os.fstat(fd)
+            if not stat_mod.S_ISREG(before.st_mode):  # a FIFO or a device since the scan
+                raise _not_regular(full)
+            chunks = []
+            left = before.st_size
+            while left > 0:
+                chunk = os.read(fd, left)  # one call, one copy for a whole file (they are < BIG)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+                left -= len(chunk)
+                if read_hook is not None:
+                    read_hook(full, "read")
+            after = os.fstat(fd)
+        finally:
+            os.close(fd)
+        data = chunks[0] if len(chunks) == 1 else b"".join(chunks)
+        if len(data) == after.st_size and _same_file(before, after) and _still_there(full, after):
+            entry = entry_from_stat(after)
+            assert entry is not None
+            return data, entry
+    raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
+                  "the robot keeps its previous version", full)
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
@@ -655,8 +582,6 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
-        self._read_ahead: dict[str, ReadAhead] = {}  # see Ahead.read: the files of this push's first batches
-        self._prefetch: Prefetch | None = None  # the files this round reads, asked of the disk ahead
         self._rows_written: set[str] = set()  # see _write_rows
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
@@ -669,27 +594,6 @@ class Syncer:
         entries = local_scan(self.local_root, self.rules.to_wire()) if local_scan is not None else None
         return ScanResult(entries, []) if entries is not None else None
 
-    @staticmethod
-    def prepare(local_root: str, rules: IgnoreRules, state: State, *,
-                stop: Callable[[], bool] | None = None) -> Ahead:
-        """What the next :meth:`push` can do before the robot answers, done while its
-        endpoint starts (its shell and Python take a few tenths of a second): the local
-        scan and, when the state knows no path (a first push), the plan against an
-        empty robot, and its first files read until ``stop()`` says the robot answered
-        (or READ_AHEAD_BYTES). Pass it to :meth:`push` as ``ahead``; the push checks the
-        robot's listing before it uses the plan."""
-        scanned = scan_tree(local_root, rules)
-        if state.has_entries():
-            return Ahead(scanned)
-        # lazy: nothing is hashed, so the plan holds whatever algorithm is negotiated
-        local = scan_local(local_root, rules, {}, "", lazy=True, scanned=scanned)
-        guarded = local.guarded()
-        planned = [p for p in plan(local.items, {}, lambda _path: M.ABSENT) if not guarded(p.op.path)]
-        prefetch = _prefetch(local_root, planned)
-        return Ahead(scanned, local, planned,
-                     _read_ahead(local_root, planned, READ_AHEAD_BYTES, stop=stop, prefetch=prefetch),
-                     prefetch)
-
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
             synced = self.state.entries()
@@ -699,10 +603,11 @@ class Syncer:
         return self._synced
 
     def push(self, *, dry_run: bool = False, progress: Progress | None = None,
-             ahead: Ahead | None = None) -> Report:
+             scanned: ScanResult | None = None) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
-        ``ahead``: what :meth:`prepare` made since the last push.
+        ``scanned``: the local tree scanned (by :func:`scan_tree`) since the last push,
+        such as the CLI's scan made while the robot's endpoint starts.
         """
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
@@ -715,7 +620,6 @@ class Syncer:
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
-        scanned = ahead.scanned if ahead is not None else None
         if scanned is None:
             scanned = self._warm_scan()
             report.scan = "watched" if scanned is not None else "scanned"
@@ -738,30 +642,15 @@ class Syncer:
                 return done
         else:
             remote = self._apply_listing(listing, synced)
-            first: list[Planned] | None = None
-            if (ahead is not None and ahead.local is not None and ahead.planned is not None
-                    and not synced and not remote):
-                # what prepare() assumed holds: no state, and nothing on the robot
-                local, first = ahead.local, ahead.planned
-                self._read_ahead, ahead.read = ahead.read, {}
-                self._prefetch, ahead.prefetch = ahead.prefetch, None
-                ahead.planned = None  # its operations are consumed as they are sent
-            else:
-                local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
-                                   scanned=scanned)
+            local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
+                               scanned=scanned)
             epoch, gen = listing["epoch"], listing["gen"]
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
-            try:
-                self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                               progress=progress,
-                               listed=remote if listing.get("full") else
-                               [x[0] for x in listing.get("entries", [])], first=first)
-            finally:
-                self._read_ahead = {}
-                if self._prefetch is not None:
-                    self._prefetch.close()
-                    self._prefetch = None
+            self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
+                           progress=progress,
+                           listed=remote if listing.get("full") else
+                           [x[0] for x in listing.get("entries", [])])
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -806,14 +695,12 @@ class Syncer:
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
                   progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None,
-                  first: list[Planned] | None = None) -> bool:
+                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer.
 
         ``listed``: the paths the robot's listing reported (all, after a full one),
-        which its index does not vouch for; those found identical are adopted there.
-        ``first``: the first round's plan, made ahead for these very inputs."""
+        which its index does not vouch for; those found identical are adopted there."""
         robot_listed = set(listed or ())
         adopt_all = False
         if self._signed is None:
@@ -841,11 +728,8 @@ class Syncer:
         for _round in range(MAX_ROUNDS):
             self._rows_written = set()  # a round may settle a path written early again
             # what the laptop could not read is left as the robot has it
-            if first is not None:
-                planned, first = first, None
-            else:
-                planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
-                           if not guarded(p.op.path)]
+            planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
+                       if not guarded(p.op.path)]
             if dry_run:
                 for p in planned:
                     report.count(p)
@@ -855,8 +739,6 @@ class Syncer:
                 break
             report.rounds += 1
             planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
-            if self._prefetch is None:  # else made with the first plan, ahead
-                self._prefetch = _prefetch(self.local_root, planned)
             batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
                                            "require_fresh": True}, progress,
                                sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
@@ -872,14 +754,10 @@ class Syncer:
             # settled as the robot answers, so a large push never holds every
             # operation and every answer at once
             planned.reverse()
-            try:
-                while planned:
-                    vanished |= self._send_op(batcher, planned.pop(), local, report)
-                    if len(planned) % 512 == 0:
-                        settle(batcher.answered())
-            finally:
-                self._prefetch.close()
-                self._prefetch = None
+            while planned:
+                vanished |= self._send_op(batcher, planned.pop(), local, report)
+                if len(planned) % 512 == 0:
+                    settle(batcher.answered())
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
             batcher.flush()
@@ -1037,12 +915,7 @@ class Syncer:
             if op.size > BIG:
                 self._send_big(batcher, p, full, report, local)
                 return False
-            ready = self._read_ahead.pop(op.path, None) if self._read_ahead else None
-            if ready is not None and stat_path(full) == ready.entry:
-                data, entry = ready.data, ready.entry
-            else:
-                ready = None
-                data, entry = read_stable(full, fd=self._prefetch.take(op.path) if self._prefetch else None)
+            data, entry = read_stable(full)
         except OSError as exc:
             if _gone(exc):
                 # a mirror of the laptop as it is now: the robot loses it too (into
@@ -1054,10 +927,7 @@ class Syncer:
             what = "" if exc.errno == errno.EBUSY else "cannot read: "
             report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
             return False
-        if ready is not None and ready.algorithm == self.algorithm:
-            digest = ready.digest
-        else:
-            digest = hashing.digest(self.algorithm, data).hex()
+        digest = hashing.digest(self.algorithm, data).hex()
         sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole

@@ -341,40 +341,6 @@ def test_a_file_replaced_while_read_sends_the_new_one(robot, monkeypatch, name):
     assert leftovers(ws) == []
 
 
-class _Recorded(sync.Prefetch):
-    taken: list[str] = []
-
-    def take(self, path: str) -> int | None:
-        fd = super().take(path)
-        if fd is not None:
-            self.taken.append(path)
-        return fd
-
-
-@pytest.mark.skipif(not hasattr(os, "posix_fadvise"), reason="no prefetching here")
-def test_a_file_replaced_after_it_was_opened_ahead_sends_the_new_one(robot, monkeypatch):
-    """The push opens its next files ahead of reading them (fetchsync.prefetch): one saved
-    over in between is read again at its path."""
-    s, src, ws = robot
-    monkeypatch.setattr(sync, "Prefetch", _Recorded)
-    _Recorded.taken = []
-    f = src / "my_pkg/data.txt"
-    f.write_bytes(os.urandom(size("data.txt")))
-    new = os.urandom(size("data.txt") - 1000)
-
-    def replace(p: Path) -> None:
-        (p.parent / "tmp-save").write_bytes(new)
-        os.rename(p.parent / "tmp-save", p)
-
-    calls = hook_on(monkeypatch, "data.txt", "open", replace, skip=1)  # the scan's hash, then the send
-    r = s.push()
-    assert calls[0] == 1 and _Recorded.taken == ["my_pkg/data.txt"]
-    assert r.errors == []
-    assert (ws / "src/my_pkg/data.txt").read_bytes() == new
-    monkeypatch.setattr(sync, "read_hook", None)
-    assert s.push().changed == 0
-
-
 @pytest.mark.parametrize("name", ["data.txt", "big.bin"])
 def test_a_file_that_becomes_a_fifo_is_reported_not_waited_on(robot, monkeypatch, name):
     s, src, ws = robot

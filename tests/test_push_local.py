@@ -236,8 +236,7 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
 
 def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch):
     """Connection.open runs ``meanwhile`` once the endpoint's command is sent and before
-    its hello is read; a first push given that scan and plan lands the same tree and
-    plans nothing more once the robot has answered."""
+    its hello is read; a first push given that scan lands the same tree."""
     from fetchsync import sync
     from fetchsync.connection import Connection
     from fetchsync.protocol import wire
@@ -248,71 +247,27 @@ def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch)
     src = tmp_path / "ws" / "src"
     events: list[str] = []
     real_hello = wire.Reader.read_hello
-    real_plan = sync.plan
 
     def read_hello(self):
         events.append("hello")
         return real_hello(self)
 
-    def plan(*a, **k):
-        events.append("plan")
-        return real_plan(*a, **k)
-
     monkeypatch.setattr(wire.Reader, "read_hello", read_hello)
-    monkeypatch.setattr(sync, "plan", plan)
     rules = sync.build_rules()
-    ahead = []
+    scanned = []
     state = State(tmp_path / "state.sqlite")
 
     def meanwhile(answered) -> None:
-        events.append("prepare")
-        ahead.append(sync.Syncer.prepare(str(src), rules, state, stop=answered))
+        events.append("scan")
+        scanned.append(sync.scan_tree(str(src), rules))
 
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"), meanwhile=meanwhile)
     try:
-        assert events == ["prepare", "plan", "hello"]
+        assert events == ["scan", "hello"]
         r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push(ahead=ahead[0])
-        assert r.errors == [] and r.files == 5 and r.scan == "scanned"
+                        rules=rules).push(scanned=scanned[0])
+        assert r.errors == [] and r.files == 5
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
-        # no plan after the hello: the round used the one made ahead, and the check after
-        # it found the robot's answers matching the tree (a plan is made only if not)
-        assert events == ["prepare", "plan", "hello"]
-        # the state now knows the tree: the next preparation is the scan alone
-        assert sync.Syncer.prepare(str(src), rules, state).planned is None
-    finally:
-        conn.close()
-        state.close()
-
-
-def test_a_plan_made_ahead_is_dropped_when_the_robot_holds_files(tmp_path):
-    """prepare() plans against an empty robot; a robot that turns out to hold files (here
-    edited there, with no state on this laptop) gets a plan made from its listing: its
-    version is kept as a conflict, its extra file goes to the trash, and the trees match."""
-    from fetchsync import sync
-    from fetchsync.connection import Connection
-    from fetchsync.state import State
-    from fetchsync.transport import LocalTransport
-
-    make_workspace(tmp_path / "ws")
-    src = tmp_path / "ws" / "src"
-    robot_src = tmp_path / "robot-home" / "ws" / "src"
-    (robot_src / "my_pkg").mkdir(parents=True)
-    (robot_src / "my_pkg" / "package.xml").write_text("<edited on the robot/>")
-    (robot_src / "only-on-robot.txt").write_text("robot")
-    rules = sync.build_rules()
-    state = State(tmp_path / "state.sqlite")
-    ahead = sync.Syncer.prepare(str(src), rules, state)
-    assert ahead.planned  # made for an empty robot
-    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
-    try:
-        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push(ahead=ahead)
-        assert r.errors == []
-        assert tree_of(src) == tree_of(robot_src)
-        kept = [p for p in (tmp_path / "robot-home" / "ws" / ".fetchsync").rglob("*") if p.is_file()]
-        assert any(p.read_bytes() == b"<edited on the robot/>" for p in kept)
-        assert any(p.read_bytes() == b"robot" for p in kept)
     finally:
         conn.close()
         state.close()
@@ -372,89 +327,6 @@ def test_the_local_robots_channel_tells_when_output_is_waiting(tmp_path):
     from fetchsync.transport import LocalTransport
 
     check_ready(LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5"))
-
-
-def test_the_read_ahead_stops_when_the_robot_answers(tmp_path):
-    """prepare() reads a first push's files until ``stop()`` says the robot answered (it
-    asks every few files), or READ_AHEAD_BYTES are read."""
-    from fetchsync import sync
-    from fetchsync.state import State
-
-    src = make_workspace(tmp_path / "ws") / "src"
-    for i in range(64):
-        (src / f"f{i:02}.txt").write_text(f"file {i}\n")
-    rules = sync.build_rules()
-    state = State(tmp_path / "state.sqlite")
-    asked = []
-
-    def stop() -> bool:
-        asked.append(1)
-        return len(asked) > 2
-
-    try:
-        stopped = sync.Syncer.prepare(str(src), rules, state, stop=stop)
-        assert len(asked) == 3 and 0 < len(stopped.read) <= 16
-        unstopped = sync.Syncer.prepare(str(src), rules, state, stop=lambda: False)
-        assert len(unstopped.read) >= 64  # the budget holds them all
-        assert set(stopped.read) < set(unstopped.read)
-        assert stopped.planned == unstopped.planned  # the plan itself is whole either way
-        # past READ_AHEAD_BYTES it stops by itself: the rest is read as it is sent
-        for i in range(8):
-            (src / f"big{i}.bin").write_bytes(bytes([i]) * (sync.READ_AHEAD_BYTES // 4))
-        bounded = sync.Syncer.prepare(str(src), rules, state, stop=lambda: False)
-        read = sum(len(r.data) for r in bounded.read.values())
-        assert sync.READ_AHEAD_BYTES <= read < sync.READ_AHEAD_BYTES + sync.READ_AHEAD_BYTES // 4
-        assert len(bounded.read) < len(bounded.planned)
-    finally:
-        state.close()
-
-
-@pytest.mark.parametrize("meanwhile", ["unchanged", "edited", "other algorithm"])
-def test_the_first_files_are_read_while_the_endpoint_starts(tmp_path, monkeypatch, meanwhile):
-    """prepare() reads and hashes a first push's first files; the push sends them
-    without reading them again, unless the file changed since (its stat differs) or the
-    robot chose another hash algorithm than the one guessed. Either way the robot holds
-    the laptop's tree and its hashes check out there (a wrong one would be refused)."""
-    from fetchsync import sync
-    from fetchsync.connection import Connection
-    from fetchsync.state import State
-    from fetchsync.transport import LocalTransport
-
-    src = make_workspace(tmp_path / "ws") / "src"
-    for i in range(30):
-        (src / f"f{i}.txt").write_text(f"file {i}\n" * (i + 1))
-    rules = sync.build_rules()
-    state = State(tmp_path / "state.sqlite")
-    ahead = sync.Syncer.prepare(str(src), rules, state)
-    assert "f0.txt" in ahead.read and ahead.read["f0.txt"].data == b"file 0\n"
-    if meanwhile == "edited":
-        time.sleep(0.01)
-        (src / "f0.txt").write_text("edited after it was read ahead\n")
-    if meanwhile == "other algorithm":
-        for path, r in ahead.read.items():
-            ahead.read[path] = sync.ReadAhead(r.data, r.entry, "other", "0" * 32)
-    reads: list[str] = []
-    real = sync.read_stable
-
-    def read_stable(full, **k):
-        reads.append(os.path.relpath(full, src))
-        return real(full, **k)
-
-    monkeypatch.setattr(sync, "read_stable", read_stable)
-    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
-    try:
-        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push(ahead=ahead)
-        assert r.errors == []
-        assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
-        assert ("f0.txt" in reads) == (meanwhile == "edited")
-        assert "f1.txt" not in reads
-        again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                            rules=rules).push()
-        assert again.files == 0 and again.errors == []  # the state holds the right hashes
-    finally:
-        conn.close()
-        state.close()
 
 
 @pytest.mark.parametrize("killed_before_the_end", [False, True])
