@@ -241,9 +241,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                 report.connection = _connection_kind(conn)
         finally:
             progress.close()
-            # this process ends soon (see _exit): the signer it started, or the next
-            # call, copies the state's log into its database
-            state.close(checkpoint=False)
+            state.close()
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
     from fetchsync.sync import raise_for

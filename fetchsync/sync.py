@@ -49,8 +49,6 @@ BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
 PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
-EARLY_ROWS = 512  # state rows worth a transaction of their own while the last answers come
-EARLY_ROWS_MAX = 20000  # ...and the most whose paths are kept for it (memory)
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
@@ -523,14 +521,9 @@ class _Batcher:
         if self._failure is not None:
             raise self._failure
 
-    @property
-    def waiting(self) -> bool:
-        """Whether a batch sent is not answered yet (or its answer not read)."""
-        return self._taken < len(self.sent)
-
-    def answered(self, *, wait: bool = False, one: bool = False) -> list[tuple[Any, M.Result]]:
+    def answered(self, *, wait: bool = False) -> list[tuple[Any, M.Result]]:
         """The results of the batches answered since the last call, in order (with ``wait``,
-        of every batch sent, once the last is out; with ``one`` too, of the next one only).
+        of every batch sent, once the last is out).
         Each batch is let go of once read, so a push of 100,000 operations does not hold
         them all, nor all their answers.
 
@@ -556,8 +549,6 @@ class _Batcher:
                 raise SyncError("the robot answered a different number of operations")
             out.extend((t, M.Result.from_wire(r, t[0].op if t is not None else None))
                        for t, r in zip(tags, results))
-            if one:
-                break
         return out
 
 
@@ -582,7 +573,6 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
-        self._rows_written: set[str] = set()  # see _write_rows
 
     def _open_header(self, create: bool = True) -> dict[str, Any]:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
@@ -726,7 +716,6 @@ class Syncer:
                     and s.hash == dst.hash and dst.size >= SIG_MIN)
 
         for _round in range(MAX_ROUNDS):
-            self._rows_written = set()  # a round may settle a path written early again
             # what the laptop could not read is left as the robot has it
             planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
                        if not guarded(p.op.path)]
@@ -761,15 +750,6 @@ class Syncer:
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
             batcher.flush()
-            if not dry_run:
-                # while the robot applies the last batches, the rows of what it has
-                # confirmed so far go to the state; the final commit adds the rest
-                batcher.wait_sent()
-                settle(batcher.answered())
-                self._write_rows(upserts)
-                while batcher.waiting:  # the rows of each answer as it comes
-                    settle(batcher.answered(wait=True, one=True))
-                    self._write_rows(upserts, checkpoint=False)
             settle(batcher.answered(wait=True))
             stale = batcher.stale
             if batcher.last:
@@ -835,37 +815,11 @@ class Syncer:
                 elif sig is not None:
                     self._signed.add(path)
             self._signed.difference_update(deletes)
-        written, self._rows_written = self._rows_written, set()
-        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written),
+        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
                           deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
                                                  "algorithm": self.algorithm})
         self._synced = new_synced
         self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
-
-    def _write_rows(self, upserts: dict[str, tuple[Synced, bytes | None]], *,
-                    checkpoint: bool = True) -> None:
-        """Write the state's rows of ``upserts`` now, in their own transaction, leaving its
-        generation as it was: they say what the robot confirmed it holds, durably, and
-        :meth:`_commit` writes only the others. Only for large pushes (tens of ms of
-        SQLite at the end of a 7,000-file push); a kill between the two leaves rows with
-        the previous generation, which the next push treats as the robot having changed
-        since: it lists and compares.
-
-        Only paths are remembered: within a round a path is settled once, and each round
-        starts afresh. Not past EARLY_ROWS_MAX rows: a push of 100,000 files holds its
-        memory budget closely, and the final commit is a small part of its time.
-
-        ``checkpoint``: also copy the state's log into its database (an fsync or two),
-        once, before the last answers come; the rows of each of those are written as it
-        comes, so the final commit holds the last batch's alone."""
-        written = self._rows_written
-        if not EARLY_ROWS <= len(upserts) <= EARLY_ROWS_MAX \
-                or sum(1 for p in upserts if p not in written) < EARLY_ROWS:
-            return
-        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items() if p not in written))
-        if checkpoint:
-            self.state.checkpoint()  # a close that checkpoints then has little to copy
-        written.update(upserts)
 
     def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
                           robot_sigs: dict[str, bytes], whole_only: set[str]) -> list[Planned]:

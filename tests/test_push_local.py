@@ -329,12 +329,10 @@ def test_the_local_robots_channel_tells_when_output_is_waiting(tmp_path):
     check_ready(LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5"))
 
 
-@pytest.mark.parametrize("killed_before_the_end", [False, True])
-def test_a_large_push_writes_the_state_while_the_last_answers_come(tmp_path, monkeypatch,
-                                                                  killed_before_the_end):
-    """The rows the robot confirmed are written while it applies the last batches, the rest
-    and the new generation at the end. A push stopped between the two leaves rows with the
-    old generation: the next push lists the robot, finds it identical, and sends nothing."""
+def test_a_push_killed_before_its_state_is_written_sends_nothing_again(tmp_path, monkeypatch):
+    """The state is written once, at the end of a push's rounds. A push stopped just
+    before leaves the state as it was: the next push lists the robot, finds it
+    identical, sends nothing, and then knows every path."""
     from fetchsync import sync
     from fetchsync.connection import Connection
     from fetchsync.state import State
@@ -346,37 +344,22 @@ def test_a_large_push_writes_the_state_while_the_last_answers_come(tmp_path, mon
         for f in range(60):
             (src / f"d{d}" / f"{f}.txt").write_text(f"{d} {f}\n" * 300)  # ~5 KiB: many batches
     monkeypatch.setattr(sync, "FIRST_BATCHES_SMALLER", {k: 6 for k in range(64)})  # 128 KiB batches
-    monkeypatch.setattr(sync, "EARLY_ROWS", 50)
-    real_wait_sent = sync._Batcher.wait_sent
-
-    def wait_sent(self):  # and let the robot answer some: how many are in by then is timing
-        real_wait_sent(self)
-        time.sleep(1.0)
-
-    monkeypatch.setattr(sync._Batcher, "wait_sent", wait_sent)
     state = State(tmp_path / "state.sqlite")
-    commits: list[bool] = []  # whether each commit carried the generation
+    commits: list[int] = []
     real_commit = State.commit
 
     def commit(self, **k):
-        commits.append("meta" in k)
-        if killed_before_the_end and "meta" in k:
-            raise KeyboardInterrupt
-        return real_commit(self, **k)
+        commits.append(1)
+        raise KeyboardInterrupt
 
     monkeypatch.setattr(State, "commit", commit)
     rules = sync.build_rules()
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     try:
         syncer = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules)
-        if killed_before_the_end:
-            with pytest.raises(KeyboardInterrupt):
-                syncer.push()
-        else:
-            assert syncer.push().errors == []
-        assert commits[0] is False and commits[-1] is True
-        rows = state.entries()
-        assert len(rows) >= 50 and all(r.hash for r in rows.values() if r.kind == "f")
+        with pytest.raises(KeyboardInterrupt):
+            syncer.push()
+        assert commits == [1] and state.entries() == {}
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
         monkeypatch.setattr(State, "commit", real_commit)
         again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
