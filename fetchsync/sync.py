@@ -9,7 +9,6 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 
 from __future__ import annotations
 
-import collections
 import errno
 import logging
 import os
@@ -356,29 +355,13 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
 
 # --------------------------------------------------------------------------- batching
 SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
-# On a fast link, compressing data that only halves (meshes of floats) costs more than
-# it saves: deflating here and inflating on the robot (zlib, 250-400 MB/s) take ~7 ns a
-# byte, more than a link faster than ~70 MB/s takes to carry the half it spares. So
-# once the link has proved fast, only what shrinks to WORTH_WHEN_FAST or less is
-# compressed: source text (~0.2) and maps still are. Its proof: one of the last
-# LINK_SAMPLES requests of LINK_SAMPLE bytes or more on the wire went out at FAST_LINK
-# or faster. A request can seem up to twice as fast as its link (the 2 MB SSH window
-# takes its first half at once), hence 128 MB/s; a slower robot only makes requests
-# seem slower. On Wi-Fi (~5-40 MB/s) everything worth it is compressed, as before.
-WORTH_WHEN_FAST = 0.3
-FAST_LINK = 128 * 1000 * 1000  # bytes a second
-LINK_SAMPLE = 4 * 1024 * 1024
-LINK_SAMPLES = 4
-
-
 class _Batcher:
     """Packs operations into pipelined requests; collects results in order.
 
     The main thread reads files and adds operations; a sender thread packs
     each batch (the compressible data as one zlib stream, the rest, such as
     meshes and archives, raw) and sends it, while the robot applies the
-    previous one. What counts as compressible depends on the link: see
-    ``WORTH_WHEN_FAST``.
+    previous one.
     """
 
     def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
@@ -401,12 +384,9 @@ class _Batcher:
         self._taken = 0  # batches in ``sent`` whose answer was read
         self.last: dict[str, Any] = {}
         self.stale = False
-        self._rates: collections.deque[float] = collections.deque(maxlen=LINK_SAMPLES)
-        self.link_fast = False  # see WORTH_WHEN_FAST
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(
-            data, worth=WORTH_WHEN_FAST if self.link_fast else wire.WORTH_COMPRESSING))
+        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(data))
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
@@ -492,18 +472,9 @@ class _Batcher:
             if progress is not None:
                 progress(base + nbytes * k // max(n, 1), self.total)
 
-        size = sum(len(p) for p in zparts) + rpos
-        t0 = time.monotonic()
         req = self.conn.send(header, blob_parts=zparts + raw, sent=sent)
-        if size >= LINK_SAMPLE:
-            self._rates.append(size / max(time.monotonic() - t0, 1e-6))
-            self.link_fast = max(self._rates) >= FAST_LINK
         self.sent.append((req, tags))
         self.done += nbytes
-
-    def wait_sent(self) -> None:
-        """Wait until every batch is sent (its answer may still be on its way)."""
-        self._drain()
 
     def _drain(self) -> None:
         if self._sender is not None:
