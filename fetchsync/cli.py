@@ -228,10 +228,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             scanned.append(scan_tree(str(src), rules))
 
         try:
-            # a connection master left behind watches this tree from the start:
-            # the next push's scan is then ready, not started by it
-            with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare,
-                         prescan=(str(src), rules.to_wire())) as conn:
+            with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare) as conn:
                 from fetchsync.sync import Syncer
 
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,

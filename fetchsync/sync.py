@@ -67,7 +67,6 @@ class Report:
     verb: str
     robot: str = ""
     connection: str = ""     # "ssh", "master" (a persistent connection) or "local"
-    scan: str = ""           # the local tree: "scanned" now, or "watched" by the connection master
     local: str = ""
     remote: str = ""
     files: int = 0
@@ -549,12 +548,6 @@ class Syncer:
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
                 "create": create}
 
-    def _warm_scan(self) -> ScanResult | None:
-        """The local scan as a connection master keeps it current, if one does."""
-        local_scan = getattr(self.conn.transport, "local_scan", None)
-        entries = local_scan(self.local_root, self.rules.to_wire()) if local_scan is not None else None
-        return ScanResult(entries, []) if entries is not None else None
-
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
             synced = self.state.entries()
@@ -582,11 +575,6 @@ class Syncer:
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
                                    "epoch": epoch, "gen": gen})
         if scanned is None:
-            scanned = self._warm_scan()
-            report.scan = "watched" if scanned is not None else "scanned"
-        else:
-            report.scan = "scanned"
-        if scanned is None:
             scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
@@ -599,7 +587,7 @@ class Syncer:
             if differing:
                 done = self.push_paths(differing, progress=progress)
                 done.bytes_sent, done.bytes_received = self.conn.bytes_out - b_out, self.conn.bytes_in - b_in
-                done.seconds, done.scan = time.monotonic() - t0, report.scan
+                done.seconds = time.monotonic() - t0
                 return done
         else:
             remote = self._apply_listing(listing, synced)
