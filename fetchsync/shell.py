@@ -1,7 +1,12 @@
 """Shell start-up code: fetch_tools' robot helpers and fetchsync's tab completion.
 
-``eval "$(fetchsync shell-init bash)"`` (or ``zsh``) defines the helpers that
-fetch_tools' ``setup.bash`` defined, with the same meaning::
+``eval "$(fetchsync shell-init bash)"`` (or ``zsh``) defines fetch_tools'
+``fetch`` command and the helpers its ``setup.bash`` defined, with the same
+meaning::
+
+    fetch VERB ...    fetchsync VERB ...: fetch_tools' command lines run as typed
+                      (``fetch push --build "--pkg my_pkg"``, ``fetch run "roslaunch ..."``,
+                      ``fetch debug-snapshot``, ``fetch create-account --fullname X``)
 
     uf N / ufr N      export ROS_MASTER_URI=http://fetchN:11311 (freightN) and print it;
                       alone, print the current ROS_MASTER_URI
@@ -21,16 +26,27 @@ One body serves bash and zsh; under zsh each function runs in
 ``emulate -L zsh`` so the user's options cannot change its meaning.
 
 The completion part is click's own script for the shell (the
-``_FETCHSYNC_COMPLETE`` protocol), guarded so that it is only installed where
-it can work: bash >= 4.4, and zsh once ``compinit`` has defined ``compdef``.
+``_FETCHSYNC_COMPLETE`` protocol), registered for ``fetch`` too, guarded so
+that it is only installed where it can work: bash >= 4.4, and zsh once
+``compinit`` has defined ``compdef``. ``--robot`` completes from the ssh
+config's ``Host`` names, the plain (unhashed) names of ``known_hosts`` and,
+as fetch_tools' completer did, ``fetch0``-``fetch9`` / ``freight0``-``freight9``
+(``fetch1`` offers ``fetch10``-``fetch19``): :func:`complete_robot`.
+
+``fetch`` is a function, not a program on PATH: it exists only in shells that
+ran ``shell-init``, so it never shadows another ``fetch`` elsewhere (scripts,
+cron), and ``shell-init --no-fetch`` leaves it out.
 """
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Iterable, Iterator
+from pathlib import Path
 
 import click
-from click.shell_completion import get_completion_class
+from click.shell_completion import CompletionItem, get_completion_class
 
 from fetchsync.errors import UsageError
 
@@ -40,6 +56,8 @@ DEFAULT_PREFIX = "fetch"
 DEFAULT_PREFIX_R = "freight"
 PREFIX_VAR = "FETCHSYNC_ROBOT_PREFIX"
 PREFIX_R_VAR = "FETCHSYNC_ROBOT_PREFIX_R"
+FETCH_NAME = "fetch"
+GLOBAL_KNOWN_HOSTS = "/etc/ssh/ssh_known_hosts"
 
 # The same rule the helpers apply to $FETCHSYNC_ROBOT_PREFIX at call time.
 _PREFIX_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
@@ -47,6 +65,7 @@ _PREFIX_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 # Placeholders: str.format and string.Template would both trip over the
 # shell's own braces and dollars.
 _HELPERS = r"""# fetchsync shell-init: fetch_tools' helpers and tab completion for fetchsync.
+#   fetch VERB ...   fetchsync VERB ... (unless shell-init --no-fetch)
 #   uf N | ufr N     export and print ROS_MASTER_URI=http://@PREFIX@N:11311 | http://@PREFIX_R@N:11311
 #   ul [PORT]        export and print ROS_MASTER_URI=http://localhost:PORT (default 11311)
 #   sf N | sfr N     ssh [$FETCHSYNC_USER or $FETCH_USER@]@PREFIX@N | @PREFIX_R@N
@@ -189,6 +208,25 @@ function ul {
 }
 """
 
+# fetch_tools' verbs and options kept their names in fetchsync (debug-snapshot
+# included: fetchsync runs fetch_tools' collection under that name), so the
+# command line passes through untouched, quoting and all.
+_FETCH = r"""
+# fetch_tools' `fetch`: the same command lines, run by fetchsync.
+function fetch {
+    command fetchsync "$@"
+}
+"""
+
+# `fetch` completes as `fetchsync`: click's bash function runs the program its
+# first argument names, and `fetch` is a function `env` cannot run.
+_BASH_FETCH_COMPLETION = """_fetchsync_fetch_completion() {
+    _fetchsync_completion fetchsync "$2" "$3"
+}
+complete -o nosort -F _fetchsync_fetch_completion fetch
+"""
+_ZSH_FETCH_COMPLETION = "compdef _fetchsync_completion fetch\n"
+
 # click's scripts use `complete -o nosort` and `compopt` (bash 4.4), and
 # `compdef`, which exists only after compinit: elsewhere, skip quietly rather
 # than print an error at every shell start-up.
@@ -222,8 +260,10 @@ def helpers(*, prefix: str = DEFAULT_PREFIX, prefix_r: str = DEFAULT_PREFIX_R) -
     return _HELPERS.replace("@PREFIX_R@", prefix_r).replace("@PREFIX@", prefix)
 
 
-def completion(shell: str, command: click.Command, *, prog_name: str = PROG_NAME) -> str:
-    """click's completion script for ``command`` in ``shell``, guarded to where it works."""
+def completion(shell: str, command: click.Command, *, prog_name: str = PROG_NAME,
+               fetch: bool = True) -> str:
+    """click's completion script for ``command`` in ``shell`` (and for ``fetch`` with
+    ``fetch``), guarded to where it works."""
     check_shell(shell)
     complete_var = "_{}_COMPLETE".format(prog_name.replace("-", "_").upper())
     comp_cls = get_completion_class(shell)
@@ -233,12 +273,105 @@ def completion(shell: str, command: click.Command, *, prog_name: str = PROG_NAME
     # version on every shell start-up; the guard checks the running shell.
     script = comp.source_template % comp.source_vars()
     opening, closing = _BASH_GUARD if shell == "bash" else _ZSH_GUARD
+    if fetch and prog_name == PROG_NAME:
+        script = script.rstrip("\n") + "\n" + (
+            _BASH_FETCH_COMPLETION if shell == "bash" else _ZSH_FETCH_COMPLETION)
     return opening + script.rstrip("\n") + "\n" + closing
 
 
 def init_script(shell: str | None, command: click.Command, *, prefix: str = DEFAULT_PREFIX,
-                prefix_r: str = DEFAULT_PREFIX_R, prog_name: str = PROG_NAME) -> str:
-    """Everything ``fetchsync shell-init SHELL`` prints: the helpers, then completion."""
+                prefix_r: str = DEFAULT_PREFIX_R, prog_name: str = PROG_NAME,
+                fetch: bool = True) -> str:
+    """Everything ``fetchsync shell-init SHELL`` prints: the helpers, ``fetch``, completion."""
     name = check_shell(shell)
-    return helpers(prefix=prefix, prefix_r=prefix_r) + "\n" + completion(
-        name, command, prog_name=prog_name)
+    code = helpers(prefix=prefix, prefix_r=prefix_r)
+    if fetch:
+        code += _FETCH
+    return code + "\n" + completion(name, command, prog_name=prog_name, fetch=fetch)
+
+
+# --- --robot completion ---------------------------------------------------------------------
+
+def complete_robot(ctx: click.Context | None, param: click.Parameter | None,
+                   incomplete: str) -> list[CompletionItem]:
+    """``--robot`` candidates: ssh config hosts, known_hosts names, then fetch_tools' numbers.
+
+    Read at each completion (a Tab), never cached: a host added to the ssh
+    config is offered at the next Tab. Unreadable files are skipped silently;
+    completion must never print an error into the user's command line.
+    """
+    return [CompletionItem(name) for name in robot_names(incomplete)]
+
+
+def robot_names(incomplete: str, *, home: Path | None = None,
+                global_known_hosts: str = GLOBAL_KNOWN_HOSTS) -> list[str]:
+    """The names :func:`complete_robot` offers for ``incomplete``, in order, once each."""
+    base = home if home is not None else Path(os.path.expanduser("~"))
+    ssh_dir = base / ".ssh"
+    found = list(ssh_config_hosts(ssh_dir / "config"))
+    for path in (ssh_dir / "known_hosts", Path(global_known_hosts)):
+        found.extend(known_host_names(path))
+    found.extend(fetch_tools_names(incomplete))
+    seen: set[str] = set()
+    out = []
+    for name in found:
+        if name.startswith(incomplete) and name not in seen:
+            seen.add(name)
+            out.append(name)
+    return out
+
+
+def fetch_tools_names(prefix: str) -> list[str]:
+    """fetch_tools' ``RobotCompleter``: ``fetch0-9`` / ``freight0-9`` while typing those
+    words, else the typed text followed by each digit."""
+    options: list[str] = []
+    for word in (DEFAULT_PREFIX, DEFAULT_PREFIX_R):
+        if word.startswith(prefix) and prefix != word:
+            options.extend(f"{word}{i}" for i in range(10))
+    if options:
+        return options
+    if not prefix or not _PREFIX_RE.fullmatch(prefix):
+        return []
+    return [f"{prefix}{i}" for i in range(10)]
+
+
+def ssh_config_hosts(path: Path) -> Iterator[str]:
+    """The literal names of ``Host`` lines (no patterns: ``*``, ``?``, ``!``)."""
+    for line in _lines(path):
+        words = line.replace("=", " ", 1).split()
+        if len(words) < 2 or words[0].lower() != "host":
+            continue
+        for name in words[1:]:
+            if not any(c in name for c in "*?!") and _is_host_name(name):
+                yield name
+
+
+def known_host_names(path: Path) -> Iterator[str]:
+    """The plain names of a known_hosts file: hashed entries, markers (``@revoked``,
+    ``@cert-authority``) and hosts on another port than 22 are left out."""
+    for line in _lines(path):
+        if line.startswith(("|", "@")):
+            continue
+        for name in line.split(None, 1)[0].split(","):
+            if name.startswith("["):
+                host, _, port = name[1:].partition("]:")
+                if port != "22":
+                    continue
+                name = host
+            if not any(c in name for c in "*?!") and _is_host_name(name):
+                yield name
+
+
+def _is_host_name(name: str) -> bool:
+    return bool(name) and not name.startswith("-") and all(
+        c.isalnum() or c in "._-:" for c in name)
+
+
+def _lines(path: Path) -> Iterable[str]:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read(1 << 20)
+    except OSError:
+        return []
+    return [line.strip() for line in text.splitlines()
+            if line.strip() and not line.lstrip().startswith("#")]

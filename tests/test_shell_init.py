@@ -327,3 +327,167 @@ def test_cli_refuses_bad_input_in_one_line(args: list[str], message: str) -> Non
     assert result.exit_code == 2
     assert len(result.output.splitlines()) == 1
     assert result.output.startswith(message)
+
+
+# --- fetch_tools' `fetch` command -----------------------------------------------------------
+
+@pytest.fixture
+def fake_fetchsync(env: dict[str, str], tmp_path: Path) -> dict[str, str]:
+    """``env`` with a fake ``fetchsync`` first on PATH that prints its argv, bracketed."""
+    fake_dir = tmp_path / "fake"
+    fake_dir.mkdir()
+    (fake_dir / "fetchsync").write_text(FAKE_TOOL)
+    (fake_dir / "fetchsync").chmod(0o755)
+    return dict(env, PATH=f"{fake_dir}{os.pathsep}{env['PATH']}")
+
+
+def test_fetch_passes_fetch_tools_command_lines_as_typed(
+        shell: str, generated: dict[str, str], fake_fetchsync: dict[str, str],
+        tmp_path: Path) -> None:
+    # The command lines of fetch_tools' README, verbatim.
+    body = """
+fetch create-account --fullname "Not A. Robot"
+fetch push --install-deps --build
+fetch run "roslaunch my_awesome_package do_stuff.launch"
+fetch push --build "--pkg my_awesome_package"
+fetch push --build "--pkg follow_pick -DCMAKE_BUILD_TYPE=RELEASE"
+fetch create-account --robot freight0 --user test
+fetch pull --no-safety
+fetch lint my_pkg
+fetch workspace-status
+fetch debug-snapshot
+fetch run 'echo "$HOME" *'
+"""
+    out = run(shell, generated[shell], body, fake_fetchsync, tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "fetchsync [create-account] [--fullname] [Not A. Robot]",
+        "fetchsync [push] [--install-deps] [--build]",
+        "fetchsync [run] [roslaunch my_awesome_package do_stuff.launch]",
+        "fetchsync [push] [--build] [--pkg my_awesome_package]",
+        "fetchsync [push] [--build] [--pkg follow_pick -DCMAKE_BUILD_TYPE=RELEASE]",
+        "fetchsync [create-account] [--robot] [freight0] [--user] [test]",
+        "fetchsync [pull] [--no-safety]",
+        "fetchsync [lint] [my_pkg]",
+        "fetchsync [workspace-status]",
+        "fetchsync [debug-snapshot]",
+        'fetchsync [run] [echo "$HOME" *]',
+    ]
+
+
+def test_fetch_exits_with_fetchsyncs_status(shell: str, generated: dict[str, str],
+                                            env: dict[str, str], tmp_path: Path) -> None:
+    out = run(shell, generated[shell], "fetch --version; echo rc=$?; fetch nosuchverb; echo rc=$?",
+              env, tmp_path)
+    lines = out.stdout.splitlines()
+    assert lines[0].startswith("fetchsync, version ") and lines[1] == "rc=0"
+    assert lines[2] == "rc=2" and "No such command 'nosuchverb'" in out.stderr
+
+
+def test_no_fetch_leaves_the_fetch_command_out(shell: str, env: dict[str, str],
+                                               tmp_path: Path) -> None:
+    code = _generate(shell, "--no-fetch")
+    assert "function fetch " not in code and " fetch\n" not in code
+    out = run(shell, code, "type fetch >/dev/null 2>&1; echo rc=$?; uf 2", env, tmp_path)
+    assert out.stdout.splitlines() == ["rc=1", "http://fetch2:11311"]
+
+
+def test_bash_completion_of_fetch(generated: dict[str, str], env: dict[str, str],
+                                  tmp_path: Path) -> None:
+    body = """
+complete -p fetch
+complete_words() { COMPREPLY=(); COMP_WORDS=("$@"); COMP_CWORD=$(($# - 1));
+                   _fetchsync_fetch_completion fetch "${COMP_WORDS[COMP_CWORD]}" "$3"; echo "${COMPREPLY[*]}"; }
+complete_words fetch p
+complete_words fetch push --bu
+complete_words fetch de
+"""
+    out = run("bash", generated["bash"], body, env, tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0] == "complete -o nosort -F _fetchsync_fetch_completion fetch"
+    assert lines[1].split() == ["pull", "push"]
+    assert lines[2].split() == ["--build", "--build-type", "--build-tool"]
+    assert lines[3].split() == ["debug-snapshot"]
+
+
+def test_zsh_completion_of_fetch(generated: dict[str, str], env: dict[str, str],
+                                 tmp_path: Path) -> None:
+    _need("zsh")
+    body = """
+print -r -- "registered: ${_comps[fetch]}"
+function _describe { print -rl -- "${(@P)3}"; }
+function compadd { print -r -- "compadd $*"; }
+words=(fetch pu); CURRENT=2; _fetchsync_completion
+"""
+    out = run("zsh", generated["zsh"], body, env, tmp_path,
+              setup="autoload -Uz compinit; compinit -u -D")
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0] == "registered: _fetchsync_completion"
+    assert [line.split(":", 1)[0] for line in lines[1:3]] == ["pull", "push"]
+
+
+# --- --robot completion ---------------------------------------------------------------------
+
+def _robot_home(home: Path) -> Path:
+    ssh = home / ".ssh"
+    ssh.mkdir(parents=True)
+    (ssh / "config").write_text(
+        "# my robots\nHost lab-fetch3 freight0\n    HostName 10.0.0.3\n"
+        "Host *.corp !bad\n    User me\nhost=tiago1\nMatch host x\n")
+    (ssh / "known_hosts").write_text(
+        "fetch42,10.1.1.42 ssh-ed25519 AAAA\n"
+        "|1|aGFzaGVk|c2FsdA== ssh-ed25519 AAAA\n"
+        "[odd-port]:2222 ssh-ed25519 AAAA\n"
+        "[port22]:22 ssh-ed25519 AAAA\n"
+        "@cert-authority *.corp ssh-ed25519 AAAA\n"
+        "@revoked fetch-revoked ssh-ed25519 AAAA\n")
+    return home
+
+
+@pytest.mark.parametrize(("typed", "expected"), [
+    ("", ["lab-fetch3", "freight0", "tiago1", "fetch42", "10.1.1.42", "port22"]
+     + [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(1, 10)]),
+    ("fr", ["freight0"] + [f"freight{i}" for i in range(1, 10)]),
+    ("fetch", ["fetch42"] + [f"fetch{i}" for i in range(10)]),
+    ("fetch4", ["fetch42"] + [f"fetch4{i}" for i in range(10) if i != 2]),
+    ("lab", ["lab-fetch3"] + [f"lab{i}" for i in range(10)]),
+    ("-o", []),
+])
+def test_robot_names_from_ssh_config_known_hosts_and_fetch_tools(
+        tmp_path: Path, typed: str, expected: list[str]) -> None:
+    from fetchsync.shell import robot_names
+
+    home = _robot_home(tmp_path)
+    assert robot_names(typed, home=home, global_known_hosts=str(tmp_path / "none")) == expected
+
+
+def test_robot_names_without_ssh_files(tmp_path: Path) -> None:
+    from fetchsync.shell import robot_names
+
+    assert robot_names("f", home=tmp_path, global_known_hosts=str(tmp_path / "none")) == (
+        [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(10)])
+
+
+@pytest.mark.parametrize("verb", ["push", "run", "create-account", "snapshot", "debug-snapshot"])
+def test_robot_option_completes_in_every_robot_verb(tmp_path: Path, verb: str) -> None:
+    home = _robot_home(tmp_path)
+    result = CliRunner().invoke(
+        cli, [], prog_name="fetchsync",
+        env={"_FETCHSYNC_COMPLETE": "bash_complete", "COMP_WORDS": f"fetch {verb} --robot la",
+             "COMP_CWORD": "3", "HOME": str(home)})
+    assert result.exit_code == 0
+    assert result.output.splitlines()[0] == "plain,lab-fetch3"
+
+
+def test_fetch_robot_completion_through_bash(generated: dict[str, str], env: dict[str, str],
+                                             tmp_path: Path) -> None:
+    _robot_home(tmp_path)  # env's HOME is tmp_path
+    body = """
+COMP_WORDS=(fetch push --robot frei); COMP_CWORD=3
+_fetchsync_fetch_completion fetch frei --robot; echo "${COMPREPLY[*]}"
+"""
+    out = run("bash", generated["bash"], body, env, tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["freight0"] + [f"freight{i}" for i in range(1, 10)]

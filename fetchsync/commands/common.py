@@ -7,10 +7,16 @@ from typing import Any, Callable
 import click
 
 
+def complete_robot(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[Any]:
+    """``--robot`` completion (ssh config, known_hosts, fetchN): :func:`fetchsync.shell.complete_robot`."""
+    from fetchsync.shell import complete_robot as complete
+    return complete(ctx, param, incomplete)
+
+
 def target_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """The fetch_tools options every robot verb takes."""
     opts = [
-        click.option("--robot", help="Robot host name (or 'local'). "
+        click.option("--robot", shell_complete=complete_robot, help="Robot host name (or 'local'). "
                      "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI."),
         click.option("--user", help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
                      "the ssh config's User, $USER."),

@@ -17,6 +17,8 @@ from typing import Any, Callable
 
 import click
 
+from fetchsync.commands.common import complete_robot
+
 NEW_PASSWORD_VAR = "FETCHSYNC_NEW_PASSWORD"
 ADMIN_PASSWORD_VAR = "FETCHSYNC_ADMIN_PASSWORD"
 
@@ -113,7 +115,7 @@ _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
 
 
 @click.command("create-account")
-@click.option("--robot", help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, "
+@click.option("--robot", shell_complete=complete_robot, help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, "
               "the host of $ROS_MASTER_URI.")
 @click.option("--user", "user", required=True, metavar="NAME",
               help="The account to create on the robot (not the login: see --admin-user).")

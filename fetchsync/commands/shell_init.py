@@ -21,20 +21,24 @@ def _complete_shell(ctx: click.Context, param: click.Parameter,
 @click.option("--prefix-r", default=DEFAULT_PREFIX_R, show_default=True, metavar="NAME",
               help="Default robot name prefix of ufr, sfr and kfr "
                    "($FETCHSYNC_ROBOT_PREFIX_R overrides it when they run).")
+@click.option("--fetch/--no-fetch", "fetch", default=True, show_default=True,
+              help="Define fetch_tools' `fetch` command (a shell function running fetchsync).")
 @click.pass_context
-def command(ctx: click.Context, shell: str | None, prefix: str, prefix_r: str) -> None:
-    """Print shell code defining fetch_tools' helpers and tab completion.
+def command(ctx: click.Context, shell: str | None, prefix: str, prefix_r: str,
+            fetch: bool) -> None:
+    """Print shell code defining fetch_tools' fetch command, helpers and tab completion.
 
     \b
     Add to ~/.bashrc:                  eval "$(fetchsync shell-init bash)"
     or to ~/.zshrc, after compinit:    eval "$(fetchsync shell-init zsh)"
 
     \b
+    fetch VERB ...  fetchsync VERB ...: fetch_tools' command lines, as typed
     uf N, ufr N     export and print ROS_MASTER_URI=http://fetchN:11311 (freightN)
     ul [PORT]       the same for localhost (port 11311 by default)
     sf N, sfr N     ssh to fetchN / freightN as $FETCHSYNC_USER or $FETCH_USER
     kf N, kfr N     ssh-copy-id to the same
     N is a number or suffix such as 7 or 7.local.
     """
-    click.echo(init_script(shell, ctx.find_root().command, prefix=prefix, prefix_r=prefix_r),
-               nl=False)
+    click.echo(init_script(shell, ctx.find_root().command, prefix=prefix, prefix_r=prefix_r,
+                           fetch=fetch), nl=False)
