@@ -80,18 +80,9 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         attached = mux.MuxTransport.attach(path, target.robot)
         if attached is not None:
             return attached
-    from fetchsync import preconnect
-
-    # connecting meanwhile, as the ssh config said last time (see preconnect)
-    early = preconnect.begin(target.host, user=target.user)
     from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
     transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint,
-                                     password_callback=terminal_prompt(), early=early)
-    settings = transport.settings
-    if not settings.proxy_jump:
-        preconnect.remember(target.host, user=target.user, port=None, config_path=None,
-                            hostname=settings.hostname, resolved_port=settings.port,
-                            proxy_command=settings.proxy_command)
+                                     password_callback=terminal_prompt())
     # a master authenticates on its own, without a terminal: after a password
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":

@@ -30,13 +30,14 @@ import shlex
 import shutil
 import socket
 import subprocess
+import tempfile
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from fetchsync import paramiko_import, preconnect
+from fetchsync import paramiko_import
 
 paramiko_import.load()  # without invoke (see there); the imports below find it loaded
 
@@ -52,6 +53,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
+from fetchsync.protocol.wire import widen_pipe
 from fetchsync.transport import Channel
 
 log = logging.getLogger(__name__)
@@ -273,7 +275,6 @@ class SSHTransport:
         keepalive: float = 5.0,
         accept_fingerprint: str | None = None,
         password_callback: PasswordCallback | None = None,
-        early: preconnect.Early | None = None,
     ) -> SSHTransport:
         """Connect and authenticate to ``host`` (an ssh config alias, a name or an address).
 
@@ -282,24 +283,17 @@ class SSHTransport:
         for key passphrases and, when keys fail, the login password.
         ``user`` and ``port`` win over the config's User and Port (a config
         ProxyCommand's ``%p`` still stands for the config's Port).
-        ``early``: a connection begun before paramiko was imported
-        (:func:`fetchsync.preconnect.begin`), used if it goes where the config
-        says, else closed.
         """
-        try:
-            config = load_ssh_config(config_path)
-            settings = resolve_host(host, config=config, user=user, port=port)
-            opener = _Opener(
-                config=config,
-                timeout=connect_timeout,
-                keepalive=keepalive,
-                accept_fingerprint=accept_fingerprint,
-                password_callback=password_callback,
-            )
-            transport = opener.open(settings, early=early)
-        finally:
-            if early is not None:
-                early.close()
+        config = load_ssh_config(config_path)
+        settings = resolve_host(host, config=config, user=user, port=port)
+        opener = _Opener(
+            config=config,
+            timeout=connect_timeout,
+            keepalive=keepalive,
+            accept_fingerprint=accept_fingerprint,
+            password_callback=password_callback,
+        )
+        transport = opener.open(settings)
         return cls(
             transport,
             settings=settings,
@@ -432,28 +426,24 @@ class _Opener:
         self.password_callback = password_callback
         self.hops: list[paramiko.Transport] = []
 
-    def open(
-        self, settings: HostSettings, *, depth: int = 0, early: preconnect.Early | None = None
-    ) -> paramiko.Transport:
+    def open(self, settings: HostSettings, *, depth: int = 0) -> paramiko.Transport:
         """Connect, check the host key and authenticate; on failure close all opened."""
         try:
-            return self._open(settings, depth, early)
+            return self._open(settings, depth)
         except BaseException:
             for hop in reversed(self.hops):
                 hop.close()
             self.hops.clear()
             raise
 
-    def _open(
-        self, settings: HostSettings, depth: int, early: preconnect.Early | None = None
-    ) -> paramiko.Transport:
+    def _open(self, settings: HostSettings, depth: int) -> paramiko.Transport:
         if depth > _MAX_HOPS:
             raise ConfigError(
                 f"more than {_MAX_HOPS} ProxyJump hops to reach {settings.alias}: "
                 "does the ssh config send a jump host through itself?"
             )
         host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint)
-        sock = self._sock(settings, depth, early)
+        sock = self._sock(settings, depth)
         try:
             transport = _Transport(sock)
         except Exception:
@@ -471,23 +461,9 @@ class _Opener:
             transport.set_keepalive(self.keepalive)
         return transport
 
-    def _sock(self, settings: HostSettings, depth: int, early: preconnect.Early | None) -> Any:
+    def _sock(self, settings: HostSettings, depth: int) -> Any:
         if settings.proxy_jump:
             return self._jump(settings, depth)
-        if early is not None and early.matches(
-            settings.hostname, settings.port, settings.proxy_command
-        ):
-            if settings.proxy_command:
-                started = early.take_process()
-                if started is not None:
-                    return _ProxyCommand(settings.proxy_command, started=started)
-            else:
-                try:
-                    sock = early.take_socket(self.timeout)
-                except OSError as exc:
-                    raise _tcp_error(settings, exc, self.timeout) from exc
-                if sock is not None:
-                    return _tune_tcp(sock, self.keepalive)
         if settings.proxy_command:
             return _ProxyCommand(settings.proxy_command)
         return _tcp_connect(settings, timeout=self.timeout, keepalive=self.keepalive)
@@ -647,23 +623,6 @@ def _tune_tcp(sock: socket.socket, keepalive: float) -> socket.socket:
     return sock
 
 
-def _wait_exit(process: subprocess.Popen[bytes], timeout: float) -> None:
-    """``process.wait(timeout)``, woken by the exit itself where Linux gives a pidfd:
-    Popen.wait polls with growing sleeps, ~16 ms for a ProxyCommand that exits in 1.
-    Raises subprocess.TimeoutExpired."""
-    try:
-        fd = os.pidfd_open(process.pid)
-    except (AttributeError, OSError):  # not Linux >= 5.3, or already reaped
-        process.wait(timeout)
-        return
-    try:
-        select.select([fd], [], [], timeout)
-    finally:
-        os.close(fd)
-    if process.poll() is None:
-        raise subprocess.TimeoutExpired(process.args, timeout)
-
-
 class _ProxyCommand(paramiko.ProxyCommand):
     """paramiko's ProxyCommand, run by ``/bin/sh`` as ssh does, with EOF and stderr kept.
 
@@ -672,24 +631,25 @@ class _ProxyCommand(paramiko.ProxyCommand):
     transport ends, and keeps the command's stderr for the error message.
     """
 
-    def __init__(
-        self,
-        command_line: str,
-        *,
-        started: tuple[subprocess.Popen[bytes], IO[bytes]] | None = None,
-    ) -> None:
-        """``started``: this very command already started by :func:`preconnect.spawn_proxy`
-        (the process and its stderr file), taken over."""
-        # not the parent's __init__: spawn_proxy runs it with the shell, as OpenSSH does
+    def __init__(self, command_line: str) -> None:
+        # not the parent's __init__: the command runs with the shell, as OpenSSH runs it
         self._command_line = command_line
-        if started is None:
-            try:
-                started = preconnect.spawn_proxy(command_line)
-            except OSError as exc:
-                raise ConnectError(
-                    f"cannot run ProxyCommand {command_line!r}: {exc.strerror}"
-                ) from exc
-        self.process, self._stderr = started
+        self._stderr: IO[bytes] = tempfile.TemporaryFile()  # noqa: SIM115 - close() closes it
+        try:
+            self.process = subprocess.Popen(
+                ["/bin/sh", "-c", "exec " + command_line],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=self._stderr,
+                bufsize=0,
+                start_new_session=True,
+            )
+        except OSError as exc:
+            self._stderr.close()
+            raise ConnectError(f"cannot run ProxyCommand {command_line!r}: {exc.strerror}") from exc
+        for pipe in (self.process.stdin, self.process.stdout):
+            if pipe is not None:
+                widen_pipe(pipe.fileno())
         self.timeout: float | None = None
         self._closed_here = False
         self._reaping = False
@@ -748,7 +708,7 @@ class _ProxyCommand(paramiko.ProxyCommand):
 
     def _reap(self) -> None:
         try:
-            _wait_exit(self.process, 1.0)
+            self.process.wait(1.0)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait()

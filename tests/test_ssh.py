@@ -526,25 +526,6 @@ def test_stalled_link_is_detected_and_reported_lost(ssh_home: SSHHome, connect: 
 # -- pure helpers ----------------------------------------------------------
 
 
-def test_wait_exit_reaps_an_ended_command_and_times_out_on_a_running_one() -> None:
-    from fetchsync.ssh import _wait_exit
-
-    quick = subprocess.Popen(["sh", "-c", "exec sleep 30"])
-    quick.terminate()
-    _wait_exit(quick, 10.0)
-    assert quick.returncode == -signal.SIGTERM
-    stubborn = subprocess.Popen(["sh", "-c", "trap '' TERM; exec sleep 30"])  # TERM stays ignored
-    try:
-        time.sleep(0.2)  # the trap is set
-        stubborn.terminate()
-        with pytest.raises(subprocess.TimeoutExpired):
-            _wait_exit(stubborn, 0.3)
-        assert stubborn.returncode is None
-    finally:
-        stubborn.kill()
-        stubborn.wait()
-
-
 def test_proxy_command_close_is_safe_from_two_threads_and_twice() -> None:
     """paramiko's transport thread and the caller's both close the proxy at the end of
     a session; a close racing another's flush raised ValueError out of a push that had
