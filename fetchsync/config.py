@@ -178,15 +178,12 @@ def ssh_config_user(
     ``ssh_config`` is a path or a parsed ``paramiko.SSHConfig``; by default
     ``~/.ssh/config`` when it exists.
     """
-    from fetchsync import paramiko_import
-
-    paramiko = paramiko_import.load()  # only now: an explicit --user never pays for it
+    import paramiko  # only now: an explicit --user never pays for its import
 
     if ssh_config is None or isinstance(ssh_config, (str, os.PathLike)):
         path = Path(ssh_config) if ssh_config is not None else _home(environ) / ".ssh" / "config"
         if ssh_config is None and not path.is_file():
             return None
-        paramiko_import.needs_exec(path)
         try:
             config = paramiko.SSHConfig.from_path(str(path))
         except OSError as exc:

@@ -37,10 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from fetchsync import paramiko_import
-
-paramiko_import.load()  # without invoke (see there); the imports below find it loaded
-
 import paramiko
 from paramiko.pkey import UnknownKeyType
 from paramiko.ssh_exception import (
@@ -117,7 +113,6 @@ def load_ssh_config(path: str | os.PathLike[str] | None = None) -> paramiko.SSHC
         if not default.is_file():
             return paramiko.SSHConfig()
         path = default
-    paramiko_import.needs_exec(path)
     try:
         return paramiko.SSHConfig.from_path(os.fspath(path))
     except OSError as exc:
