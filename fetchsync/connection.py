@@ -8,16 +8,14 @@ handshake and then carries request/response frames. Requests may be pipelined:
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
-import shlex
 import threading
 from typing import Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
 from fetchsync.protocol import hashing, wire
-from fetchsync.protocol.loader import NEED, cache_dir, loader_spec, write_cache_file
+from fetchsync.protocol.loader import NEED, loader_spec
 from fetchsync.transport import Channel, Transport
 
 log = logging.getLogger(__name__)
@@ -31,56 +29,6 @@ LIVENESS_INTERVAL = 5.0
 def remote_python() -> str:
     """The robot's Python: ``$FETCHSYNC_REMOTE_PYTHON`` or ``python3``."""
     return os.environ.get("FETCHSYNC_REMOTE_PYTHON") or DEFAULT_PYTHON
-
-
-# The interpreter a robot's ``python3`` turned out to be, noted on the laptop: the
-# next connection runs it by its path. A ``python3`` that is a pyenv or asdf shim
-# (a shell script that forks a dozen processes to choose a version) costs 80 ms of
-# every connection's start here; the endpoint needs only the standard library, so
-# any Python >= 3.8 serves, and the one the shim chose last time is one.
-_NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._+-")
-_PATH_CHARS = _NAME_CHARS | frozenset("/@~:,=")
-
-
-def interpreter_note(transport: Transport, python: str) -> str | None:
-    """Where the interpreter behind ``python`` on this robot is noted; None when ``python``
-    is not a bare command name (a path, or a command with arguments, is run as given),
-    and through a connection master: its endpoints are started ahead, by the name, and
-    a call takes one only if its command line is the same."""
-    if not python or not _NAME_CHARS.issuperset(python) or getattr(transport, "keeps_endpoints_warm", False):
-        return None
-    settings = getattr(transport, "settings", None)
-    if settings is not None:
-        where = f"ssh:{settings.user}@{settings.hostname}:{settings.port}"
-    else:
-        where = f"{transport.name}:{getattr(transport, 'home', '')}"
-    key = hashlib.sha256(f"{where}\0{python}".encode()).hexdigest()[:24]
-    return os.path.join(cache_dir(), f"python-{key}")
-
-
-def _usable_path(path: Any) -> bool:
-    return (isinstance(path, str) and path.startswith("/") and 1 < len(path) < 4096
-            and _PATH_CHARS.issuperset(path))
-
-
-def _read_note(note: str) -> str | None:
-    try:
-        with open(note, encoding="utf-8") as fh:
-            path = fh.read().strip()
-    except (OSError, UnicodeDecodeError):
-        return None
-    return path if _usable_path(path) else None
-
-
-def _write_note(note: str, path: str | None) -> None:
-    """Note ``path`` (None: forget the note); only a cache, so failures pass."""
-    if path is not None:
-        write_cache_file(note, path + "\n")
-        return
-    try:
-        os.unlink(note)
-    except OSError:
-        pass
 
 
 class Connection:
@@ -140,34 +88,8 @@ class Connection:
         connection): work that needs no answer from the robot. It is given a
         function that tells whether the robot has said something yet (its hello,
         or that it needs the endpoint sent), for work worth stopping then.
-
-        A bare command name (``python3``) is run by the path the robot reported
-        last time (see :func:`interpreter_note`); if that no longer starts, by its
-        name again, once.
         """
-        python = python or remote_python()
-        note = interpreter_note(transport, python)
-        noted = _read_note(note) if note is not None else None
-        if note is not None and noted is not None:
-            try:
-                conn = cls._open(transport, shlex.quote(noted), meanwhile)
-            except ConnectError as exc:  # gone, or broken since: ask the robot's PATH again
-                log.debug("the noted interpreter %s did not start (%s); trying %s", noted, exc, python)
-                _write_note(note, None)
-            else:
-                cls._note_interpreter(note, noted, conn.hello)
-                return conn
-            meanwhile = None  # it ran
-        conn = cls._open(transport, python, meanwhile)
-        if note is not None:
-            cls._note_interpreter(note, None, conn.hello)
-        return conn
-
-    @staticmethod
-    def _note_interpreter(note: str, noted: str | None, hello: dict[str, Any]) -> None:
-        executable = hello.get("executable")
-        if executable != noted and _usable_path(executable):
-            _write_note(note, executable)
+        return cls._open(transport, python or remote_python(), meanwhile)
 
     @classmethod
     def _open(cls, transport: Transport, python: str,

@@ -78,53 +78,6 @@ def test_the_loader_puts_site_directories_and_a_venvs_on_the_path(tmp_path):
     assert base.returncode == 0, base.stderr
 
 
-def test_the_robots_interpreter_is_run_by_the_path_it_reported(cache, tmp_path, monkeypatch):
-    """A ``python3`` that is a shim (as pyenv's: a script that picks an interpreter) runs
-    once; the hello's executable is noted and the next connection runs that directly. A
-    noted interpreter that no longer starts is forgotten, and the name is run again; a
-    configured command with arguments is always run as given."""
-    import sys
-
-    from fetchsync.connection import Connection, interpreter_note
-    from fetchsync.protocol import wire
-    from fetchsync.transport import LocalTransport
-
-    shims = tmp_path / "shims"
-    shims.mkdir()
-    runs = tmp_path / "shim-runs"
-    shim = shims / "python3"
-    shim.write_text(f'#!/bin/sh\necho run >> "{runs}"\nexec "{sys.executable}" "$@"\n')
-    shim.chmod(0o755)
-    monkeypatch.setenv("PATH", f"{shims}:{Path(sys.executable).parent}:/usr/bin:/bin")
-    transport = LocalTransport(tmp_path / "robot-home")
-
-    def connect(python="python3") -> None:
-        conn = Connection.open(transport, python=python)
-        try:
-            assert conn.request({"op": "ping"}).type == wire.T_RESPONSE
-        finally:
-            conn.close()
-
-    def shim_runs() -> int:
-        return len(runs.read_text().split()) if runs.exists() else 0
-
-    note = Path(interpreter_note(transport, "python3"))
-    connect()
-    assert shim_runs() == 1 and note.read_text().strip() == sys.executable
-    connect()
-    assert shim_runs() == 1  # by the noted path
-    note.write_text("/nonexistent/bin/python3\n")
-    connect()
-    assert shim_runs() == 2 and note.read_text().strip() == sys.executable
-    assert interpreter_note(transport, "python3 -X utf8") is None
-    connect("python3 -X utf8")
-    connect("python3 -X utf8")
-    assert shim_runs() == 4
-    assert interpreter_note(transport, "/opt/py/bin/python3") is None
-    assert interpreter_note(transport, "python3.8") not in (None, str(note))
-    assert interpreter_note(LocalTransport(tmp_path / "other-home"), "python3") != str(note)
-
-
 def test_the_endpoint_imports_nothing_it_needs_only_later():
     """Every connection pays the endpoint's imports before its hello: the modules needed
     only for rare paths (deep removals, a mallopt after the hello, a delivery, a crash)

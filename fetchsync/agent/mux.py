@@ -169,10 +169,6 @@ class MuxChannel:
 class MuxTransport:
     """A transport whose commands run through a connection master's socket."""
 
-    # the master keeps endpoints started ahead, with the command line a direct
-    # connection would use (``python3`` by name): see connection.interpreter_note
-    keeps_endpoints_warm = True
-
     def __init__(self, path: Path, name: str) -> None:
         self.path = path
         self.name = name
