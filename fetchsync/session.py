@@ -14,7 +14,6 @@ from typing import Any, Callable, Iterator
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
 from fetchsync.errors import ConfigError
-from fetchsync.protocol.loader import loader_spec
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 
@@ -55,13 +54,12 @@ def terminal_prompt() -> Callable[[str], str | None] | None:
 
 
 def open_transport(target: Target, *, accept_fingerprint: str | None = None,
-                   persistent: bool = True, prescan: tuple[str, Any] | None = None) -> Transport:
+                   persistent: bool = True) -> Transport:
     """A transport to the target's robot.
 
     ``persistent`` goes through (or leaves behind) a connection master; pass
     False for commands that need a PTY or an environment, which only a direct
-    SSH connection runs. ``prescan``: the local tree (root, rules' wire form) a
-    master left behind starts watching at once (see mux.spawn_master).
+    SSH connection runs.
     """
     if target.is_local:
         home = local_robot_home()
@@ -87,26 +85,19 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":
         # this call paid for the handshake; leave a master behind for the next
-        # ones, once it is done: a master starting now (its handshake, its
-        # spare endpoints opening this very workspace) would take the CPU this
-        # call needs, on both ends
-        warm = loader_spec(remote_python())[0]
-        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm,
-                                                      prescan=prescan)
+        # ones, once it is done: a master starting now would take the CPU this
+        # call needs
+        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path)
     return transport
 
 
 @contextmanager
 def connect(target: Target, *, accept_fingerprint: str | None = None,
-            meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
-            prescan: tuple[str, Any] | None = None) -> Iterator[Connection]:
+            meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Iterator[Connection]:
     """A connection to the target's endpoint; ``meanwhile`` runs while the endpoint
-    starts (see :meth:`Connection.open`), unless a connection master's endpoint is
-    ready (a wait of ~0). ``prescan``: see :func:`open_transport`."""
-    transport = open_transport(target, accept_fingerprint=accept_fingerprint, prescan=prescan)
+    starts (see :meth:`Connection.open`)."""
+    transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
-        if getattr(transport, "local_scan", None) is not None:
-            meanwhile = None
         conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
         try:
             yield conn

@@ -2,24 +2,16 @@
 
 The first one-shot verb that reaches a robot over SSH leaves a *connection
 master* behind: a background process that holds the authenticated SSH
-connection, keeps one robot-side endpoint started and waiting, and serves
-later calls over an owner-only unix socket. A later ``fetchsync push`` then
-pays neither the SSH handshake nor sshd's session start-up nor the endpoint's
-Python start-up. The master exits after ``FETCHSYNC_PERSIST`` idle seconds
-(default 600; 0 disables it) or as soon as its link dies.
+connection and serves later calls over an owner-only unix socket. A later
+``fetchsync push`` then pays no SSH handshake (several round trips and a key
+exchange: on a Wi-Fi link, the larger part of a small push's time). The master
+exits after ``FETCHSYNC_PERSIST`` idle seconds (default 600; 0 disables it) or
+as soon as its link dies.
 
 Socket protocol (one connection per remote command): the client sends one
 JSON line ``{"exec": COMMAND}`` and then the command's stdin as raw bytes
 (half-close = EOF); the master answers with frames ``u8 kind | u32 len |
 data``: 1 stdout, 2 stderr, 3 exit status (i32), 4 error message.
-
-The master also keeps the *local* side warm: asked ``{"scan": ROOT, "rules":
-RULES}``, it answers (one stdout frame, :mod:`marshal`) with the entries a
-fresh scan of ROOT would give, from a scan it made once and keeps current
-with inotify (``fetchsync.protocol.watched``). The first request only starts
-that scan; until it is ready, and whenever the events may be incomplete or
-the tree has entries a scan would report as skipped, the answer is an error
-frame and the caller scans for itself.
 """
 
 from __future__ import annotations
@@ -46,10 +38,7 @@ log = logging.getLogger(__name__)
 K_STDOUT, K_STDERR, K_EXIT, K_ERROR = 1, 2, 3, 4
 _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
-SCAN_VERSION = 1
-MAX_TREES = 2  # local workspaces kept watched by one master
-UNWATCHABLE_FOR = 600.0  # seconds before watching a tree that could not be watched is tried again
-DRAIN_EVERY = 0.25  # seconds between looks at the watched trees while no call comes
+IDLE_CHECK = 0.5  # seconds between looks at the link and the idle time while no call comes
 
 
 def persist_seconds() -> float:
@@ -203,53 +192,12 @@ class MuxTransport:
             raise ConnectError(f"the connection master for {self.name} did not answer") from exc
         return MuxChannel(sock)
 
-    def local_scan(self, root: str, rules: list[Any], timeout: float = 5.0) -> dict[str, Any] | None:
-        """The entries under ``root`` as the master keeps them current, or None (scan yourself)."""
-        import marshal
-
-        from fetchsync.protocol.tree import Entry
-
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(timeout)
-        try:
-            sock.connect(str(self.path))
-            sock.sendall(json.dumps({"scan": root, "rules": rules, "v": SCAN_VERSION}).encode() + b"\n")
-            sock.shutdown(socket.SHUT_WR)
-            buf = bytearray()
-            while True:
-                chunk = sock.recv(1 << 20)
-                if not chunk:
-                    break
-                buf += chunk
-        except OSError:
-            return None
-        finally:
-            sock.close()
-        if len(buf) < _HDR.size:
-            return None
-        kind, n = _HDR.unpack_from(buf)
-        if kind != K_STDOUT or len(buf) != _HDR.size + n:
-            return None
-        try:
-            reply = marshal.loads(bytes(buf[_HDR.size:]))
-            if reply.get("v") != SCAN_VERSION or reply.get("root") != root:
-                return None
-            make = Entry._make
-            return {path: make(t) for path, t in reply["entries"].items()}
-        except (ValueError, EOFError, TypeError, AttributeError, KeyError):
-            return None
-
     def close(self) -> None:
         pass
 
 
-def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = None,
-                 prescan: tuple[str, Any] | None = None) -> None:
-    """Start a connection master in the background (it authenticates on its own).
-
-    ``prescan`` (a local root and its rules' wire form, as a push asks for them)
-    is a tree the master starts watching at once, so the next call's scan request
-    finds it ready instead of starting it and scanning for itself meanwhile."""
+def spawn_master(host: str, user: str | None, path: Path) -> None:
+    """Start a connection master in the background (it authenticates on its own)."""
     seconds = persist_seconds()
     if seconds <= 0:
         return
@@ -257,10 +205,6 @@ def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = 
             "--idle", str(seconds)]
     if user:
         argv += ["--user", user]
-    if warm:
-        argv += ["--warm", warm]
-    if prescan is not None:
-        argv += ["--prescan", json.dumps(list(prescan))]
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
     if log_path:
         with open(log_path, "ab") as err:
@@ -272,70 +216,16 @@ def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = 
 
 
 # --------------------------------------------------------------------------- master side
-class _Warm:
-    """One started command whose output so far is buffered, ready to hand over."""
-
-    def __init__(self, command: str, channel: Any) -> None:
-        self.command = command
-        self.channel = channel
-
-
 class Master:
-    WARM = 2  # endpoints kept started: back-to-back calls need not wait for sshd
+    """Serves the commands of later calls over one authenticated SSH connection."""
 
-    def __init__(self, transport: Any, path: Path, idle: float, warm: str | None,
-                 prescan: tuple[str, Any] | None = None) -> None:
+    def __init__(self, transport: Any, path: Path, idle: float) -> None:
         self.transport = transport
-        self.prescan = prescan
         self.path = path
         self.idle = idle
-        self.warm_command = warm
-        self.pool: list[_Warm] = []
-        self.starting = 0
         self.lock = threading.Lock()
         self.active = 0
         self.last_used = time.monotonic()
-        self.trees: dict[str, Any] = {}  # scan key -> WatchedTree, or None while being built
-        self.scan_replies: dict[str, tuple[int, bytes]] = {}  # scan key -> (tree version, reply)
-        self.unwatchable: dict[str, float] = {}  # scan key -> when watching it last failed
-        self.trees_lock = threading.Lock()
-
-    def _refill(self) -> None:
-        with self.lock:
-            command = self.warm_command
-            if not command or len(self.pool) + self.starting >= self.WARM:
-                return
-            self.starting += 1
-        try:
-            channel = self.transport.exec(command)
-        except Exception as exc:  # the link may be dying; serve() notices
-            log.debug("cannot warm an endpoint: %s", exc)
-            channel = None
-        with self.lock:
-            self.starting -= 1
-            if channel is not None:
-                if command == self.warm_command:
-                    self.pool.append(_Warm(command, channel))
-                else:
-                    channel.close()
-        if channel is not None:
-            self._refill()
-
-    def _take(self, command: str) -> Any:
-        with self.lock:
-            found = next((w for w in self.pool if w.command == command), None)
-            if found is not None:
-                self.pool.remove(found)
-            elif command != self.warm_command:
-                for w in self.pool:
-                    w.channel.close()
-                self.pool = []
-                self.warm_command = command
-        threading.Thread(target=self._refill, daemon=True).start()
-        if found is not None:
-            return found.channel
-        log.info("no endpoint started ahead for this call: starting one")
-        return self.transport.exec(command)
 
     def serve(self) -> None:
         tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
@@ -345,12 +235,7 @@ class Master:
         own = os.stat(tmp).st_ino
         os.replace(tmp, self.path)
         srv.listen(16)
-        srv.settimeout(DRAIN_EVERY)
-        threading.Thread(target=self._refill, daemon=True).start()
-        if self.prescan is not None:
-            root, rules = self.prescan
-            with self.trees_lock:
-                self._watch(json.dumps([root, rules]), root, rules)
+        srv.settimeout(IDLE_CHECK)
         try:
             while True:
                 try:
@@ -358,7 +243,6 @@ class Master:
                 except (TimeoutError, socket.timeout):
                     if not self.transport.is_alive(timeout=0):
                         return
-                    self._drain_trees()
                     with self.lock:
                         idle = self.active == 0 and time.monotonic() - self.last_used > self.idle
                     if idle or not self._owns(own):
@@ -374,15 +258,6 @@ class Master:
                 except OSError:
                     pass
             srv.close()
-            with self.lock:
-                for w in self.pool:
-                    w.channel.close()
-                self.pool = []
-            with self.trees_lock:
-                for tree in self.trees.values():
-                    if tree is not None:
-                        tree.close()
-                self.trees = {}
             self.transport.close()
 
     def _owns(self, ino: int) -> bool:
@@ -391,106 +266,14 @@ class Master:
         except OSError:
             return False
 
-    # ------------------------------------------------------------------ local scans
-    def _scan(self, request: dict[str, Any]) -> bytes:
-        """The marshalled entries of a watched local tree; ValueError if not ready or usable."""
-        if request.get("v") != SCAN_VERSION or not isinstance(request.get("scan"), str):
-            raise ValueError("unknown scan request")
-        root, rules = request["scan"], request.get("rules")
-        key = json.dumps([root, rules])
-        with self.trees_lock:
-            if key not in self.trees:
-                if time.monotonic() - self.unwatchable.get(key, -UNWATCHABLE_FOR) < UNWATCHABLE_FOR:
-                    raise ValueError("that tree cannot be watched (inotify limit?)")
-                self._watch(key, root, rules)
-                raise ValueError("starting to watch that tree")
-            tree = self.trees[key]
-            if tree is None:
-                raise ValueError("still scanning that tree")
-            if not tree.refresh():
-                tree.close()
-                del self.trees[key]
-                self.scan_replies.pop(key, None)
-                raise ValueError("events were lost; watching that tree again")
-            if tree.skipped:
-                raise ValueError("that tree has entries a scan skips")
-            return self._reply(key, tree)
-
-    def _watch(self, key: str, root: str, rules: Any) -> None:
-        """Start building the watched tree for ``key`` (with trees_lock; not yet there)."""
-        if len(self.trees) >= MAX_TREES:
-            oldest = next(iter(self.trees))
-            old = self.trees.pop(oldest)
-            self.scan_replies.pop(oldest, None)
-            if old is not None:
-                old.close()
-        self.trees[key] = None
-        threading.Thread(target=self._build_tree, args=(key, root, rules), daemon=True).start()
-
-    def _reply(self, key: str, tree: Any) -> bytes:
-        """The marshalled answer for ``tree`` as it is now (made once per version); with trees_lock."""
-        import marshal
-
-        cached = self.scan_replies.get(key)
-        if cached is not None and cached[0] == tree.version:
-            return cached[1]  # nothing moved since the last answer
-        entries = {path: tuple(e) for path, e in tree.entries.items()}
-        reply = marshal.dumps({"v": SCAN_VERSION, "root": tree.root, "entries": entries})
-        self.scan_replies[key] = (tree.version, reply)
-        return reply
-
-    def _build_tree(self, key: str, root: str, rules: Any) -> None:
-        from fetchsync.protocol.ignore import IgnoreRules
-        from fetchsync.protocol.store import is_temp
-        from fetchsync.protocol.watched import Unavailable, WatchedTree
-
-        try:
-            tree = WatchedTree(root, IgnoreRules.from_wire(rules) if rules is not None else None,
-                               is_temp)
-        except (Unavailable, OSError, ValueError) as exc:
-            log.debug("cannot watch %s: %s", root, exc)
-            tree = None
-        if tree is not None and tree.watch.lost:
-            # over the user's inotify watch limit: give the watches back (a watch
-            # agent needs them more) and let callers scan for themselves a while
-            tree.close()
-            tree = None
-        with self.trees_lock:
-            if key in self.trees and tree is not None:
-                self.trees[key] = tree
-                log.info("watching %s: its scans are ready", root)
-                return
-            self.trees.pop(key, None)
-            if tree is None:
-                self.unwatchable[key] = time.monotonic()
-        if tree is not None:
-            tree.close()
-
-    def _drain_trees(self) -> None:
-        """Apply the events queued since the last look, so a burst cannot overflow the queue,
-        and have the answer to the next scan request ready: a push after a save then finds
-        it made, instead of waiting while 10,000 entries are marshalled again."""
-        with self.trees_lock:
-            for key, tree in list(self.trees.items()):
-                if tree is None:
-                    continue
-                if not tree.refresh():
-                    tree.close()
-                    del self.trees[key]
-                    self.scan_replies.pop(key, None)
-                elif not tree.skipped:
-                    self._reply(key, tree)
-
     def _client(self, conn: socket.socket) -> None:
         try:
             f = conn.makefile("rb")
             line = f.readline(1 << 16)
-            request = json.loads(line)
-            if "scan" in request:
-                self._answer_scan(conn, request)
-                return
-            command = request["exec"]
-            channel = self._take(command)
+            command = json.loads(line)["exec"]
+            if not isinstance(command, str):
+                raise ValueError("not a command")
+            channel = self.transport.exec(command)
         except Exception as exc:
             try:
                 msg = str(exc).encode()
@@ -538,19 +321,6 @@ class Master:
             conn.close()
             self._done()
 
-    def _answer_scan(self, conn: socket.socket, request: dict[str, Any]) -> None:
-        try:
-            try:
-                data, kind = self._scan(request), K_STDOUT
-            except ValueError as exc:
-                data, kind = str(exc).encode(), K_ERROR
-            conn.sendall(_HDR.pack(kind, len(data)) + data)
-        except OSError:
-            pass
-        finally:
-            conn.close()
-            self._done()
-
     @staticmethod
     def _upstream(f: Any, channel: Any) -> None:
         try:
@@ -582,8 +352,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--user")
     parser.add_argument("--socket", required=True)
     parser.add_argument("--idle", type=float, default=DEFAULT_PERSIST)
-    parser.add_argument("--warm")
-    parser.add_argument("--prescan", type=json.loads)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
     try:
@@ -592,8 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("cannot connect to %s: %s", args.host, exc)
         return 1
     try:
-        prescan = tuple(args.prescan) if isinstance(args.prescan, list) and len(args.prescan) == 2 else None
-        Master(transport, Path(args.socket), args.idle, args.warm, prescan).serve()
+        Master(transport, Path(args.socket), args.idle).serve()
     except OSError as exc:
         log.error("cannot serve on %s: %s", args.socket, exc)
         transport.close()
