@@ -77,23 +77,6 @@ def test_unknown_host_key_is_refused_with_its_fingerprint(env, ssh_home, remote_
     assert (remote_dir / "src/my_pkg/package.xml").exists()
 
 
-def test_the_robots_python3_is_noted_and_a_stale_note_is_replaced(env, remote_dir, tmp_path):
-    """The path the robot's ``python3`` resolved to is noted on the laptop (the next
-    connection runs it without the robot's PATH, or a pyenv shim); a noted path the robot
-    no longer has costs a second start, not the push."""
-    env = dict(env, FETCHSYNC_PERSIST="0", XDG_CACHE_HOME=str(tmp_path / "cache"))
-    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
-    fetchsync("push", env=env)
-    [note] = (tmp_path / "cache" / "fetchsync").glob("python-*")
-    noted = note.read_text().strip()
-    assert noted.startswith("/") and os.access(noted, os.X_OK) and "python" in noted
-    note.write_text("/nonexistent/bin/python3\n")
-    (local / "my_pkg" / "new.txt").write_text("after the note went stale\n")
-    r = report(fetchsync("push", "--json", env=env))
-    assert r["ok"] and r["files"] == 1 and note.read_text().strip() == noted
-    assert tree_of(local) == tree_of(remote_dir / "src")
-
-
 def test_missing_python_on_the_robot_is_a_clear_error(env):
     env = dict(env, FETCHSYNC_REMOTE_PYTHON="/nonexistent/python3")
     proc = fetchsync("push", env=env, check=False)
