@@ -114,6 +114,11 @@ class AccountRequest:
     skeleton: Skeleton | None
     env: dict[str, str]
     password: str | None = field(default=None, repr=False)
+    workspace: str | None = None
+    """The account's workspace on the robot as push resolves it (``~`` kept), or None."""
+    ros_snippet: str = "fetchsync"
+    """``fetchsync`` records the workspace in ``~/.bashrc.d/30-workspace.sh`` (read by the
+    built-in skeleton's 40-ros.sh); ``fetch_tools`` writes fetch_tools' ``40-ros-setup.sh``."""
 
     def to_json(self) -> bytes:
         sk = self.skeleton
@@ -129,6 +134,8 @@ class AccountRequest:
             "init": (base64.b64encode(sk.init).decode("ascii")
                      if sk is not None and sk.init is not None else None),
             "env": self.env,
+            "workspace": self.workspace,
+            "ros_snippet": self.ros_snippet,
         }
         return json.dumps(payload).encode("utf-8")
 
@@ -149,6 +156,12 @@ class AccountReport:
     initialize: str  # "ran", "already", "failed" or "none"
     skeleton: str = ""
     error: str | None = None
+    workspace: str = ""
+    """The workspace the account's shells use, as recorded on the robot ("" when none)."""
+    workspace_record: str = ""
+    """written, updated, kept, yours (a file not ours, left alone), initialize.sh, unresolved."""
+    workspace_was: str = ""
+    workspace_file: str = ""
 
     @classmethod
     def from_robot(cls, data: dict[str, Any], *, robot: str) -> AccountReport:
@@ -164,6 +177,10 @@ class AccountReport:
             skeleton_added=[str(p) for p in data.get("skeleton_added", [])],
             initialize=str(data.get("initialize", "none")),
             error=data.get("error"),
+            workspace=str(data.get("workspace") or ""),
+            workspace_record=str(data.get("workspace_record") or ""),
+            workspace_was=str(data.get("workspace_was") or ""),
+            workspace_file=str(data.get("workspace_file") or ""),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -243,6 +260,16 @@ def find_skeleton(option: str | os.PathLike[str] | None = None) -> Path:
         raise ConfigError("the built-in skeleton is missing from this installation",
                           hint="pass --skeleton DIR")
     return builtin
+
+
+def is_legacy_skeleton(path: Path) -> bool:
+    """True for fetch_tools' skeleton: ``~/.fetch/robot_skeleton``, or a copy of the one in
+    fetch_tools' sources (``resources/robot_skeleton``). Those get fetch_tools' own ROS
+    set-up, ``~/.bashrc.d/40-ros-setup.sh``, which their ``.bashrc`` reads."""
+    resolved = Path(os.path.abspath(path))
+    legacy = Path(os.path.abspath(os.path.expanduser(SKELETON_SEARCH[1])))
+    return resolved == legacy or (resolved.name == "robot_skeleton"
+                                  and resolved.parent.name == "resources")
 
 
 def load_skeleton(root: Path) -> Skeleton:
@@ -469,6 +496,7 @@ __all__ = [
     "check_user_name",
     "find_public_key",
     "find_skeleton",
+    "is_legacy_skeleton",
     "load_skeleton",
     "read_public_key",
 ]

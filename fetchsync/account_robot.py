@@ -22,10 +22,13 @@ file the user gets is theirs.
 from __future__ import annotations
 
 import base64
+import glob
 import grp
 import json
 import os
 import pwd
+import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -39,6 +42,12 @@ INIT_NAME = "initialize.sh"
 INIT_MARKER = "initialized"
 DEFAULT_UID_MIN = 1000
 SAFE_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
+WORKSPACE_FILE = ".bashrc.d/30-workspace.sh"
+FETCH_TOOLS_FILE = ".bashrc.d/40-ros-setup.sh"
+HEADER = "# Written by fetchsync create-account"
+OUR_HEADERS = (HEADER, "# Written by initialize.sh")
+# fetch_tools' create-account appended such lines, and nothing else, to 40-ros-setup.sh.
+_FETCH_TOOLS_LINE = re.compile(r"source \S+/setup\.bash\Z")
 
 
 class Failure(Exception):
@@ -215,6 +224,8 @@ def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
     """As the user: key, skeleton, initialize.sh. Runs in the home directory."""
     out: dict[str, Any] = {"key": install_key(request.get("key"))}
     out["skeleton_added"] = copy_skeleton(request.get("skeleton") or [], overwrite=overwrite)
+    # Before initialize.sh, which reads it: the workspace push uses, fixed on every run.
+    out.update(record_workspace(entry, request))
     init = request.get("init")
     if init is None:
         out["initialize"] = "none"
@@ -234,7 +245,123 @@ def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
         return out
     write_file(marker, time.strftime("%Y-%m-%dT%H:%M:%S%z\n").encode(), 0o644)
     out["initialize"] = "ran"
+    if not out.get("workspace"):
+        # Nothing resolved on the laptop: say what initialize.sh chose.
+        chosen = read_exports(WORKSPACE_FILE).get("FETCH_WORKSPACE")
+        if chosen:
+            out.update(workspace=chosen, workspace_record="initialize.sh",
+                       workspace_file=WORKSPACE_FILE)
     return out
+
+
+def record_workspace(entry: pwd.struct_passwd, request: dict[str, Any]) -> dict[str, Any]:
+    """Write the account's workspace (and ROS distribution) where its shells read them.
+
+    A file fetchsync (or fetch_tools) wrote is rewritten when it says otherwise, so
+    running create-account again fixes a wrong workspace; a file of the user's own is
+    left alone. The built-in skeleton reads ``30-workspace.sh``; fetch_tools' skeleton
+    gets fetch_tools' ``40-ros-setup.sh``, sourcing ROS and the workspace's devel/.
+    """
+    workspace = request.get("workspace")
+    distro = (request.get("env") or {}).get("ROS_DISTRO") or ""
+    legacy = request.get("ros_snippet") == "fetch_tools"
+    path = FETCH_TOOLS_FILE if legacy else WORKSPACE_FILE
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            old: str | None = f.read()
+    except FileNotFoundError:
+        old = None
+    if old is not None and not is_ours(old):
+        return {"workspace_record": "yours", "workspace_file": path}
+    if legacy:
+        was = _fetch_tools_workspace(old or "")
+        distro = distro or _only_distro()
+    else:
+        exports = read_exports(path) if old is not None else {}
+        was = exports.get("FETCH_WORKSPACE", "")
+        distro = distro or exports.get("ROS_DISTRO", "")
+    if not workspace:
+        if legacy and distro:
+            workspace = "~/" + distro  # fetch_tools' default, ~/$ROS_DISTRO
+        else:
+            return {"workspace_record": "unresolved"}
+    absolute = expand_home(workspace, entry.pw_dir)
+    text = fetch_tools_snippet(distro, absolute) if legacy else workspace_exports(distro, absolute)
+    result = {"workspace": workspace, "workspace_file": path}
+    if old == text:
+        result["workspace_record"] = "kept"
+        return result
+    os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
+    write_file(path, text.encode("utf-8"), 0o644)
+    result["workspace_record"] = "written" if old is None else "updated"
+    if old is not None and was and was != absolute:
+        result["workspace_was"] = was
+    return result
+
+
+def is_ours(text: str) -> bool:
+    """Written by fetchsync, by the built-in initialize.sh, or by fetch_tools' create-account."""
+    if text.startswith(OUR_HEADERS):
+        return True
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return bool(lines) and all(_FETCH_TOOLS_LINE.match(line) for line in lines)
+
+
+def workspace_exports(distro: str, workspace: str) -> str:
+    lines = [HEADER + ": the ROS distribution and the workspace of this account."]
+    if distro:
+        lines.append("export ROS_DISTRO=" + shlex.quote(distro))
+    lines.append("export FETCH_WORKSPACE=" + shlex.quote(workspace))
+    return "\n".join(lines) + "\n"
+
+
+def fetch_tools_snippet(distro: str, workspace: str) -> str:
+    lines = [HEADER + ", as fetch_tools did: ROS, then the workspace built over it."]
+    setups = ["/opt/ros/" + distro + "/setup.bash"] if distro else []
+    setups.append(workspace.rstrip("/") + "/devel/setup.bash")
+    for setup in setups:
+        q = shlex.quote(setup)
+        lines.append("if [ -f " + q + " ]; then source " + q + "; fi")
+    return "\n".join(lines) + "\n"
+
+
+def _fetch_tools_workspace(text: str) -> str:
+    for line in text.splitlines():
+        for word in shlex.split(line, comments=True) if "source" in line else []:
+            if word.endswith("/devel/setup.bash"):
+                return word[: -len("/devel/setup.bash")]
+    return ""
+
+
+def read_exports(path: str) -> dict[str, str]:
+    """``export NAME=VALUE`` lines of a shell file, unquoted; {} when unreadable."""
+    out: dict[str, str] = {}
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return out
+    for line in lines:
+        try:
+            words = shlex.split(line, comments=True)
+        except ValueError:
+            continue
+        if len(words) == 2 and words[0] == "export" and "=" in words[1]:
+            name, _, value = words[1].partition("=")
+            out[name] = value
+    return out
+
+
+def expand_home(path: str, home: str) -> str:
+    if path == "~" or path.startswith("~/"):
+        return home.rstrip("/") + path[1:]
+    return path
+
+
+def _only_distro() -> str:
+    """The ROS distribution under /opt/ros when there is exactly one."""
+    found = glob.glob("/opt/ros/*/setup.bash")
+    return os.path.basename(os.path.dirname(found[0])) if len(found) == 1 else ""
 
 
 def install_key(key: str | None) -> str:

@@ -437,3 +437,101 @@ def test_passwords_never_on_a_command_line(sshd, ssh_home, accounts, tmp_path) -
         assert not [line for line in seen if secret in line]
         assert secret not in proc.stdout + proc.stderr
         assert secret not in sshd.log_text()
+
+
+# --- fetch_tools' defaults and push's workspace -----------------------------------------------
+
+_TARGET_VARS = ("FETCHSYNC_USER", "FETCH_USER", "ROS_DISTRO", "FETCHSYNC_WORKSPACE",
+                "FETCH_WORKSPACE", "FETCHSYNC_REMOTE_WORKSPACE", "FETCH_REMOTE_WORKSPACE",
+                "ROS_MASTER_URI", "FETCHSYNC_ROBOT", "FETCH_ROBOT")
+
+
+def _create_as_user(ssh_home, *args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """create-account as a fetch_tools user runs it: no --user, the environment decides."""
+    full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS
+                and k not in ("SSH_AUTH_SOCK", "FETCHSYNC_NEW_PASSWORD",
+                              "FETCHSYNC_ADMIN_PASSWORD", "FETCHSYNC_ADMIN_USER")}
+    full_env.update(HOME=str(ssh_home.home), FETCHSYNC_ADMIN_USER="root", **env)
+    return subprocess.run([sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot",
+                           "--json", *args], capture_output=True, text=True, env=full_env,
+                          stdin=subprocess.DEVNULL, timeout=60, cwd=REPO, check=False)
+
+
+def _push_remote_workspace(ssh_home, env: dict[str, str], workspace: str | None = None) -> str:
+    """What push resolves as the remote workspace in this environment."""
+    code = ("import sys; from fetchsync.commands.common import resolve; "
+            "print(resolve('robot', None, sys.argv[1] or None, None).remote_workspace)")
+    full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS}
+    full_env.update(HOME=str(ssh_home.home), **env)
+    proc = subprocess.run([sys.executable, "-c", code, workspace or ""], capture_output=True,
+                          text=True, env=full_env, cwd=REPO, check=True)
+    return proc.stdout.strip()
+
+
+@pytest.mark.ssh
+@needs_root
+def test_user_defaults_to_fetch_user_then_user(sshd, ssh_home, accounts) -> None:
+    name, other = accounts("fstest"), accounts("fstest")
+    report = _report(_create_as_user(ssh_home, "--fullname", "Not A. Robot",
+                                     env={"FETCH_USER": name, "USER": "nobody-else",
+                                          "FETCHSYNC_NEW_PASSWORD": _password()}))
+    assert report["user"] == name and report["created"]
+    assert pwd.getpwnam(name).pw_gecos.split(",")[0] == "Not A. Robot"
+    report = _report(_create_as_user(ssh_home, env={"USER": other,
+                                                    "FETCHSYNC_NEW_PASSWORD": _password()}))
+    assert report["user"] == other and report["created"]
+
+
+@pytest.mark.ssh
+@needs_root
+def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accounts) -> None:
+    name = accounts("fstest")
+
+    def saved() -> dict[str, str]:
+        return account_robot_exports(Path(pwd.getpwnam(name).pw_dir))
+
+    # Before ROS is sourced nothing resolves here: initialize.sh picks (~/catkin_ws, no ROS)
+    report = _report(_create_as_user(ssh_home, env={"FETCH_USER": name,
+                                                    "FETCHSYNC_NEW_PASSWORD": _password()}))
+    home = Path(pwd.getpwnam(name).pw_dir)
+    assert report["workspace_record"] == "initialize.sh"
+    assert saved()["FETCH_WORKSPACE"] == f"{home}/catkin_ws"
+
+    # With ROS sourced, push goes to ~/noetic: a second run records that, saying what it was
+    env = {"FETCH_USER": name, "ROS_DISTRO": "noetic"}
+    assert _push_remote_workspace(ssh_home, env) == "~/noetic"
+    proc = _create_as_user(ssh_home, env=env)
+    report = _report(proc)
+    assert (report["workspace"], report["workspace_record"]) == ("~/noetic", "updated")
+    assert report["workspace_was"] == f"{home}/catkin_ws"
+    assert saved() == {"ROS_DISTRO": "noetic", "FETCH_WORKSPACE": f"{home}/noetic"}
+    # ... and the account's shells see it
+    shell = subprocess.run(["su", "-", name, "-c", "bash -ic 'echo \"$FETCH_WORKSPACE\"' 2>/dev/null"],
+                           capture_output=True, text=True, timeout=30, check=False)
+    assert shell.stdout.strip().splitlines()[-1] == f"{home}/noetic"
+
+    # fetch_tools' --workspace, resolved as push resolves it; the same again keeps it
+    laptop_ws = str(ssh_home.home / "robots_ws")
+    assert _push_remote_workspace(ssh_home, env, laptop_ws) == "~/robots_ws"
+    report = _report(_create_as_user(ssh_home, "--workspace", laptop_ws, env=env))
+    assert report["workspace"] == "~/robots_ws" and saved()["FETCH_WORKSPACE"] == f"{home}/robots_ws"
+    report = _report(_create_as_user(ssh_home, "--workspace", laptop_ws, env=env))
+    assert report["workspace_record"] == "kept"
+
+    # a file the user wrote is theirs: left alone, and said so
+    (home / ".bashrc.d" / "30-workspace.sh").write_text("export FETCH_WORKSPACE=~/mine\n")
+    report = _report(_create_as_user(ssh_home, env=env))
+    assert report["workspace_record"] == "yours"
+    assert (home / ".bashrc.d" / "30-workspace.sh").read_text() == "export FETCH_WORKSPACE=~/mine\n"
+
+
+def account_robot_exports(home: Path) -> dict[str, str]:
+    from fetchsync.account_robot import read_exports
+
+    return read_exports(str(home / ".bashrc.d" / "30-workspace.sh"))
+
+
+def test_create_account_help_shows_fetch_tools_defaults() -> None:
+    result = CliRunner().invoke(cli, ["create-account", "--help"])
+    assert result.exit_code == 0
+    assert "$FETCH_USER, $USER" in result.output and "--workspace" in result.output

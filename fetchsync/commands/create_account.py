@@ -69,26 +69,36 @@ def _login_callback(admin_password: _Secret) -> Callable[[str], str | None]:
     return answer
 
 
-def _remote_workspace(option: str | None) -> str | None:
-    """The workspace initialize.sh sets up: as push would resolve it, or None to let it choose."""
-    from fetchsync.config import (
-        REMOTE_WORKSPACE_VARS,
-        check_remote_workspace,
-        home_relative,
-        resolve_workspace,
-    )
+def _account_user(option: str | None) -> str:
+    """The account to create: ``--user``, else ``$FETCHSYNC_USER``, ``$FETCH_USER``, ``$USER``
+    (fetch_tools' order, with fetchsync's own variable first, as every verb)."""
+    import getpass
+
+    from fetchsync.config import USER_VARS
+
+    for value in (option, *(os.environ.get(name) for name in (*USER_VARS, "USER"))):
+        if value and value.strip():
+            return value.strip()
+    return getpass.getuser()
+
+
+def _account_workspace(robot: str | None, user: str, workspace: str | None,
+                       remote_workspace: str | None) -> str | None:
+    """The account's workspace on the robot, resolved by the very call ``push`` makes, so
+    the two agree; None when no workspace resolves (the robot's initialize.sh chooses)."""
+    from fetchsync.commands.common import resolve
+    from fetchsync.config import REMOTE_WORKSPACE_VARS, resolve_remote_workspace
     from fetchsync.errors import ConfigError
 
-    given = [("--remote-workspace", option)]
-    given += [(name, os.environ.get(name)) for name in REMOTE_WORKSPACE_VARS]
-    for source, value in given:
-        if value and value.strip():
-            return check_remote_workspace(value, source=source)
     try:
-        local = resolve_workspace(None)
+        return str(resolve(robot, user, workspace, remote_workspace).remote_workspace)
     except ConfigError:
-        return None
-    return check_remote_workspace(home_relative(local), source=f"the workspace {local}")
+        if workspace is not None or remote_workspace is not None:
+            raise
+    # No local workspace (ROS not sourced, none given): a remote one from a variable still counts.
+    if any(os.environ.get(name, "").strip() for name in REMOTE_WORKSPACE_VARS):
+        return resolve_remote_workspace(None, workspace=Path.home())
+    return None
 
 
 def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
@@ -107,9 +117,19 @@ def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
     added = len(report.skeleton_added)
     click.echo(f"  skeleton: {skeleton.source}: {added} file{'s' if added != 1 else ''} added")
     click.echo(f"  initialize.sh: {_INIT_WORDS.get(report.initialize, report.initialize)}")
+    if report.workspace:
+        how = _WORKSPACE_WORDS.get(report.workspace_record, report.workspace_record)
+        was = f"; was {report.workspace_was}" if report.workspace_was else ""
+        where = f" in ~/{report.workspace_file}" if report.workspace_file else ""
+        click.echo(f"  workspace: {report.workspace} ({how}{where}{was})")
+    elif report.workspace_record == "unresolved":
+        click.echo("  workspace: none resolved here (source ROS or pass --workspace, then run "
+                   "create-account again to record it)")
 
 
 _KEY_WORDS = {"added": "added", "present": "already there", "none": "none installed"}
+_WORKSPACE_WORDS = {"written": "recorded", "updated": "recorded", "kept": "already recorded",
+                    "yours": "your own file, left as it is", "initialize.sh": "chosen by initialize.sh"}
 _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
                "none": "not in the skeleton"}
 
@@ -117,8 +137,9 @@ _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
 @click.command("create-account")
 @click.option("--robot", shell_complete=complete_robot, help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, "
               "the host of $ROS_MASTER_URI.")
-@click.option("--user", "user", required=True, metavar="NAME",
-              help="The account to create on the robot (not the login: see --admin-user).")
+@click.option("--user", "user", metavar="NAME",
+              help="The account to create on the robot (not the login: see --admin-user). "
+                   "Default: $FETCHSYNC_USER, $FETCH_USER, $USER.")
 @click.option("--fullname", help="The user's full name. Default: NAME.")
 @click.option("--admin-user", default="fetch", show_default=True, envvar="FETCHSYNC_ADMIN_USER",
               help="The account that logs in and creates it: root, or a user with sudo rights.")
@@ -128,8 +149,11 @@ _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
 @click.option("--key", type=click.Path(dir_okay=False),
               help="Public key to install. "
                    "Default: ~/.ssh/id_ed25519.pub, id_ecdsa.pub, id_rsa.pub.")
-@click.option("--remote-workspace", help="Workspace initialize.sh creates. Default: as push "
-              "resolves it, else ~/$ROS_DISTRO on the robot.")
+@click.option("--workspace", type=click.Path(file_okay=False),
+              help="Local workspace whose robot counterpart the account uses, as push resolves "
+                   "it. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, ~/$ROS_DISTRO.")
+@click.option("--remote-workspace", help="The account's workspace on the robot. Default: as push "
+              "resolves it, else initialize.sh's choice (~/$ROS_DISTRO of the robot).")
 @click.option("--reset-password", is_flag=True,
               help="Set the password of an account that already exists.")
 @click.option("--accept-host-key", metavar="SHA256:...",
@@ -138,8 +162,9 @@ _INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
 @click.option("--password", expose_value=False, hidden=True, callback=_refuse_password_option)
 @click.option("--fetch-password", expose_value=False, hidden=True,
               callback=_refuse_password_option)
-def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
-            skeleton: str | None, key: str | None, remote_workspace: str | None,
+def command(robot: str | None, user: str | None, fullname: str | None, admin_user: str,
+            skeleton: str | None, key: str | None, workspace: str | None,
+            remote_workspace: str | None,
             reset_password: bool, accept_host_key: str | None, as_json: bool) -> None:
     """Create a user's account on the robot, or repair an existing one.
 
@@ -151,7 +176,8 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
     Passwords are asked on the terminal, or read from FETCHSYNC_NEW_PASSWORD
     and FETCHSYNC_ADMIN_PASSWORD; they never appear on a command line. For an
     existing account only what is missing is added; its password is kept
-    unless --reset-password.
+    unless --reset-password, and its recorded workspace is set to the one push
+    uses now (run it again after changing workspaces).
     """
     from fetchsync.account import (
         DEFAULT_ADMIN,
@@ -162,6 +188,7 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
         check_user_name,
         find_public_key,
         find_skeleton,
+        is_legacy_skeleton,
         load_skeleton,
         read_public_key,
     )
@@ -170,14 +197,15 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
     from fetchsync.errors import RemoteError, UsageError
     from fetchsync.transport import LOCAL_ROBOT
 
-    name = check_user_name(user)
+    name = check_user_name(_account_user(user))
     admin = (admin_user or DEFAULT_ADMIN).strip()
     check_user_name(admin)
     target = resolve_robot(robot)
     if target == LOCAL_ROBOT:
         raise UsageError("create-account needs a real robot, not the local one",
                          hint="pass --robot NAME")
-    sk = load_skeleton(find_skeleton(skeleton))
+    skeleton_dir = find_skeleton(skeleton)
+    sk = load_skeleton(skeleton_dir)
     key_path = find_public_key(key)
     public_key = read_public_key(key_path) if key_path is not None else None
     if public_key is None:
@@ -187,9 +215,9 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
     distro = os.environ.get("ROS_DISTRO", "").strip()
     if distro:
         env["ROS_DISTRO"] = distro
-    workspace = _remote_workspace(remote_workspace)
-    if workspace:
-        env["FETCH_WORKSPACE"] = workspace
+    account_ws = _account_workspace(robot, name, workspace, remote_workspace)
+    if account_ws:
+        env["FETCH_WORKSPACE"] = account_ws
 
     admin_password = _Secret(ADMIN_PASSWORD_VAR, f"Password of {admin} on {target}", confirm=False)
     new_password = _Secret(NEW_PASSWORD_VAR, f"New password for {name}", confirm=True)
@@ -210,7 +238,9 @@ def command(robot: str | None, user: str, fullname: str | None, admin_user: str,
             session.check_sudo(sudo_password)
         request = AccountRequest(user=name, fullname=check_fullname(fullname or name),
                                  groups=GROUPS, key=public_key, skeleton=sk, env=env,
-                                 password=password)
+                                 password=password, workspace=account_ws,
+                                 ros_snippet="fetch_tools" if is_legacy_skeleton(skeleton_dir)
+                                 else "fetchsync")
         report = session.apply(request, sudo=not found.admin_is_root,
                                sudo_password=sudo_password, on_stderr=_to_stderr)
     finally:
