@@ -43,15 +43,30 @@ MARKERS = (
     "build/COLCON_IGNORE",
     "install/COLCON_IGNORE",
     "log/COLCON_IGNORE",
+    "install/.colcon_install_layout",
     "colcon.meta",
+    ".catkin_workspace",
     "src/CMakeLists.txt",
     "build/catkin_make.cache",
     "devel/.catkin",
 )
 """Paths, relative to a workspace, whose presence tells how it is built."""
 
+_CATKIN_TOOLS_MARKERS = (".catkin_tools",)
+_COLCON_MARKERS = ("build/COLCON_IGNORE", "install/COLCON_IGNORE", "log/COLCON_IGNORE",
+                   "install/.colcon_install_layout", "colcon.meta")
+_CATKIN_MAKE_MARKERS = (".catkin_workspace", "src/CMakeLists.txt", "build/catkin_make.cache",
+                        "devel/.catkin")
+
+ROS1, ROS2 = "ros1", "ros2"
+"""Prefixes of the probe's lines naming a distribution under /opt/ros (``ros2:humble``)."""
+
 _IGNORE_FILES = ("CATKIN_IGNORE", "COLCON_IGNORE", "AMENT_IGNORE")
 _AMENT = re.compile(r"<(buildtool_depend|build_type)>\s*ament_")
+_BUILD_TYPE = re.compile(r"<build_type>\s*([A-Za-z0-9_]+)\s*</build_type>")
+_CATKIN_BUILDTOOL = re.compile(r"<buildtool_depend>\s*catkin\s*</buildtool_depend>")
+_FORMAT = re.compile(r"<package\b[^>]*\bformat\s*=\s*[\"']?(\d+)")
+_PKG_NAME = re.compile(r"<name>\s*([^<\s]+)\s*</name>")
 _CMAKE_ARGS = re.compile(r"(?:^|(?<=\s))--cmake-args(?=\s|$)")
 
 
@@ -96,26 +111,69 @@ class Step:
 
 
 # --------------------------------------------------------------------------- detection
-def detect_tool(markers: Collection[str], manifests: Iterable[str] = ()) -> str:
-    """The build tool for a workspace with these ``markers`` and package manifests.
+@dataclass(frozen=True)
+class Choice:
+    """The build tool :func:`choose_tool` picked, and why (for the one line that says so)."""
+
+    tool: str
+    reason: str
+
+
+def _colcon_only(text: str) -> str | None:
+    """Why the package in ``text`` needs colcon (ament or plain build types, format 3 without
+    catkin), or None when catkin builds it."""
+    m = _BUILD_TYPE.search(text)
+    if m and m.group(1) != "catkin":
+        return f"build type {m.group(1)}"
+    if _AMENT.search(text):
+        return "ament buildtool"
+    f = _FORMAT.search(text)
+    if f and int(f.group(1)) >= 3 and not _CATKIN_BUILDTOOL.search(text):
+        return "package.xml format 3 without catkin"
+    return None
+
+
+def choose_tool(markers: Collection[str], manifests: Iterable[str] = (),
+                distros: Collection[str] = ()) -> Choice:
+    """The build tool for a workspace with these ``markers``, package manifests and ROS.
 
     A workspace configured for catkin_tools (``.catkin_tools/``) uses
-    ``catkin build``; one colcon built before (its ``COLCON_IGNORE`` files)
-    colcon; one catkin_make built or set up before (the toplevel
-    ``src/CMakeLists.txt``, its caches) catkin_make. Else the packages decide:
-    ament ones (ROS 2) mean colcon, catkin ones catkin_make, which is also the
-    default, as in fetch_tools.
+    ``catkin build``; one colcon built before (its ``COLCON_IGNORE`` files,
+    ``install/.colcon_install_layout``) colcon; one catkin_make built or set
+    up before (``.catkin_workspace``, the toplevel ``src/CMakeLists.txt``, its
+    caches) catkin_make. A workspace never built is known by its packages:
+    ROS 2 ones (``ament_*`` or other non-catkin build types, format 3 without
+    catkin) mean colcon, catkin ones catkin_make, as in fetch_tools. With no
+    package to tell, the robot's ROS does (``distros``: ``ros2:humble``, ...
+    from :func:`marker_probe`): ROS 2 only means colcon; else catkin_make.
     """
     found = set(markers)
-    if ".catkin_tools" in found:
-        return CATKIN_TOOLS
-    if found & {"build/COLCON_IGNORE", "install/COLCON_IGNORE", "log/COLCON_IGNORE", "colcon.meta"}:
-        return COLCON
-    if found & {"src/CMakeLists.txt", "build/catkin_make.cache", "devel/.catkin"}:
-        return CATKIN_MAKE
-    if any(_AMENT.search(text) for text in manifests):
-        return COLCON
-    return CATKIN_MAKE
+    for tool, names in ((CATKIN_TOOLS, _CATKIN_TOOLS_MARKERS), (COLCON, _COLCON_MARKERS),
+                        (CATKIN_MAKE, _CATKIN_MAKE_MARKERS)):
+        hit = next((m for m in names if m in found), None)
+        if hit is not None:
+            return Choice(tool, f"the workspace has {hit}")
+    catkin_pkg = None
+    for text in manifests:
+        why = _colcon_only(text)
+        name = _PKG_NAME.search(text)
+        label = name.group(1) if name else "a package"
+        if why is not None:
+            return Choice(COLCON, f"{label} is a ROS 2 package ({why})")
+        catkin_pkg = catkin_pkg or label
+    if catkin_pkg is not None:
+        return Choice(CATKIN_MAKE, f"never built, and {catkin_pkg} is a catkin package")
+    kinds = {d.split(":", 1)[0] for d in distros}
+    if kinds == {ROS2}:
+        names = ", ".join(sorted(d.split(":", 1)[1] for d in distros))
+        return Choice(COLCON, f"no packages yet, and the robot has ROS 2 only ({names})")
+    return Choice(CATKIN_MAKE, "nothing tells: catkin_make, as fetch_tools")
+
+
+def detect_tool(markers: Collection[str], manifests: Iterable[str] = (),
+                distros: Collection[str] = ()) -> str:
+    """The tool :func:`choose_tool` picks."""
+    return choose_tool(markers, manifests, distros).tool
 
 
 def local_markers(workspace: Path) -> set[str]:
@@ -123,11 +181,28 @@ def local_markers(workspace: Path) -> set[str]:
     return {m for m in MARKERS if os.path.lexists(workspace / m)}
 
 
-def marker_probe(workspace: str) -> str:
-    """A shell command that prints which :data:`MARKERS` exist in ``workspace``, one a line."""
+def marker_probe(workspace: str, *, ros_root: str = "/opt/ros") -> str:
+    """A shell command that prints which :data:`MARKERS` exist in ``workspace``, one a line,
+    then each distribution under ``ros_root`` as ``ros1:NAME`` or ``ros2:NAME`` (ROS 2 ones
+    have an ament index)."""
     names = " ".join(shlex.quote(m) for m in MARKERS)
-    return (f"cd {shell_path(workspace)} 2>/dev/null || exit 0; for m in {names}; do "
+    root = shlex.quote(ros_root)
+    return (f"for d in {root}/*/; do if [ -f \"${{d}}setup.bash\" ]; then "
+            f'n=$(basename "$d"); if [ -d "${{d}}share/ament_index" ]; then '
+            f'printf "{ROS2}:%s\\n" "$n"; else printf "{ROS1}:%s\\n" "$n"; fi; fi; done; '
+            f"cd {shell_path(workspace)} 2>/dev/null || exit 0; for m in {names}; do "
             'if [ -e "$m" ] || [ -L "$m" ]; then printf "%s\\n" "$m"; fi; done')
+
+
+def split_probe(output: str) -> tuple[set[str], set[str]]:
+    """:func:`marker_probe`'s output as (markers, distributions)."""
+    markers, distros = set(), set()
+    for line in output.split("\n"):
+        if line.startswith((ROS1 + ":", ROS2 + ":")):
+            distros.add(line)
+        elif line in MARKERS:
+            markers.add(line)
+    return markers, distros
 
 
 def manifests(src: Path) -> Iterator[str]:
@@ -317,11 +392,14 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
         runner = TransportRunner(transport, where=target.robot, pty=pty, stdout=out,
                                  python=remote_python())
         tool = request.tool
+        announce = _announcer(2)
         if tool == "auto" and request.builds:
-            found = runner.probe(marker_probe(target.remote_workspace)).split("\n")
-            tool = detect_tool([m for m in found if m], manifests(src))
+            markers, distros = split_probe(runner.probe(marker_probe(target.remote_workspace)))
+            choice = choose_tool(markers, manifests(src), distros)
+            announce(f"build tool: {choice.tool} ({choice.reason} on {target.robot})")
+            tool = choice.tool
         steps = plan(request, workspace=target.remote_workspace, tool=tool)
-        execute(steps, runner, announce=_announcer(2))
+        execute(steps, runner, announce=announce)
     finally:
         transport.close()
 
@@ -329,7 +407,10 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
 def build_locally(workspace: Path, request: BuildRequest, *, quiet_stdout: bool = False) -> None:
     """Run ``request`` in the local ``workspace``, as ``pull --build`` does."""
     tool = request.tool
+    announce = _announcer(2)
     if tool == "auto" and request.builds:
-        tool = detect_tool(local_markers(workspace), manifests(workspace / "src"))
+        choice = choose_tool(local_markers(workspace), manifests(workspace / "src"))
+        announce(f"build tool: {choice.tool} ({choice.reason} here)")
+        tool = choice.tool
     steps = plan(request, workspace=str(workspace), tool=tool)
-    execute(steps, LocalRunner(stdout=2 if quiet_stdout else 1), announce=_announcer(2))
+    execute(steps, LocalRunner(stdout=2 if quiet_stdout else 1), announce=announce)

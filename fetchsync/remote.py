@@ -21,6 +21,7 @@ user (a POSIX shell, as for the rest of fetchsync).
 from __future__ import annotations
 
 import functools
+import logging
 import shlex
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,41 +51,17 @@ def command_line(argv: Sequence[str]) -> str:
 
 
 def ros_environment(workspace: str | None, *, spaces: Sequence[str] = RUN_SPACES,
-                    ros_root: str = ROS_ROOT) -> str:
+                    ros_root: str = ROS_ROOT, announce: bool | None = None) -> str:
     """bash lines that source the ROS environment a command in ``workspace`` should see.
 
-    The first of ``<workspace>/<space>/setup.bash`` for ``spaces`` that exists;
-    else ``<ros_root>/$ROS_DISTRO/setup.bash`` of the machine the lines run
-    on, where ``$ROS_DISTRO`` defaults to the last distribution found under
-    ``ros_root`` (one generation's distributions sort in release order); else
-    nothing. ``workspace`` is a path on that machine (``~`` for its home).
+    See :mod:`fetchsync.ros_setup` for which file; ``announce`` (default: when
+    ``-v`` is given) has the lines say which one on stderr.
     """
-    distro = [
-        "__fetchsync_distro=${ROS_DISTRO:-}",
-        'if [ -z "$__fetchsync_distro" ]; then',
-        f"  for __fetchsync_dir in {shlex.quote(ros_root)}/*/; do",
-        '    if [ -f "${__fetchsync_dir}setup.bash" ]; then',
-        '      __fetchsync_distro=$(basename "$__fetchsync_dir")',
-        "    fi",
-        "  done",
-        "fi",
-        f'if [ -n "$__fetchsync_distro" ] && [ -f {shlex.quote(ros_root)}/"$__fetchsync_distro"/setup.bash ]; then',
-        f'  . {shlex.quote(ros_root)}/"$__fetchsync_distro"/setup.bash',
-        "fi",
-        "unset __fetchsync_distro __fetchsync_dir",
-    ]
-    lines: list[str] = []
-    if workspace is not None:
-        for i, space in enumerate(spaces):
-            setup = shell_path(f"{workspace.rstrip('/')}/{space}/setup.bash")
-            lines.append(f"{'if' if i == 0 else 'elif'} [ -f {setup} ]; then")
-            lines.append(f"  . {setup}")
-    if not lines:
-        return "\n".join(distro)
-    lines.append("else")
-    lines.extend("  " + line for line in distro)
-    lines.append("fi")
-    return "\n".join(lines)
+    from fetchsync.ros_setup import environment
+
+    if announce is None:
+        announce = logging.getLogger("fetchsync").isEnabledFor(logging.INFO)
+    return environment(workspace, spaces=spaces, ros_root=ros_root, announce=announce)
 
 
 def script(command: str, *, environment: str, directory: str | None = None) -> str:

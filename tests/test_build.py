@@ -244,3 +244,43 @@ def test_a_push_without_build_options_does_not_import_the_build_module():
             "bool(build_request((), 'default', 'auto', True)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["None", "False", "True"]
+
+
+# --------------------------------------------------------------------------- detection, ROS 2
+FORMAT3_CATKIN_XML = ("<package format='3'><name>n</name>"
+                      "<buildtool_depend>catkin</buildtool_depend></package>")
+FORMAT3_PLAIN_XML = "<package format=\"3\"><name>p</name></package>"
+CMAKE_XML = ("<package format='3'><name>m</name>"
+             "<export><build_type>cmake</build_type></export></package>")
+
+
+@pytest.mark.parametrize("markers, manifests, distros, tool, reason", [
+    ({".catkin_workspace"}, [AMENT_XML], set(), "catkin_make", "the workspace has .catkin_workspace"),
+    ({"install/.colcon_install_layout"}, [CATKIN_XML], set(), "colcon",
+     "the workspace has install/.colcon_install_layout"),
+    (set(), [FORMAT3_CATKIN_XML], {"ros2:humble"}, "catkin_make",
+     "never built, and n is a catkin package"),  # Noetic packages are format 3 too
+    (set(), [FORMAT3_PLAIN_XML], set(), "colcon",
+     "p is a ROS 2 package (package.xml format 3 without catkin)"),
+    (set(), [CATKIN_XML, CMAKE_XML], set(), "colcon", "m is a ROS 2 package (build type cmake)"),
+    (set(), [AMENT_XML], set(), "colcon", "b is a ROS 2 package (build type ament_cmake)"),
+    (set(), [], {"ros2:humble", "ros2:jazzy"}, "colcon",
+     "no packages yet, and the robot has ROS 2 only (humble, jazzy)"),
+    (set(), [], {"ros2:humble", "ros1:noetic"}, "catkin_make",
+     "nothing tells: catkin_make, as fetch_tools"),
+])
+def test_the_choice_of_tool_says_why(markers, manifests, distros, tool, reason):
+    choice = build.choose_tool(markers, manifests, distros)
+    assert (choice.tool, choice.reason) == (tool, reason)
+
+
+def test_the_probe_names_the_robots_distributions_and_their_generation(tmp_path):
+    ros = tmp_path / "ros"
+    for name, ros2 in (("noetic", False), ("humble", True), ("broken", True)):
+        (ros / name / "share/ament_index" if ros2 else ros / name).mkdir(parents=True)
+        if name != "broken":  # no setup.bash: not a distribution
+            (ros / name / "setup.bash").write_text("")
+    (tmp_path / "ws/.catkin_tools").mkdir(parents=True)
+    out = subprocess.run(["sh", "-c", build.marker_probe(str(tmp_path / "ws"), ros_root=str(ros))],
+                         capture_output=True, text=True, check=True)
+    assert build.split_probe(out.stdout) == ({".catkin_tools"}, {"ros1:noetic", "ros2:humble"})

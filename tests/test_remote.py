@@ -82,7 +82,12 @@ def test_without_a_built_workspace_the_robots_distro(tmp_path):
     fake_distro(tmp_path / "ros", "noetic")
     (tmp_path / "ros" / "zzz-not-ros").mkdir()
     out = bash(where_from(str(tmp_path / "missing"), tmp_path / "ros"))
-    assert out.stdout == "/opt/ros/noetic|unset"  # the newest; helper variables are unset after
+    # several and nothing tells which: ask, listing them (more in test_build_env.py)
+    assert out.returncode == 2 and out.stdout == "", out
+    assert "several ROS distributions" in out.stderr and " melodic noetic;" in out.stderr
+    fake_distro(tmp_path / "one-ros", "noetic")
+    out = bash(where_from(str(tmp_path / "missing"), tmp_path / "one-ros"))
+    assert out.stdout == "/opt/ros/noetic|unset"  # the only one; helper variables are unset after
     out = bash(where_from(str(tmp_path / "missing"), tmp_path / "ros"), env={"ROS_DISTRO": "melodic"})
     assert out.stdout == "/opt/ros/melodic|unset"
 

@@ -73,7 +73,7 @@ def test_each_tool_builds_only_the_packages():
     assert package_command("catkin", {"a", "b"}, "--cmake-args -DX=1", "Debug") == \
         "catkin build a b --cmake-args -DCMAKE_BUILD_TYPE=Debug -DX=1"
     assert package_command("colcon", {"a"}, "--symlink-install") == \
-        "colcon build --packages-select a --symlink-install"
+        "colcon build --packages-above a --symlink-install"
     assert package_command("colcon", None, "") == "colcon build"
 
 

@@ -9,7 +9,7 @@ with the workspace's build tool, detected once from the remote workspace as
 - catkin_make: ``catkin_make ARGS --pkg a b`` (make in those packages only;
   unlike ``--only-pkg-with-deps`` it leaves no whitelist in the CMake cache);
 - catkin build: ``catkin build a b ARGS``;
-- colcon: ``colcon build --packages-select a b ARGS``.
+- colcon: ``colcon build --packages-above a b ARGS`` (and what depends on them).
 
 A batch whose packages cannot be known (a rescan) builds the whole workspace.
 Each build runs in one channel of the builder's own connection, under the
@@ -41,9 +41,10 @@ from fetchsync.build import (
     CATKIN_TOOLS,
     COLCON,
     build_command,
-    detect_tool,
+    choose_tool,
     manifests,
     marker_probe,
+    split_probe,
 )
 from fetchsync.config import Target
 from fetchsync.remote import ros_environment, script
@@ -124,7 +125,8 @@ def package_command(tool: str, packages: Iterable[str] | None, args: str = "",
     elif tool == CATKIN_TOOLS:
         line = f"{names} {args}".strip()  # --cmake-args in ARGS takes all that follows
     elif tool == COLCON:
-        line = f"--packages-select {names} {args}".strip()
+        # with what depends on them: a changed header or message is seen by its users
+        line = f"--packages-above {names} {args}".strip()
     else:
         raise ValueError(f"unknown build tool {tool!r}")
     return build_command(tool, line, build_type)
@@ -288,8 +290,12 @@ class Builder:
         if tool == "auto":
             if self._detected is None:
                 runner = TransportRunner(self._transport, where=self.target.robot)
-                found = runner.probe(marker_probe(self.target.remote_workspace)).split("\n")
-                self._detected = detect_tool([m for m in found if m], manifests(self.src))
+                markers, distros = split_probe(
+                    runner.probe(marker_probe(self.target.remote_workspace)))
+                choice = choose_tool(markers, manifests(self.src), distros)
+                self.say(f"build: build tool: {choice.tool} ({choice.reason} on "
+                         f"{self.target.robot})")
+                self._detected = choice.tool
             tool = self._detected
         line = package_command(tool, packages, self.args, self.build_type)
         workspace = self.target.remote_workspace
