@@ -696,8 +696,8 @@ class Syncer:
                 nonlocal mismatch
                 for tag, res in answered:
                     mismatch |= res.code == M.BASE_MISMATCH
-                    self._settle(tag, res, remote, new_synced, upserts, deletes, whole_only, local,
-                                 report, now_ns)
+                    mismatch |= self._settle(tag, res, remote, new_synced, upserts, deletes,
+                                             whole_only, local, report, now_ns)
 
             # settled as the robot answers, so a large push never holds every
             # operation and every answer at once
@@ -938,11 +938,14 @@ class Syncer:
 
     def _settle(self, tag: Any, res: M.Result, remote: dict[str, M.Listed], new_synced: dict[str, Synced],
                 upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str], whole_only: set[str],
-                local: LocalTree, report: Report, now_ns: int) -> None:
+                local: LocalTree, report: Report, now_ns: int) -> bool:
+        """Take one answer into the round's view of the robot and the state's rows.
+        Returns True if the robot now holds content this laptop never saw there (another
+        round must replace it, keeping the robot's version aside)."""
         if tag is None:  # an upload piece
             if not res.ok:
                 report.errors.append({"path": "(upload)", "error": res.message})
-            return
+            return False
         p, sig = tag
         path = p.op.path
         if res.preserved:
@@ -950,13 +953,13 @@ class Syncer:
         if res.code == M.BASE_MISMATCH:
             whole_only.add(path)
             remote.pop(path, None)  # unknown: the next round sends it whole
-            return
+            return False
         if not res.ok:
             if res.code == M.CONFLICT:
                 report.conflicts.append({"path": path, "kept": "", "refused": res.message})
             else:
                 report.errors.append({"path": path, "error": res.message or res.code})
-            return
+            return False
         report.count(p)
         if p.op.kind == M.DELETE:
             prefix = path + "/"
@@ -966,10 +969,17 @@ class Syncer:
                 del new_synced[key]
                 upserts.pop(key, None)
                 deletes.add(key)
-            return
+            return False
         written = _as_sent(res.written, p.item) if res.written else p.item
         if written is None:
-            return
+            return False
+        if p.item is not None and not _same_content(written, p.item):
+            # the operation went through over content someone else put there (a chmod
+            # of a file edited on the robot): what the robot holds is not a version
+            # this laptop synced, so it never becomes the base the next write expects;
+            # that write keeps it in conflicts/
+            remote[path] = written
+            return True
         if p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK) and path in remote and remote[path].kind == "d" \
                 and written.kind != "d":
             prefix = path + "/"
@@ -985,6 +995,7 @@ class Syncer:
         new_synced[path] = s
         upserts[path] = (s, sig)
         deletes.discard(path)
+        return False
 
 
 def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
@@ -1218,6 +1229,13 @@ def _same_tree(local: dict[str, M.Listed], remote: dict[str, M.Listed]) -> bool:
         if r is not item and r != item:
             return False
     return True
+
+
+def _same_content(a: M.Listed, b: M.Listed) -> bool:
+    """Whether two entries hold the same content (modes aside)."""
+    if a.kind != b.kind:
+        return False
+    return a.hash == b.hash if a.kind == "f" else a.target == b.target if a.kind == "l" else True
 
 
 def _as_sent(wire: Any, item: M.Listed | None) -> M.Listed:

@@ -1,0 +1,77 @@
+"""The laptop side of the safety promises (issue 22): nothing on either end is lost.
+
+Against the built-in ``local`` robot: the engine directly (``Syncer``, as the watch
+agent drives it) and the CLI end to end.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+from helpers import fetchsync, make_workspace, report, tree_of
+
+from fetchsync import sync
+from fetchsync.connection import Connection
+from fetchsync.state import State
+from fetchsync.transport import LocalTransport
+
+
+@pytest.fixture
+def engine(tmp_path: Path):
+    """A Syncer over the local robot, after a first push of make_workspace's tree."""
+    src = make_workspace(tmp_path / "ws") / "src"
+    conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+    state = State(tmp_path / "state.sqlite")
+    s = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules())
+    assert s.push().errors == []
+    yield s, src, tmp_path / "robot-home" / "ws"
+    conn.close()
+    state.close()
+
+
+@pytest.fixture
+def env(tmp_path: Path) -> dict:
+    e = dict(os.environ)
+    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
+             FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws", FETCHSYNC_PERSIST="0")
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    make_workspace(tmp_path / "ws")
+    return e
+
+
+def local_src(env: dict) -> Path:
+    return Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+
+
+def robot_ws(env: dict) -> Path:
+    return Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws"
+
+
+def kept(where: Path, name: str) -> list[bytes]:
+    """The contents of every file called ``name`` kept below ``where``."""
+    return [p.read_bytes() for p in where.rglob(name) if p.is_file()] if where.exists() else []
+
+
+def test_a_chmod_over_a_robot_side_edit_keeps_the_robots_edit(engine):
+    """Issue 22 item 1: the robot edits a file, the laptop only chmods it (the watch
+    agent's incremental push). The robot ends with the laptop's file and mode, and its
+    own edit is kept in conflicts/: the answer to the chmod, which names content the
+    laptop never saw, is never taken as the base of the next write."""
+    s, src, ws = engine
+    robot_file = ws / "src/my_pkg/CMakeLists.txt"
+    robot_file.write_text("fixed on the robot\n")
+    local = src / "my_pkg/CMakeLists.txt"
+    local.chmod(0o755)
+    r = s.push_paths({"my_pkg/CMakeLists.txt"})
+    assert r.errors == []
+    assert robot_file.read_bytes() == local.read_bytes()
+    assert stat.S_IMODE(robot_file.stat().st_mode) == 0o755
+    assert b"fixed on the robot\n" in kept(ws / ".fetchsync", "CMakeLists.txt")
+    # and nothing is left to do, on either path
+    assert s.push_paths({"my_pkg/CMakeLists.txt"}).changed == 0
+    assert s.push().changed == 0
