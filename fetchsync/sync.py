@@ -1001,13 +1001,18 @@ class Syncer:
 def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
          rules: IgnoreRules, confirm: Callable[[Report], bool] | None = None,
          dry_run: bool = False, progress: Progress | None = None) -> Report:
-    """Mirror the robot's ``src/`` into the local one; replaced local files go to a local trash."""
+    """Mirror the robot's ``src/`` into the local one.
+
+    Every local file it replaces or deletes is kept in ``<workspace>/.fetchsync/trash/``
+    (bounded), every one edited since the last sync in ``.fetchsync/conflicts/``;
+    setuid and setgid bits of the robot's files are dropped.
+    """
     t0 = time.monotonic()
     report = Report("pull", dry_run=dry_run)
     algorithm = conn.algorithm
     conn.request({"op": "open", "workspace": remote_workspace, "rules": rules.to_wire(), "create": False})
     listing = conn.request({"op": "list", "mode": "full"}).header
-    remote = {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
+    remote = {e.path: _no_setid(e) for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
     synced = state.entries() if state.get("algorithm") in ("", algorithm) else {}
     local_root = os.path.join(local_workspace, "src")
     os.makedirs(local_root, exist_ok=True)
@@ -1021,9 +1026,8 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
 
     # a local path we could not read is left as it is, not replaced
     guarded = local.guarded()
-    planned = [p for p in plan(remote, local.items, expect,
-                               has_signature=lambda path, dst: dst.size >= SIG_MIN)
-               if not guarded(p.op.path)]
+    # whole files, no deltas: a delta is applied to the local file, which goes to the trash
+    planned = [p for p in plan(remote, local.items, expect) if not guarded(p.op.path)]
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
@@ -1039,6 +1043,7 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
         if not confirm(preview):
             from fetchsync.errors import AbortedError
             raise AbortedError("pull cancelled; nothing was changed")
+    planned = _set_aside_first(planned, local.items)
     store = Store(local_workspace, algorithm=algorithm, create=True)
     store.lock()
     try:
@@ -1061,7 +1066,8 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
             failed.add(tag.op.path)
             report.errors.append({"path": tag.op.path, "error": res.message or res.code})
             continue
-        report.count(tag)
+        if tag.how != ASIDE:
+            report.count(tag)
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
     for path, item in final.items.items():
         r = remote.get(path)
@@ -1082,6 +1088,33 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     return report
 
 
+ASIDE = "aside"  # a pull's delete that keeps a local file before its replacement is written
+SETID = stat_mod.S_ISUID | stat_mod.S_ISGID
+
+
+def _no_setid(item: M.Listed) -> M.Listed:
+    """A robot's file as pull writes it: never setuid or setgid here (a pull may run as root)."""
+    return item._replace(mode=item.mode & ~SETID) if item.kind == "f" and item.mode & SETID else item
+
+
+def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list[Planned]:
+    """``planned`` with each write over a local file or link preceded by its delete.
+
+    The endpoint replaces a file that holds the last-synced version without keeping
+    it (the robot's case: the laptop has it); a pull must keep the local one, so it
+    is deleted first, which moves it to the trash (or to conflicts/ if it was edited
+    since), and the write then expects nothing there.
+    """
+    out: list[Planned] = []
+    for p in planned:
+        here = local.get(p.op.path)
+        if p.op.kind in (M.WRITE, M.SYMLINK) and here is not None and here.kind != "d":
+            out.append(Planned(M.Op(M.DELETE, p.op.path, expect=p.op.expect), ASIDE))
+            p = Planned(p.op.but(expect=M.ABSENT), p.how, p.item)
+        out.append(p)
+    return out
+
+
 def _fetch(conn: Connection, planned: list[Planned], local_root: str,
            report: Report) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
     """Read what the plan needs from the robot; return local operations with their blob."""
@@ -1091,33 +1124,21 @@ def _fetch(conn: Connection, planned: list[Planned], local_root: str,
     pos = 0
     pending: list[tuple[int, list[Planned]]] = []
     items: list[dict[str, Any]] = []
-    sig_blob: list[bytes] = []
-    sig_pos = 0
     group: list[Planned] = []
     queued = 0
 
     def flush() -> None:
-        nonlocal items, sig_blob, sig_pos, group, queued
+        nonlocal items, group, queued
         if items:
-            pending.append((conn.send({"op": "read", "items": items}, b"".join(sig_blob)), group))
-        items, sig_blob, sig_pos, group, queued = [], [], 0, [], 0
+            pending.append((conn.send({"op": "read", "items": items}), group))
+        items, group, queued = [], [], 0
 
     for p in planned:
         if p.op.kind != M.WRITE or p.how == COPY:
             continue
         if p.op.size > BIG:
             continue  # fetched piece by piece below
-        item: dict[str, Any] = {"p": p.op.path}
-        if p.how == DELTA:
-            try:
-                with open(os.path.join(local_root, p.op.path), "rb") as fh:
-                    sig = delta_mod.signature(fh.read(), algorithm=conn.algorithm).to_bytes()
-                item["sig"] = [sig_pos, len(sig)]
-                sig_blob.append(sig)
-                sig_pos += len(sig)
-            except OSError:
-                pass
-        items.append(item)
+        items.append({"p": p.op.path})
         group.append(p)
         queued += p.op.size
         if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
@@ -1152,7 +1173,7 @@ def _fetch(conn: Connection, planned: list[Planned], local_root: str,
                 ans, data = got
                 listed = M.Listed.from_wire(ans["l"])
                 src = M.SRC_DELTA if ans["src"] == M.SRC_DELTA else M.SRC_DATA
-                op = op.but(hash=listed.hash, size=listed.size, mode=listed.mode, source=src,
+                op = op.but(hash=listed.hash, size=listed.size, mode=_no_setid(listed).mode, source=src,
                             base=op.base if src == M.SRC_DELTA else "", blob=(pos, len(data)))
                 blobs.append(data)
                 pos += len(data)

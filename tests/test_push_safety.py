@@ -75,3 +75,39 @@ def test_a_chmod_over_a_robot_side_edit_keeps_the_robots_edit(engine):
     # and nothing is left to do, on either path
     assert s.push_paths({"my_pkg/CMakeLists.txt"}).changed == 0
     assert s.push().changed == 0
+
+
+def test_pull_keeps_every_local_file_it_replaces_or_deletes(env):
+    """Issue 22 item 4: what pull replaces or deletes goes to the local trash, an
+    unpushed local edit to conflicts/, as its prompt and the README say."""
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    robot_src, src = robot_ws(env) / "src", local_src(env)
+    ws = Path(env["FETCHSYNC_WORKSPACE"])
+    (robot_src / "my_pkg/CMakeLists.txt").write_text("changed on the robot\n")
+    (robot_src / "my_pkg/rel_link").unlink()
+    (robot_src / "my_pkg/rel_link").symlink_to("CMakeLists.txt")
+    (robot_src / "my_pkg/data.txt").unlink()
+    (robot_src / "my_pkg/package.xml").write_text("<robot/>\n")
+    before = {n: (src / "my_pkg" / n).read_bytes() for n in ("CMakeLists.txt", "data.txt")}
+    (src / "my_pkg/package.xml").write_text("<local edit never pushed/>\n")
+    r = report(fetchsync("pull", "--json", "--yes", env=env))
+    assert r["ok"]
+    assert tree_of(src) == tree_of(robot_src)
+    for name, data in before.items():
+        assert data in kept(ws / ".fetchsync/trash", name), name
+    assert any((d / "my_pkg/rel_link").is_symlink() for d in (ws / ".fetchsync/trash").iterdir())
+    assert b"<local edit never pushed/>\n" in kept(ws / ".fetchsync/conflicts", "package.xml")
+    assert not kept(ws / ".fetchsync/trash", "package.xml")  # an edit is a conflict, not trash
+
+
+def test_pull_drops_setuid_and_setgid(env):
+    """Issue 22 item 15: a robot's setuid or setgid file arrives without those bits,
+    also when pull runs as root."""
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    robot_src, src = robot_ws(env) / "src", local_src(env)
+    (robot_src / "my_pkg/run.sh").write_text("#!/bin/sh\nid\n")
+    (robot_src / "my_pkg/run.sh").chmod(0o6755)
+    (robot_src / "my_pkg/CMakeLists.txt").chmod(0o4644)
+    assert report(fetchsync("pull", "--json", "--yes", env=env))["ok"]
+    assert stat.S_IMODE((src / "my_pkg/run.sh").stat().st_mode) == 0o755
+    assert stat.S_IMODE((src / "my_pkg/CMakeLists.txt").stat().st_mode) == 0o644
