@@ -1,30 +1,54 @@
 #!/usr/bin/env python3
-"""Count the bytes of SSH connections: ``countproxy.py HOST PORT COUNTDIR``.
+"""Count the bytes of SSH connections, and shape their link: ``countproxy.py HOST PORT COUNTDIR [LINK]``.
 
-Used as the ssh ``ProxyCommand`` of both OpenSSH (rsync's transport) and
-paramiko (fetchsync's), so both tools' bytes on the wire are counted the same
-way: the encrypted SSH stream, key exchange and authentication included.
+Used as the ssh ``ProxyCommand`` of both OpenSSH (rsync's and lsyncd's
+transport) and paramiko (fetchsync's), so both tools' bytes on the wire are
+counted, and their link shaped, the same way: the encrypted SSH stream, key
+exchange and authentication included.
 
 It connects to HOST:PORT and copies stdin to the socket and the socket to
 stdout. Each connection keeps its counters in ``COUNTDIR/<pid>.count``: three
 little-endian u64, *up* (client to server), *down* (server to client) and
 *done* (1 once the proxy has stopped), updated in place (mmap) as bytes pass.
 
+**The link.** ``LINK`` is one of :data:`LINKS` (``loopback``, the default:
+bytes pass as fast as they come; ``wifi``: 40 Mbit/s and 4 ms each way;
+``weak``: 8 Mbit/s and 25 ms each way) or ``RATE_MBIT:DELAY_MS``. This
+kernel has no ``netem``, so the proxy models the link itself, per direction,
+as a router's queue in front of a wire:
+
+- *serialisation*: the bytes leave one after the other at the link's rate,
+  cut into segments of about a millisecond of the rate (at least 1448 bytes,
+  one TCP segment; at most 16 KiB), so a large write streams rather than
+  arriving at once; a segment leaves when the one before it has left;
+- *propagation*: every segment is delivered a fixed one-way delay after it
+  left, however small it is, so a request and its answer cost at least two
+  delays (a round trip);
+- *a bounded queue*: once the bytes waiting to leave would take more than
+  :data:`QUEUE_SECONDS` at the rate, the proxy stops reading from the sender
+  until the queue drains, and the sender's socket buffers fill as over a real
+  link (TCP's flow control), instead of the proxy buffering without bound.
+
+Each direction has a reader thread (counts, timestamps, queues) and a writer
+thread (sleeps until a segment's arrival time, writes every segment due).
+Counts are taken when the proxy reads the bytes, shaped or not.
+
 Counters are live rather than written at exit because a connection may outlive
 the command that opened it: fetchsync leaves a connection master holding its
-SSH connection between calls (``fetchsync/agent/mux.py``). The bytes one push
-costs are then the growth of the sum over all connections while it ran,
-counted until the counters are quiet (:func:`Counter.settle`), so a master's
-handshake, its re-warmed endpoint and channel closes count to the push that
-caused them.
+SSH connection between calls. The bytes one push costs are then the growth of
+the sum over all connections while it ran, counted until the counters are
+quiet (:func:`Counter.settle`), so a master's handshake, its re-warmed
+endpoint and channel closes count to the push that caused them.
 
-The proxy stops on EOF from the server, EOF from the client once the server
-closes, or the SIGHUP / SIGTERM its client sends when it closes the connection
-(OpenSSH sends SIGHUP, paramiko SIGTERM).
+The proxy stops on EOF from the server (once what it sent is delivered), EOF
+from the client once the server closes, or the SIGHUP / SIGTERM its client
+sends when it closes the connection (OpenSSH sends SIGHUP, paramiko SIGTERM).
 """
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import mmap
 import os
 import select
@@ -32,13 +56,56 @@ import signal
 import socket
 import struct
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Callable
 
-__all__ = ["Counter", "Totals"]
+__all__ = ["LINKS", "Counter", "Link", "Totals", "parse_link"]
 
 _CHUNK = 256 * 1024
 _REC = struct.Struct("<QQQ")
+_U64 = struct.Struct("<Q")
+
+QUEUE_SECONDS = 0.025
+"""The most a direction's queue holds, in time at its rate, before the sender is held back."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Link:
+    """A symmetric link: ``rate`` bytes a second and ``delay`` seconds one way, each direction."""
+
+    name: str
+    rate: float
+    delay: float
+
+    @property
+    def segment(self) -> int:
+        """Bytes serialised as one piece: about a millisecond at the rate (1448 to 16 KiB)."""
+        return int(min(16384, max(1448, self.rate / 1000)))
+
+    def describe(self) -> str:
+        return f"{self.name} ({self.rate * 8 / 1e6:g} Mbit/s, {self.delay * 1000:g} ms each way)"
+
+
+LINKS: dict[str, Link | None] = {
+    "loopback": None,
+    "wifi": Link("wifi", 40e6 / 8, 0.004),
+    "weak": Link("weak", 8e6 / 8, 0.025),
+}
+
+
+def parse_link(text: str) -> Link | None:
+    """A name of :data:`LINKS`, or ``RATE_MBIT:DELAY_MS``; None: not shaped (loopback)."""
+    if text in LINKS:
+        return LINKS[text]
+    try:
+        rate, delay = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"unknown link {text!r}: one of {', '.join(LINKS)} or RATE_MBIT:DELAY_MS")
+    if rate <= 0 or delay < 0:
+        raise ValueError(f"link {text!r}: the rate must be positive and the delay not negative")
+    return Link(text, rate * 1e6 / 8, delay / 1000)
 
 
 class _Stop(Exception):
@@ -56,9 +123,7 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[n:]
 
 
-def proxy(host: str, port: int, countdir: str) -> int:
-    for sig in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
-        signal.signal(sig, _on_signal)
+def _open_counts(countdir: str) -> mmap.mmap:
     os.makedirs(countdir, exist_ok=True)
     path = os.path.join(countdir, f"{os.getpid()}.count")
     fd = os.open(path + ".tmp", os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -66,6 +131,15 @@ def proxy(host: str, port: int, countdir: str) -> int:
     counts = mmap.mmap(fd, _REC.size)
     os.close(fd)
     os.replace(path + ".tmp", path)  # readers never see a short file
+    return counts
+
+
+def proxy(host: str, port: int, countdir: str, link: Link | None = None) -> int:
+    for sig in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
+        signal.signal(sig, _on_signal)
+    counts = _open_counts(countdir)
+    if link is not None:
+        return _shaped(host, port, counts, link)
     up = down = 0
     try:
         sock = socket.create_connection((host, port))
@@ -97,6 +171,136 @@ def proxy(host: str, port: int, countdir: str) -> int:
         _REC.pack_into(counts, 0, up, down, 1)
         counts.close()
     return 0
+
+
+class _Direction:
+    """One direction of a shaped link: a reader thread queues, a writer thread delivers.
+
+    A segment read at ``t`` leaves the queue at ``max(t, when the last one left)
+    + len / rate`` and is written out ``delay`` later.
+    """
+
+    def __init__(
+        self,
+        link: Link,
+        *,
+        read: Callable[[], bytes],
+        write: Callable[[bytes], None],
+        count: Callable[[int], None],
+        at_eof: Callable[[], None],
+        failed: Callable[[], None],
+    ) -> None:
+        self.link = link
+        self.read, self.write, self.count = read, write, count
+        self.at_eof, self.failed = at_eof, failed
+        self.queue: collections.deque[tuple[float, bytes | None]] = collections.deque()
+        self.cond = threading.Condition()
+        self.free_at = 0.0  # when the last queued byte has left
+        for target in (self._reader, self._writer):
+            threading.Thread(target=target, daemon=True).start()
+
+    def _reader(self) -> None:
+        link, seg = self.link, self.link.segment
+        try:
+            while True:
+                data = self.read()
+                if not data:
+                    break
+                self.count(len(data))
+                for i in range(0, len(data), seg):
+                    piece = data[i : i + seg]
+                    now = time.monotonic()
+                    self.free_at = max(now, self.free_at) + len(piece) / link.rate
+                    with self.cond:
+                        self.queue.append((self.free_at + link.delay, piece))
+                        self.cond.notify()
+                    backlog = self.free_at - now - QUEUE_SECONDS
+                    if backlog > 0:  # the queue is full: hold the sender back
+                        time.sleep(backlog)
+        except OSError:
+            pass
+        with self.cond:  # EOF (or a read error) after what was read is delivered
+            self.queue.append((max(time.monotonic(), self.free_at) + link.delay, None))
+            self.cond.notify()
+
+    def _writer(self) -> None:
+        try:
+            while True:
+                with self.cond:
+                    while not self.queue:
+                        self.cond.wait()
+                    due = self.queue[0][0]
+                wait = due - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+                now = time.monotonic()
+                out: list[bytes] = []
+                eof = False
+                with self.cond:
+                    while self.queue and self.queue[0][0] <= now:
+                        piece = self.queue.popleft()[1]
+                        if piece is None:
+                            eof = True
+                            break
+                        out.append(piece)
+                if out:
+                    self.write(b"".join(out))
+                if eof:
+                    self.at_eof()
+                    return
+        except OSError:
+            self.failed()
+
+
+def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
+    up = down = 0
+    done = threading.Event()
+
+    def count_up(n: int) -> None:
+        nonlocal up
+        up += n
+        _U64.pack_into(counts, 0, up)
+
+    def count_down(n: int) -> None:
+        nonlocal down
+        down += n
+        _U64.pack_into(counts, 8, down)
+
+    try:
+        sock = socket.create_connection((host, port))
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        stdin, stdout = sys.stdin.fileno(), sys.stdout.fileno()
+
+        def end_up() -> None:
+            try:
+                sock.shutdown(socket.SHUT_WR)
+            except OSError:
+                done.set()
+
+        _Direction(
+            link,
+            read=lambda: os.read(stdin, _CHUNK),
+            write=sock.sendall,
+            count=count_up,
+            at_eof=end_up,
+            failed=done.set,
+        )
+        _Direction(
+            link,
+            read=lambda: sock.recv(_CHUNK),
+            write=lambda data: _write_all(stdout, data),
+            count=count_down,
+            at_eof=done.set,  # the server is done: nothing more can be said to it
+            failed=done.set,
+        )
+        while not done.wait(1.0):
+            pass
+    except (_Stop, OSError):
+        pass
+    finally:
+        _REC.pack_into(counts, 0, up, down, 1)
+        counts.flush()
+    os._exit(0)  # the threads may be blocked reading: do not wait for them
 
 
 class Totals:
@@ -164,7 +368,21 @@ class Counter:
                 return now
 
 
+def proxy_command(host: str, port: int, countdir: Path, link: Link | None) -> str:
+    """The ``ProxyCommand`` line that runs this proxy (``-S``: no site, a faster start)."""
+    import shlex
+
+    argv = [sys.executable, "-S", str(Path(__file__).resolve()), host, str(port), str(countdir)]
+    if link is not None:
+        argv.append(link.name if link.name in LINKS else f"{link.rate * 8 / 1e6:g}:{link.delay * 1000:g}")
+    return shlex.join(argv)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) != 4:
-        sys.exit("usage: countproxy.py HOST PORT COUNTDIR")
-    sys.exit(proxy(sys.argv[1], int(sys.argv[2]), sys.argv[3]))
+    if len(sys.argv) not in (4, 5):
+        sys.exit("usage: countproxy.py HOST PORT COUNTDIR [loopback|wifi|weak|RATE_MBIT:DELAY_MS]")
+    try:
+        shaping = parse_link(sys.argv[4]) if len(sys.argv) == 5 else None
+    except ValueError as e:
+        sys.exit(f"countproxy.py: {e}")
+    sys.exit(proxy(sys.argv[1], int(sys.argv[2]), sys.argv[3], shaping))

@@ -30,8 +30,10 @@ lsyncd runs ``default.rsync`` with ``target = "robot:DIR/src/"``, ``delay = 0``
 and ``rsync = { rsh = "ssh -F CONFIG -o BatchMode=yes", ... }`` with
 fetch_tools' flags (``-phErtzl``), as ``lsyncd -nodaemon CONFIG``. fetchsync
 runs as ``python -m fetchsync watch`` from this checkout (``PYTHONPATH``). Both
-reach the robot as ``Host robot`` of a laptop HOME made by ``make_ssh_home``
-(no byte-counting proxy here: it would add a hop to every round trip).
+reach the robot as ``Host robot`` of a laptop HOME made by ``make_ssh_home``;
+on ``--link loopback`` (the default) directly, on ``--link wifi`` or ``weak``
+through the same link shaper, ``bench/countproxy.py`` as their ``ProxyCommand``
+(``Host robot-shaped``).
 
 The report (markdown) goes to stdout, progress to stderr; ``--json`` writes
 every sample. The exit status is 1 when a save or the burst did not arrive or a
@@ -61,7 +63,8 @@ for _p in (str(BENCH), str(REPO / "tests")):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from run import _workdir, differences, machine_info, snapshot
+from countproxy import LINKS, Link, proxy_command
+from run import _workdir, differences, link_line, load_average, machine_info, snapshot
 from sshd import SSHD, make_ssh_home, running_sshd
 from workspace import Workspace, generate
 
@@ -211,7 +214,7 @@ class FetchsyncWatch(WatchTool):
     def env(self) -> dict[str, str]:
         env = self.bench.base_env()
         env.update(
-            FETCHSYNC_ROBOT=ALIAS,
+            FETCHSYNC_ROBOT=self.bench.alias,
             FETCHSYNC_WORKSPACE=str(self.ws.root),
             FETCHSYNC_REMOTE_WORKSPACE=str(self.remote),
             XDG_STATE_HOME=str(self.bench.workdir / f"state-{self.remote.name}"),
@@ -257,7 +260,7 @@ class Lsyncd(WatchTool):
             "sync {\n"
             "    default.rsync,\n"
             f"    source = {json.dumps(str(self.ws.src) + '/')},\n"
-            f"    target = {json.dumps(f'{ALIAS}:{self.remote_src}/')},\n"
+            f"    target = {json.dumps(f'{self.bench.alias}:{self.remote_src}/')},\n"
             "    delay = 0,\n"
             "    delete = true,\n"
             "    rsync = {\n"
@@ -403,10 +406,19 @@ def verify(tool: WatchTool) -> list[str]:
 
 # --------------------------------------------------------------------------- the run
 class WatchBench:
-    def __init__(self, workdir: Path, sshd: SSHD) -> None:
+    def __init__(self, workdir: Path, sshd: SSHD, link: Link | None = None) -> None:
         self.workdir = workdir
         self.sshd = sshd
         self.home = make_ssh_home(workdir / "home", sshd=sshd)
+        self.link = link
+        self.alias = ALIAS
+        if link is not None:
+            # Host robot with the shaper as its ProxyCommand, for both tools
+            self.alias = ALIAS + "-shaped"
+            block = self.home.config.read_text().split(f"Host {ALIAS}\n", 1)[1].split("\nHost ")[0]
+            proxy = proxy_command(sshd.host, sshd.port, workdir / "wire", link)
+            with open(self.home.config, "a") as fh:
+                fh.write(f"\nHost {self.alias}\n{block.rstrip()}\n    ProxyCommand {proxy}\n")
         # short, for unix socket paths: the agent's control socket and the masters
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="fswatch-"))
 
@@ -444,7 +456,8 @@ class WatchBench:
                 cmdline = (proc / "cmdline").read_bytes()
             except OSError:
                 continue
-            if b"fetchsync.agent.mux" in cmdline and mark in cmdline:
+            # by module name: the agent itself has the runtime dir in its environment only
+            if b"mux" in cmdline and b"fetchsync" in cmdline and mark in cmdline:
                 pids.append(int(proc.name))
         return pids
 
@@ -497,6 +510,10 @@ def render(res: dict[str, Any]) -> str:
             f"of 2–30 KB, each an in-place write of new bytes; the robot's copy polled every "
             f"{POLL * 1000:.1f} ms. Tools run one after the other, each into its own remote dir."
         ),
+        "",
+        link_line(LINKS[res.get("link", "loopback")]),
+        "",
+        f"Load average: {m.get('load', '?')} at the start, {res.get('load_end', '?')} at the end.",
         "",
         "Save → same bytes on the robot",
         "",
@@ -619,6 +636,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--idle-seconds", type=float, help="idle window (default 10)")
     ap.add_argument("--tools", default="fetchsync,lsyncd", help="comma-separated (default both)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--link",
+        choices=sorted(LINKS),
+        default="loopback",
+        help="the link both tools reach the robot through (bench/countproxy.py; default loopback)",
+    )
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
@@ -648,6 +671,7 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {
         "machine": machine,
         "lsyncd": lsyncd_version,
+        "link": a.link,
         "params": params,
         "latency": {},
         "burst": {},
@@ -664,7 +688,7 @@ def main(argv: list[str] | None = None) -> int:
         targets = pick_targets(ws)
         params["targets"] = len(targets)
         with running_sshd(workdir / "sshd") as sshd:
-            bench = WatchBench(workdir, sshd)
+            bench = WatchBench(workdir, sshd, LINKS[a.link])
             try:
                 for name in tools:
                     tool = classes[name](bench, ws, workdir / "robot" / f"{name}-ws")
@@ -728,6 +752,7 @@ def main(argv: list[str] | None = None) -> int:
                                 tool.stop()
             finally:
                 bench.close()
+        res["load_end"] = load_average()
         report = render(res)
         print(report, flush=True)
         if a.json_out:

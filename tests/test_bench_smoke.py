@@ -1,15 +1,115 @@
-"""``bench/run.py --quick`` runs to the end: both tools push, every tree verifies, a table prints.
+"""The bench runs to the end: both tools push, every tree verifies, the report has its fields.
 
-A smoke test only: timings on a shared CI machine mean nothing, so none is
-asserted. The full benchmark is run by hand (see bench/README.md).
+Smoke tests only: timings on a shared CI machine mean nothing, so none is
+asserted, except the lower bounds the link shaper must guarantee (a shaped
+link is never faster than its rate and delay allow; being slower is the
+machine's business). The full benchmarks are run by hand (bench/README.md).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
 from helpers import run_bench
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+sys.path.insert(0, str(BENCH))
+
+from countproxy import LINKS, Counter, parse_link
+
+
+class _Echo:
+    """A TCP server on 127.0.0.1 that sends back whatever it receives, one client."""
+
+    def __init__(self) -> None:
+        self.srv = socket.create_server(("127.0.0.1", 0))
+        self.port = self.srv.getsockname()[1]
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        conn, _ = self.srv.accept()
+        with conn:
+            while data := conn.recv(1 << 16):
+                conn.sendall(data)
+
+    def close(self) -> None:
+        self.srv.close()
+
+
+def _proxy(port: int, countdir: Path, link: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-S", str(BENCH / "countproxy.py"), "127.0.0.1", str(port), str(countdir), link],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+
+
+def _read_exactly(proc: subprocess.Popen[bytes], n: int) -> bytes:
+    assert proc.stdout is not None
+    out = b""
+    while len(out) < n:
+        chunk = os.read(proc.stdout.fileno(), n - len(out))
+        assert chunk, "the proxy closed early"
+        out += chunk
+    return out
+
+
+@pytest.mark.parametrize("name", ["weak", "loopback"])
+def test_shaper_delivers_intact_and_never_faster_than_the_link(tmp_path: Path, name: str) -> None:
+    """Through ``countproxy.py HOST PORT DIR LINK``: 1 MiB each way arrives byte for byte,
+    no sooner than its serialisation time at the rate; a ping-pong takes at least two
+    one-way delays; the counters see every byte and the proxy's end."""
+    link = LINKS[name]
+    echo = _Echo()
+    proc = _proxy(echo.port, tmp_path / "wire", name)
+    try:
+        assert proc.stdin is not None
+        proc.stdin.write(b"?")
+        proc.stdin.flush()
+        assert _read_exactly(proc, 1) == b"?"  # connected (the proxy's start is not timed)
+        pings = 3
+        t0 = time.monotonic()
+        for i in range(pings):
+            proc.stdin.write(bytes([65 + i]))
+            proc.stdin.flush()
+            assert _read_exactly(proc, 1) == bytes([65 + i])
+        ping_pong = (time.monotonic() - t0) / pings
+        data = hashlib.shake_256(b"seed").digest(1 << 20)
+        t0 = time.monotonic()
+        writer = threading.Thread(target=lambda: (proc.stdin.write(data), proc.stdin.close()))  # type: ignore[union-attr]
+        writer.start()
+        back = _read_exactly(proc, len(data))
+        bulk = time.monotonic() - t0
+        writer.join()
+        assert back == data
+        assert proc.wait(10) == 0  # stdin's EOF -> the server's EOF -> the proxy ends
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        echo.close()
+    totals = Counter(tmp_path / "wire").settle(live=0, timeout=5)
+    assert (totals.up, totals.down) == (1 + pings + len(data), 1 + pings + len(data))
+    if link is not None:
+        assert ping_pong >= 2 * link.delay
+        assert bulk >= len(data) / link.rate + 2 * link.delay
+
+
+def test_link_profiles_and_custom_links() -> None:
+    wifi, weak = LINKS["wifi"], LINKS["weak"]
+    assert wifi is not None and weak is not None and LINKS["loopback"] is None
+    assert (wifi.rate * 8, wifi.delay) == (40e6, 0.004)
+    assert (weak.rate * 8, weak.delay) == (8e6, 0.025)
+    custom = parse_link("100:1.5")
+    assert custom is not None and (custom.rate * 8, custom.delay) == (100e6, 0.0015)
+    for bad in ("fast", "0:4", "10:-1", "10"):
+        with pytest.raises(ValueError):
+            parse_link(bad)
 
 @pytest.mark.ssh
 def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
