@@ -548,6 +548,12 @@ class Bench:
         k = rep % len(self.tools)
         return self.tools[k:] + self.tools[:k]
 
+    def push_sample(self, tool: Tool, scenario: str, rep: int) -> Sample:
+        """One timed push, kept with the samples."""
+        s = tool.push(scenario, rep)
+        self.samples.append(s)
+        return s
+
     def run_scenario(
         self,
         scenario: str,

@@ -140,3 +140,30 @@ def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
         assert raw["latency"][tool] and all(x is not None for x in raw["latency"][tool])
         assert raw["burst"][tool]["missing"] == 0
     assert not any(raw["verification"].values())
+
+
+@pytest.mark.ssh
+def test_bench_history_quick_replays_real_commits_and_verifies(tmp_path: Path) -> None:
+    """``bench/history.py --quick``: rclcpp's bundle checked out, pushed by both tools, two
+    commits and a release switch replayed, both robot trees identical after every step."""
+    bundle = Path("/work/shared/data/rclcpp.bundle")
+    if not bundle.is_file():
+        pytest.skip(f"{bundle} is not here")
+    stdout, raw = run_bench("history.py", "--quick", "--link", "wifi", tmp_path=tmp_path,
+                            needs=("rsync", "git"))
+    assert "verification: PASS" in stdout and raw["verified"] is True
+    assert [(s["kind"], s["index"]) for s in raw["steps"]] == [
+        ("initial", 0), ("noop", 0), ("commit", 0), ("commit", 1), ("switch", 0)]
+    for step in raw["steps"]:
+        assert set(step["verified"]) == {"fetchsync", "rsync"}
+        assert not any(step["verified"].values())
+    assert raw["repository"]["commits"] == 2 and raw["repository"]["files"] > 100
+    rows = raw["summary"]["fetchsync"]
+    for kind in ("initial", "commit", "switch"):
+        for key in ("time_ratio", "time_step_ratio", "bytes_ratio", "bytes_total_ratio"):
+            assert key in rows[kind]
+        for tool in ("fetchsync", "rsync"):
+            assert set(rows[kind][tool]) == {"seconds", "seconds_total", "bytes", "bytes_total"}
+    assert rows["commit"]["bytes_target"] == 0.8  # issue 24's target on wifi
+    assert all(s["bytes"] > 0 for s in raw["samples"])  # every push went through the shaper
+    assert "| one commit | 2 |" in stdout and "| a release switch | 1 |" in stdout
