@@ -96,17 +96,17 @@ def apply(request: dict[str, Any]) -> dict[str, Any]:
         result["created"] = False
     result["uid"] = entry.pw_uid
     result["home"] = entry.pw_dir
-    password = request.get("password")
+    # Out of the request from here on: only chpasswd and initialize.sh's sudo get it.
+    password = request.pop("password", None)
     if password is not None:
         set_password(name, password)
         result["password_set"] = True
     else:
         result["password_set"] = False
-    del password
-    request.pop("password", None)
     result["groups_added"], result["groups_absent"] = add_groups(name, entry, request["groups"])
     result["home_created"] = ensure_home(entry)
-    result.update(in_home_as(entry, request, overwrite=result["created"]))
+    result.update(in_home_as(entry, request, overwrite=result["created"], password=password))
+    del password
     return result
 
 
@@ -178,7 +178,7 @@ def ensure_home(entry: pwd.struct_passwd) -> bool:
 
 
 def in_home_as(entry: pwd.struct_passwd, request: dict[str, Any], *,
-               overwrite: bool) -> dict[str, Any]:
+               overwrite: bool, password: str | None = None) -> dict[str, Any]:
     """Do the home-directory work in a child that has become the user; its result."""
     read_fd, write_fd = os.pipe()
     sys.stdout.flush()
@@ -190,7 +190,7 @@ def in_home_as(entry: pwd.struct_passwd, request: dict[str, Any], *,
         code = 0
         try:
             become(entry)
-            out = furnish(entry, request, overwrite=overwrite)
+            out = furnish(entry, request, overwrite=overwrite, password=password)
         except Failure as exc:
             out["error"] = str(exc)
         except BaseException as exc:  # noqa: BLE001 - the parent must hear of it
@@ -220,7 +220,7 @@ def become(entry: pwd.struct_passwd) -> None:
 
 
 def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
-            overwrite: bool) -> dict[str, Any]:
+            overwrite: bool, password: str | None = None) -> dict[str, Any]:
     """As the user: key, skeleton, initialize.sh. Runs in the home directory."""
     out: dict[str, Any] = {"key": install_key(request.get("key"))}
     out["skeleton_added"] = copy_skeleton(request.get("skeleton") or [], overwrite=overwrite)
@@ -237,7 +237,7 @@ def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
     if os.path.exists(marker):
         out["initialize"] = "already"
         return out
-    code = run_init(entry, script, request.get("env") or {})
+    code = run_init(entry, script, request.get("env") or {}, password=password)
     if code != 0:
         out["initialize"] = "failed"
         out["initialize_exit"] = code
@@ -426,7 +426,17 @@ def write_file(path: str, data: bytes, mode: int) -> None:
         raise
 
 
-def run_init(entry: pwd.struct_passwd, script: str, extra: dict[str, str]) -> int:
+def run_init(entry: pwd.struct_passwd, script: str, extra: dict[str, str], *,
+             password: str | None = None) -> int:
+    """Run initialize.sh as the user (we are the user already), its output on our stderr.
+
+    With the account's password known (a new account, --reset-password), its
+    ``sudo`` works as fetch_tools' did (which primed sudo with that password):
+    a ``sudo`` first on its PATH validates with the password read from an
+    inherited descriptor of an anonymous file (:func:`password_fd`), then runs
+    the command with that fresh credential. The password is in no argument,
+    environment, file name or log; only the user's own processes can read it.
+    """
     env = {
         "HOME": entry.pw_dir,
         "USER": entry.pw_name,
@@ -438,13 +448,77 @@ def run_init(entry: pwd.struct_passwd, script: str, extra: dict[str, str]) -> in
         if os.environ.get(name):
             env[name] = os.environ[name]
     env.update({str(k): str(v) for k, v in extra.items()})
+    if env.get("FETCH_WORKSPACE"):
+        # fetch_tools handed its initialize.sh an expanded path (`mkdir -p $FETCH_WORKSPACE/src`
+        # does no tilde expansion).
+        env["FETCH_WORKSPACE"] = expand_home(env["FETCH_WORKSPACE"], entry.pw_dir)
     sys.stderr.write(f"fetchsync: running ~/{script} as {entry.pw_name} on the robot\n")
     sys.stderr.flush()
-    # Its output is progress for the user: stderr, so stdout carries only our result.
-    proc = subprocess.run(["/bin/bash", script], cwd=entry.pw_dir, env=env,
-                          stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(),
-                          stderr=sys.stderr.fileno(), check=False)
+    real_sudo = _which("sudo")
+    fd = password_fd(password) if password is not None and real_sudo else None
+    bin_dir = None
+    try:
+        if fd is not None and real_sudo:
+            bin_dir = tempfile.mkdtemp(prefix="sudo-", dir=STATE_DIR)
+            write_file(os.path.join(bin_dir, "sudo"), sudo_wrapper(real_sudo, fd).encode(), 0o700)
+            env["PATH"] = os.path.abspath(bin_dir) + ":" + env["PATH"]
+        # Its output is progress for the user: stderr, so stdout carries only our result.
+        proc = subprocess.run(["/bin/bash", script], cwd=entry.pw_dir, env=env,
+                              stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(),
+                              stderr=sys.stderr.fileno(), check=False,
+                              pass_fds=(fd,) if fd is not None else ())
+    finally:
+        if fd is not None:
+            os.close(fd)
+        if bin_dir is not None:
+            for name in os.listdir(bin_dir):
+                os.unlink(os.path.join(bin_dir, name))
+            os.rmdir(bin_dir)
     return proc.returncode
+
+
+def password_fd(password: str) -> int:
+    """A descriptor of an anonymous file holding ``password`` and a newline.
+
+    Opening ``/proc/self/fd/N`` reopens it from the start, so every sudo can
+    read it; it has no name, so nothing else finds it (memfd where the kernel
+    and Python have it, else an unlinked temporary file).
+    """
+    data = (password + "\n").encode("utf-8")
+    memfd_create = getattr(os, "memfd_create", None)
+    fd = -1
+    if memfd_create is not None:
+        try:
+            fd = memfd_create("fetchsync-sudo", 0)
+        except OSError:
+            fd = -1
+    if fd < 0:
+        with tempfile.TemporaryFile(dir=STATE_DIR) as f:
+            fd = os.dup(f.fileno())
+    os.write(fd, data)
+    os.fchmod(fd, 0o600)
+    return fd
+
+
+def sudo_wrapper(real_sudo: str, fd: int) -> str:
+    """The ``sudo`` initialize.sh finds first on its PATH (see :func:`run_init`)."""
+    sudo = shlex.quote(real_sudo)
+    return (
+        "#!/bin/sh\n"
+        "# fetchsync create-account: sudo for initialize.sh. The account's password is read\n"
+        f"# by sudo -S from descriptor {fd} (an anonymous file), to validate; the command then\n"
+        "# runs with that credential, its stdin untouched.\n"
+        f"{sudo} -S -p '' -v </proc/self/fd/{fd} >/dev/null 2>&1\n"
+        f'{sudo} -n "$@"\n'
+    )
+
+
+def _which(name: str) -> str | None:
+    for d in SAFE_PATH.split(":"):
+        path = os.path.join(d, name)
+        if os.path.isfile(path) and os.access(path, os.X_OK):
+            return path
+    return None
 
 
 def _tool_env() -> dict[str, str]:

@@ -373,7 +373,8 @@ def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
                              "--skeleton", str(skeleton), env=env))
     assert report["created"] and report["initialize"] == "ran"
     home = Path(pwd.getpwnam(name).pw_dir)
-    assert (home / "init-marker").read_text().split() == [name, str(home), "~/fs_ws"]
+    # FETCH_WORKSPACE expanded, as fetch_tools handed it (its scripts use it unquoted)
+    assert (home / "init-marker").read_text().split() == [name, str(home), str(home / "fs_ws")]
     assert (home / "bin" / "hello").stat().st_mode & 0o777 == 0o755
     assert _password_login(sshd, name, password, "bin/hello").strip() == "hello"
     assert _existing_groups() <= set(_password_login(sshd, name, password, "id -Gn").split())
@@ -446,15 +447,22 @@ _TARGET_VARS = ("FETCHSYNC_USER", "FETCH_USER", "ROS_DISTRO", "FETCHSYNC_WORKSPA
                 "ROS_MASTER_URI", "FETCHSYNC_ROBOT", "FETCH_ROBOT")
 
 
-def _create_as_user(ssh_home, *args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    """create-account as a fetch_tools user runs it: no --user, the environment decides."""
+def _create_as_user(ssh_home, *args: str, env: dict[str, str],
+                    started: Callable[[int], None] | None = None) -> subprocess.CompletedProcess:
+    """create-account as a fetch_tools user runs it: no --user, the environment decides.
+    ``started`` is given the laptop process's pid."""
     full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS
                 and k not in ("SSH_AUTH_SOCK", "FETCHSYNC_NEW_PASSWORD",
                               "FETCHSYNC_ADMIN_PASSWORD", "FETCHSYNC_ADMIN_USER")}
     full_env.update(HOME=str(ssh_home.home), FETCHSYNC_ADMIN_USER="root", **env)
-    return subprocess.run([sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot",
-                           "--json", *args], capture_output=True, text=True, env=full_env,
-                          stdin=subprocess.DEVNULL, timeout=60, cwd=REPO, check=False)
+    argv = [sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot", "--json",
+            *args]
+    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          env=full_env, stdin=subprocess.DEVNULL, cwd=REPO) as proc:
+        if started is not None:
+            started(proc.pid)
+        out, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(argv, proc.returncode, out, err)
 
 
 def _push_remote_workspace(ssh_home, env: dict[str, str], workspace: str | None = None) -> str:
@@ -535,3 +543,103 @@ def test_create_account_help_shows_fetch_tools_defaults() -> None:
     result = CliRunner().invoke(cli, ["create-account", "--help"])
     assert result.exit_code == 0
     assert "$FETCH_USER, $USER" in result.output and "--workspace" in result.output
+
+
+# --- fetch_tools' own skeleton: its ROS set-up and a working sudo ----------------------------
+
+FETCH_TOOLS_BASHRC = """# ~/.bashrc: fetch_tools' skeleton
+if [ -d $HOME/.bashrc.d ]; then
+  for file in $HOME/.bashrc.d/*.sh; do
+    source $file
+  done
+fi
+"""
+
+# As fetch_tools' own initialize.sh: $FETCH_WORKSPACE unquoted, sudo without -S.
+LEGACY_INIT = """mkdir -p $FETCH_WORKSPACE/src &&
+mkdir -p $FETCH_WORKSPACE/devel &&
+echo 'export LEGACY_MARK=sourced-by-40-ros-setup' > $FETCH_WORKSPACE/devel/setup.bash
+sudo -n true && echo ok > ~/sudo-n
+sudo whoami > ~/sudo-whoami
+sudo sh -c 'id -u; sleep 1' > ~/sudo-slow
+"""
+
+
+def _watch_proc(secret: bytes, done: threading.Event, seen: list[str], looked: list[int],
+                allowed: set[int]) -> None:
+    """Read every process's cmdline and environ until ``done``; note where ``secret`` is.
+    Processes in ``allowed`` are skipped (the test's own, given the secret in its environment)."""
+    while not done.is_set():
+        for entry in os.scandir("/proc"):
+            if not entry.name.isdigit() or int(entry.name) in allowed:
+                continue
+            for what in ("cmdline", "environ"):
+                try:
+                    with open(f"/proc/{entry.name}/{what}", "rb") as f:
+                        data = f.read()
+                except OSError:
+                    continue
+                looked.append(1)
+                if secret in data:
+                    seen.append(f"{entry.name} {what}")
+
+
+@pytest.mark.ssh
+@needs_root
+def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_home,
+                                                                    accounts) -> None:
+    if shutil.which("sudo") is None:
+        pytest.skip("sudo not installed (apt-get install sudo)")
+    import grp
+    try:
+        grp.getgrnam("sudo")
+    except KeyError:
+        pytest.skip("no sudo group on this machine")
+    name, password = accounts("fstest"), _password()
+    skeleton = ssh_home.home / ".fetch" / "robot_skeleton"
+    skeleton.mkdir(parents=True)
+    (skeleton / ".bashrc").write_text(FETCH_TOOLS_BASHRC)
+    (skeleton / "initialize.sh").write_text(LEGACY_INIT)
+
+    seen: list[str] = []
+    looked: list[int] = []
+    done = threading.Event()
+    # The laptop process was handed the password in FETCHSYNC_NEW_PASSWORD: that one may hold
+    # it; its children (none expected) and every process on the robot side may not.
+    allowed = {os.getpid()}
+    watcher = threading.Thread(target=_watch_proc,
+                               args=(password.encode(), done, seen, looked, allowed), daemon=True)
+    watcher.start()
+    try:
+        proc = _create_as_user(ssh_home, "--fullname", "Not A. Robot",
+                               env={"FETCH_USER": name, "ROS_DISTRO": "noetic",
+                                    "FETCHSYNC_NEW_PASSWORD": password}, started=allowed.add)
+    finally:
+        done.set()
+        watcher.join(timeout=30)
+    # (a scan may have caught the laptop process before its pid was allowed)
+    seen = [where for where in seen if int(where.split()[0]) not in allowed]
+    report = _report(proc)
+    home = Path(pwd.getpwnam(name).pw_dir)
+    assert report["created"] and report["initialize"] == "ran", proc.stderr
+
+    # sudo in initialize.sh worked, non-interactively too, without a terminal
+    assert (home / "sudo-n").read_text() == "ok\n"
+    assert (home / "sudo-whoami").read_text() == "root\n"
+    assert (home / "sudo-slow").read_text() == "0\n"
+    # ... and the password was in no process's command line or environment, nor any output
+    assert looked and seen == []
+    assert password not in proc.stdout + proc.stderr
+    assert password not in sshd.log_text()
+    assert not list((home / ".fetchsync").glob("sudo-*")), "the sudo wrapper is removed"
+
+    # fetch_tools' ROS set-up, for the workspace push uses, read by the account's shells
+    setup = (home / ".bashrc.d" / "40-ros-setup.sh").read_text()
+    assert "source /opt/ros/noetic/setup.bash" in setup
+    assert f"source {home}/noetic/devel/setup.bash" in setup
+    assert (report["workspace"], report["workspace_file"]) == ("~/noetic",
+                                                               ".bashrc.d/40-ros-setup.sh")
+    assert (home / "noetic" / "src").is_dir()  # $FETCH_WORKSPACE arrived expanded
+    shell = subprocess.run(["su", "-", name, "-c", "bash -ic 'echo \"$LEGACY_MARK\"' 2>/dev/null"],
+                           capture_output=True, text=True, timeout=30, check=False)
+    assert shell.stdout.strip().splitlines()[-1] == "sourced-by-40-ros-setup"

@@ -41,13 +41,15 @@ class _Secret:
         self.prompt = prompt
         self.confirm = confirm
         self._value: str | None = None
+        # Taken out of the environment at once: no process this one starts inherits it.
+        self._given = os.environ.pop(variable, None)
 
     def get(self) -> str:
         from fetchsync.account import check_password
         from fetchsync.errors import UsageError
 
         if self._value is None:
-            value = os.environ.get(self.variable)
+            value = self._given
             if not value:
                 if not sys.stdin.isatty():
                     raise UsageError(f"{self.prompt.lower()} is needed and there is no terminal "
