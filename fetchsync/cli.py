@@ -82,11 +82,15 @@ class _Progress:
 
 def _push_via_agent(target: Any) -> Any:
     """The report of a full push made by the running agent, or None if none runs."""
-    from fetchsync.agent.control import call
+    from fetchsync.agent.control import push
     from fetchsync.agent.service import agent_paths
-    from fetchsync.errors import SyncError
+    from fetchsync.errors import ConnectError, SyncError
 
-    reply = call(agent_paths(target)[1], {"cmd": "push"}, timeout=3600)
+    try:
+        sock = agent_paths(target)[1]
+    except ConnectError:
+        return None  # no private socket directory: no agent can be listening
+    reply = push(sock, timeout=3600)
     if reply is None:
         return None
     from fetchsync.sync import Report

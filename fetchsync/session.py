@@ -6,6 +6,7 @@ and workspaces the same way and go through the same connection object.
 
 from __future__ import annotations
 
+import logging
 import os
 from contextlib import contextmanager
 from pathlib import Path
@@ -13,9 +14,11 @@ from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
-from fetchsync.errors import ConfigError
+from fetchsync.errors import ConfigError, ConnectError
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
+
+log = logging.getLogger(__name__)
 
 
 def robot_id(target: Target) -> str:
@@ -72,8 +75,12 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         return LocalTransport(home)
     from fetchsync.agent import mux
 
-    persist = persistent and mux.persist_seconds() > 0
-    path = mux.socket_path(target.host, target.user) if persist else None
+    path = None
+    if persistent and mux.persist_seconds() > 0:
+        try:
+            path = mux.socket_path(target.host, target.user)
+        except ConnectError as exc:  # this call goes direct: only the master needs the socket
+            log.warning("fetchsync: no connection master: %s", exc)
     if path is not None:
         attached = mux.MuxTransport.attach(path, target.robot)
         if attached is not None:

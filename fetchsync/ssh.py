@@ -301,6 +301,12 @@ class SSHTransport:
     def host_key(self) -> paramiko.PKey:
         return self._transport.get_remote_server_key()
 
+    def verify_host_key(self) -> None:
+        """Check the robot's host key against known_hosts as it is now (HostKeyError if it
+        is no longer listed, or listed differently): for a connection kept open across
+        calls, which a new connection would refuse otherwise."""
+        _HostKeyCheck(self.settings).verify(self.host_key)
+
     @property
     def auth_method(self) -> str | None:
         """How this connection logged in (``publickey``, ``password``), None if unknown."""

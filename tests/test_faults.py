@@ -307,3 +307,34 @@ def test_robot_disk_full_reports_each_failed_path_once(env, tiny_disk):
     lines = [line.strip() for line in proc.stderr.decode().splitlines() if line.strip()]
     per_path = [line for line in lines if line.startswith("error:")]
     assert per_path and len(per_path) == len(set(per_path)), lines
+
+
+def test_a_push_does_not_wait_on_a_watch_agent_whose_robot_is_offline(env, fault_proxy, tmp_path):
+    """Issue 22 item 18: with ``fetchsync watch`` running and the robot gone, a push says so
+    at once and goes direct, which fails like any push to an unreachable robot."""
+    import json
+    import tempfile
+
+    runtime = Path(tempfile.mkdtemp(prefix="fsw", dir="/tmp"))
+    env = dict(env, XDG_RUNTIME_DIR=str(runtime))
+    watch = start(["watch"], env)
+    try:
+        def live() -> bool:
+            out = fetchsync("status", "--json", env=env, check=False)
+            return out.returncode == 0 and json.loads(out.stdout).get("state") == "live"
+
+        wait_for(live, 30, "the agent to be live")
+        fault_proxy.blackhole()
+        (local_src(env) / "my_pkg/while_away.txt").write_text("the robot is away\n")
+        code, err = finish(start(["push"], env))
+        text = err.decode()
+        assert "the watch agent cannot reach its robot" in text and "pushing directly" in text, text
+        assert code == 3 and "Traceback" not in text, text
+        # and once the agent knows, a push says so without waiting for the agent at all
+        code, err = finish(start(["push"], env))
+        assert code == 3 and "the watch agent cannot reach its robot" in err.decode()
+    finally:
+        watch.terminate()
+        watch.communicate(timeout=20)
+        import shutil
+        shutil.rmtree(runtime, ignore_errors=True)

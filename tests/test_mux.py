@@ -122,3 +122,35 @@ def test_robot_changes_between_pushes_through_the_master_are_seen(env, remote_di
     # and the robot's version of the edited file is in .fetchsync/conflicts
     copies = list((remote_dir / ".fetchsync" / "conflicts").rglob("node.cpp"))
     assert copies and "fixed on the robot" in copies[0].read_text()
+
+
+@pytest.mark.parametrize("change", ["changed", "removed"])
+def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(change, env, ssh_home,
+                                                                                 remote_dir, tmp_path):
+    """Issue 22 item 16: the master re-checks the robot's host key against known_hosts
+    before each call it serves: a key changed or removed since it connected is refused
+    as a fresh connection refuses it, and that master goes away."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
+    trusted = ssh_home.known_hosts.read_text()
+    if change == "changed":
+        other = tmp_path / "other_host_key"
+        subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(other)], check=True)
+        name = trusted.split()[0]
+        ssh_home.known_hosts.write_text(f"{name} {other.with_suffix('.pub').read_text().split()[0]} "
+                                        f"{other.with_suffix('.pub').read_text().split()[1]}\n")
+    else:
+        ssh_home.known_hosts.write_text("")
+    (local / "my_pkg" / "after.txt").write_text("must not reach the robot\n")
+    proc = fetchsync("push", "--json", env=env, check=False)
+    err = proc.stderr.decode()
+    assert proc.returncode == 3, err
+    assert ("HAS CHANGED" if change == "changed" else "is not known") in err
+    assert not (remote_dir / "src/my_pkg/after.txt").exists()
+    assert wait_for(lambda: not masters(runtime))
+    ssh_home.known_hosts.write_text(trusted)
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "ssh" and (remote_dir / "src/my_pkg/after.txt").exists()

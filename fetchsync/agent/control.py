@@ -11,13 +11,16 @@ import json
 import logging
 import os
 import socket
+import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
 
 MAX_REQUEST = 1 << 20
+OFFLINE_CHECK = 1.0  # seconds between looks at whether the robot went offline during a push
 
 
 class ControlServer:
@@ -62,6 +65,9 @@ class ControlServer:
                 continue
             except OSError:
                 return
+            if not _ours(conn):
+                conn.close()
+                continue
             threading.Thread(target=self._client, args=(conn,), daemon=True).start()
 
     def _client(self, conn: socket.socket) -> None:
@@ -93,10 +99,42 @@ class ControlServer:
             ok, why = self.agent.wait_for(seq, timeout)
             return {"ok": ok, "error": why, "status": self.agent.status()}
         if cmd == "push":
+            if self.agent.status().get("offline_since"):
+                return self._offline()
             seq = self.agent.request(full=True)
-            ok, why = self.agent.wait_for(seq, timeout)
+            ok, why, offline = self._wait(seq, timeout)
+            if offline:
+                return self._offline()
             return {"ok": ok, "error": why, "report": self.agent.status().get("last_report")}
         raise ValueError(f"unknown command {cmd!r}")
+
+    def _wait(self, seq: int, timeout: float) -> tuple[bool, str, bool]:
+        """Wait for request ``seq`` as the agent does, but give up as soon as the robot is
+        offline: (done, error, offline). A push does not wait for a robot's return."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            ok, why = self.agent.wait_for(seq, max(0.0, min(left, OFFLINE_CHECK)))
+            waiting = why == "timed out" or why.startswith("the robot is offline")
+            if ok or not waiting or left <= OFFLINE_CHECK:
+                return ok, why, False
+            if self.agent.status().get("offline_since"):
+                return False, why, True
+
+    def _offline(self) -> dict[str, Any]:
+        since = self.agent.status().get("offline_since")
+        when = time.strftime("%H:%M:%S", time.localtime(since)) if since else "now"
+        return {"ok": False, "offline": True, "error": f"the robot is offline since {when}"}
+
+
+def _ours(sock: socket.socket) -> bool:
+    """Whether the process at the other end of ``sock`` runs as us (SO_PEERCRED)."""
+    from fetchsync.agent.mux import peer_uid
+
+    try:
+        return peer_uid(sock) == os.getuid()
+    except OSError:
+        return False
 
 
 def call(path: Path, payload: dict[str, Any], *, timeout: float = 60.0) -> dict[str, Any] | None:
@@ -110,6 +148,10 @@ def call(path: Path, payload: dict[str, Any], *, timeout: float = 60.0) -> dict[
     except OSError:
         sock.close()
         return None
+    if not _ours(sock):
+        sock.close()
+        log.warning("fetchsync: %s is served by another user; ignoring it", path)
+        return None
     try:
         with sock, sock.makefile("rwb") as f:
             f.write(json.dumps(dict(payload, timeout=timeout)).encode() + b"\n")
@@ -121,3 +163,15 @@ def call(path: Path, payload: dict[str, Any], *, timeout: float = 60.0) -> dict[
         return None
     reply = json.loads(line)
     return reply if isinstance(reply, dict) else None
+
+
+def push(path: Path, *, timeout: float = 3600.0) -> dict[str, Any] | None:
+    """Ask the agent at ``path`` for a full push: its reply, or None when no agent runs
+    there or its robot is offline (said on stderr at once: the caller then pushes
+    directly, which reaches the robot or fails within the connect timeout)."""
+    reply = call(path, {"cmd": "push"}, timeout=timeout)
+    if reply is not None and reply.get("offline"):
+        print(f"fetchsync: the watch agent cannot reach its robot ({reply.get('error')}); "
+              "pushing directly", file=sys.stderr, flush=True)
+        return None
+    return reply

@@ -26,6 +26,7 @@ import stat
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -38,6 +39,7 @@ log = logging.getLogger(__name__)
 K_STDOUT, K_STDERR, K_EXIT, K_ERROR = 1, 2, 3, 4
 _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
+CHECK_TIMEOUT = 5.0  # seconds a master may take to re-check the robot's host key
 IDLE_CHECK = 0.5  # seconds between looks at the link and the idle time while no call comes
 
 
@@ -52,22 +54,79 @@ MAX_SOCKET_PATH = 100  # AF_UNIX paths are limited to 108 bytes on Linux
 
 
 def runtime_dir(*, short: bool = False) -> Path:
+    """The directory of our local sockets (connection masters, the watch agent's control).
+
+    ``$XDG_RUNTIME_DIR/fetchsync``, or with ``short`` or without that variable
+    ``fetchsync-UID`` in the temporary directory (``$TMPDIR``, else ``/tmp``): a
+    place other users can write, so the directory is checked without following a
+    symlink (``lstat``): a directory of ours, mode 0700. Anything else there
+    (another user's directory, a symlink) is refused with a ConnectError naming
+    it: only the master and the agent need sockets, and a call goes direct
+    without them.
+    """
+    return private_dir(_runtime_path(short=short))
+
+
+def _runtime_path(*, short: bool) -> Path:
     base = os.environ.get("XDG_RUNTIME_DIR")
-    path = Path(base) / "fetchsync" if base and not short else Path(f"/tmp/fetchsync-{os.getuid()}")
-    path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    st = path.stat()
-    if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
-        raise ConnectError(f"{path} is not private to you; refusing to use it for sockets")
-    return path
+    if base and not short:
+        return Path(base) / "fetchsync"
+    return Path(tempfile.gettempdir()) / f"fetchsync-{os.getuid()}"
+
+
+def private_dir(path: Path) -> Path:
+    """``path`` as a directory only we can use: made 0700 if missing, else checked with lstat."""
+    try:
+        os.mkdir(path, 0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise ConnectError(f"cannot make {path} for fetchsync's sockets: {exc.strerror}") from exc
+    try:
+        st = os.lstat(path)
+    except OSError as exc:
+        raise ConnectError(f"cannot use {path} for fetchsync's sockets: {exc.strerror}") from exc
+    if stat.S_ISLNK(st.st_mode):
+        why = "it is a symlink"
+    elif not stat.S_ISDIR(st.st_mode):
+        why = "it is not a directory"
+    elif st.st_uid != os.getuid():
+        why = f"it belongs to uid {st.st_uid}"
+    elif stat.S_IMODE(st.st_mode) & 0o077:
+        why = f"its mode is {stat.S_IMODE(st.st_mode):04o}, not 0700"
+    else:
+        return path
+    raise ConnectError(f"{path} is not private to you ({why}); refusing to use it for sockets")
+
+
+def peer_uid(sock: socket.socket) -> int:
+    """The uid of the process at the other end of a unix socket (SO_PEERCRED)."""
+    creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    return int(struct.unpack("3i", creds)[1])
 
 
 def socket_path(host: str, user: str | None) -> Path:
+    """Where the master for this robot listens; ConnectError if no private place is usable."""
     key = f"{user or ''}@{host}\0{os.environ.get('HOME', '')}"
     name = f"mux-{hashlib.sha256(key.encode()).hexdigest()[:20]}.sock"
-    path = runtime_dir() / name
+    path = _runtime_path(short=False) / name
     if len(os.fsencode(path)) > MAX_SOCKET_PATH:
-        path = runtime_dir(short=True) / name
-    return path
+        path = _runtime_path(short=True) / name
+    return private_dir(path.parent) / name
+
+
+def _connect(path: Path) -> socket.socket:
+    """A connection to the master at ``path``; OSError if none answers there or it is not ours."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.connect(str(path))
+        uid = peer_uid(sock)
+        if uid != os.getuid():
+            raise PermissionError(f"the process listening on {path} is uid {uid}, not us")
+    except BaseException:
+        sock.close()
+        raise
+    return sock
 
 
 # --------------------------------------------------------------------------- client side
@@ -164,28 +223,49 @@ class MuxTransport:
 
     @classmethod
     def attach(cls, path: Path, name: str) -> MuxTransport | None:
-        """The master at ``path`` if one answers, else None (a stale socket is removed)."""
+        """The master at ``path`` if one answers and still trusts the robot, else None.
+
+        The master checks its link and the robot's host key against known_hosts as
+        they are now (:meth:`Master.check`); a master that refuses drops itself, and
+        the caller connects afresh, which refuses a changed key as usual. A stale
+        socket is removed.
+        """
         if not path.exists():
             return None
-        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            probe.connect(str(path))
+            sock = _connect(path)
+        except PermissionError as exc:
+            log.warning("fetchsync: not using the connection master: %s", exc)
+            return None
         except OSError:
             try:
                 path.unlink()
             except OSError:
                 pass
             return None
+        try:
+            sock.settimeout(CHECK_TIMEOUT)
+            sock.sendall(b'{"check": true}\n')
+            sock.shutdown(socket.SHUT_WR)
+            channel = MuxChannel(sock)
+            status = channel.exit_status(timeout=CHECK_TIMEOUT)
+        except (OSError, LinkLostError) as exc:
+            log.info("the connection master for %s refused: %s", name, exc)
+            return None
         finally:
-            probe.close()
+            sock.close()
+        if status != 0:
+            return None
         return cls(path, name)
 
     def exec(self, command: str, *, env: dict[str, str] | None = None, pty: bool = False) -> MuxChannel:
         if env or pty:
             raise ConnectError("the connection master runs plain commands only")
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            sock.connect(str(self.path))
+            sock = _connect(self.path)
+        except OSError as exc:
+            raise ConnectError(f"the connection master for {self.name} did not answer") from exc
+        try:
             sock.sendall(json.dumps({"exec": command}).encode() + b"\n")
         except OSError as exc:
             sock.close()
@@ -226,6 +306,22 @@ class Master:
         self.lock = threading.Lock()
         self.active = 0
         self.last_used = time.monotonic()
+        self.refused = threading.Event()  # the robot's host key no longer verifies: exit
+
+    def check(self) -> None:
+        """Refuse (ConnectError) unless the link is up and the robot's host key is still the
+        one known_hosts lists, read afresh: a key changed or removed since this master
+        connected is refused as a new connection would refuse it, and the master exits."""
+        if not self.transport.is_alive(timeout=0):
+            raise ConnectError("the link to the robot is down")
+        verify = getattr(self.transport, "verify_host_key", None)
+        if verify is None:
+            return
+        try:
+            verify()
+        except ConnectError:
+            self.refused.set()
+            raise
 
     def serve(self) -> None:
         tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
@@ -241,16 +337,26 @@ class Master:
                 try:
                     conn, _ = srv.accept()
                 except (TimeoutError, socket.timeout):
-                    if not self.transport.is_alive(timeout=0):
+                    if not self.transport.is_alive(timeout=0) or self.refused.is_set():
                         return
                     with self.lock:
                         idle = self.active == 0 and time.monotonic() - self.last_used > self.idle
                     if idle or not self._owns(own):
                         return  # idle, or another master took the socket over
                     continue
+                try:
+                    uid = peer_uid(conn)
+                except OSError:
+                    uid = -1
+                if uid != os.getuid():
+                    log.warning("refused a connection from uid %s", uid)
+                    conn.close()
+                    continue
                 with self.lock:
                     self.active += 1
                 threading.Thread(target=self._client, args=(conn,), daemon=True).start()
+                if self.refused.is_set():
+                    return
         finally:
             if self._owns(own):
                 try:
@@ -270,7 +376,14 @@ class Master:
         try:
             f = conn.makefile("rb")
             line = f.readline(1 << 16)
-            command = json.loads(line)["exec"]
+            request = json.loads(line)
+            self.check()
+            if request.get("check") is True:
+                conn.sendall(_HDR.pack(K_EXIT, 4) + struct.pack(">i", 0))
+                conn.close()
+                self._done()
+                return
+            command = request["exec"]
             if not isinstance(command, str):
                 raise ValueError("not a command")
             channel = self.transport.exec(command)
