@@ -151,8 +151,9 @@ def test_socket_directory_checks_do_not_follow_a_symlink(intruder, shared_tmp, m
 def test_an_unusable_runtime_directory_is_one_line_and_a_push_still_works(ssh_home, remote_dir,
                                                                           tmp_path):
     """Issue 22 item 22: an ``XDG_RUNTIME_DIR`` where nothing can be made (here a file)."""
-    blocker = tmp_path / "not-a-dir"
-    blocker.write_text("")
+    fd, name = tempfile.mkstemp(prefix="fsnd", dir="/tmp")  # short: else /tmp would serve
+    os.close(fd)
+    blocker = Path(name)
     env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60",
                   XDG_RUNTIME_DIR=str(blocker))
     proc = fetchsync("push", "--json", env=env, check=False)
@@ -162,6 +163,7 @@ def test_an_unusable_runtime_directory_is_one_line_and_a_push_still_works(ssh_ho
     assert tree_of(Path(env["FETCHSYNC_WORKSPACE"]) / "src") == tree_of(remote_dir / "src")
     proc = fetchsync("status", env=env, check=False)
     err = proc.stderr.decode()
+    blocker.unlink()
     assert proc.returncode != 0 and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
