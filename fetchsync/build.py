@@ -18,7 +18,7 @@ import shlex
 import subprocess
 import sys
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -108,6 +108,8 @@ class Step:
     """The bash script that runs it."""
     program: str
     """The program it runs (for messages)."""
+    password: str | None = field(default=None, repr=False)
+    """A password the script's ``sudo -S`` reads: sent as the first line of its stdin."""
 
 
 # --------------------------------------------------------------------------- detection
@@ -240,13 +242,44 @@ def build_command(tool: str, args: str = "", build_type: str = "default") -> str
     return f"{line} --cmake-args {define}"
 
 
+SUDO_PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
+"""Where ``--install-deps`` takes the robot user's sudo password from without a terminal."""
+
+# What rosdep needs of the environment and sudo's env_reset drops (none of them secret).
+_ROSDEP_VARS = ("PATH", "PYTHONPATH", "ROS_DISTRO", "ROS_VERSION", "ROS_PYTHON_VERSION",
+                "ROS_PACKAGE_PATH", "ROS_HOME", "ROS_OS_OVERRIDE", "ROSDEP_SOURCE_PATH",
+                "ROSDISTRO_INDEX_URL", "AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH", "APT_CONFIG")
+
+
+def sudo_line(line: str) -> str:
+    """bash running ``line`` as root through ``sudo -S``, which reads the password on stdin.
+
+    The command keeps the variables of :data:`_ROSDEP_VARS` that are set, and
+    ``ROS_HOME`` defaults to the login user's ``~/.ros``, so rosdep as root
+    reads the index the user's ``rosdep update`` wrote. The password is never
+    in a command line or the environment: sudo reads it from the channel.
+    """
+    names = " ".join(_ROSDEP_VARS)
+    return ('export ROS_HOME="${ROS_HOME:-$HOME/.ros}"\n'
+            "__fetchsync_env=()\n"
+            f"for __fetchsync_var in {names}; do\n"
+            '  if [ -n "${!__fetchsync_var+x}" ]; then '
+            '__fetchsync_env+=("$__fetchsync_var=${!__fetchsync_var}"); fi\n'
+            "done\n"
+            f"exec sudo -S -p '' -- env \"${{__fetchsync_env[@]}}\" {line}")
+
+
 def deps_commands() -> list[str]:
     """fetch_tools' rosdep calls: refresh the index, then install what ``src`` needs."""
     return ["rosdep update", "rosdep install --from-paths src --ignore-src -y"]
 
 
-def plan(request: BuildRequest, *, workspace: str, tool: str) -> list[Step]:
+def plan(request: BuildRequest, *, workspace: str, tool: str,
+         sudo_password: str | None = None) -> list[Step]:
     """The steps ``request`` takes in ``workspace`` (``~`` for the home there), built with ``tool``.
+
+    With ``sudo_password``, ``rosdep install`` runs as root through ``sudo -S``
+    (:func:`sudo_line`) instead of calling sudo itself, which would need a terminal.
 
     Dependencies come first and see the environment ``run`` gives (the
     workspace's own setup first). catkin builds see the workspace's devel
@@ -257,9 +290,16 @@ def plan(request: BuildRequest, *, workspace: str, tool: str) -> list[Step]:
     steps = []
     if request.install_deps:
         env = ros_environment(workspace)
-        for line in deps_commands():
-            steps.append(Step(what=line, script=script(line, environment=env, directory=workspace),
-                              program="rosdep"))
+        update, install = deps_commands()
+        steps.append(Step(what=update, script=script(update, environment=env, directory=workspace),
+                          program="rosdep"))
+        if sudo_password is None:
+            steps.append(Step(what=install, program="rosdep",
+                              script=script(install, environment=env, directory=workspace)))
+        else:
+            steps.append(Step(what=f"sudo {install}", program="rosdep", password=sudo_password,
+                              script=script(sudo_line(install), environment=env,
+                                            directory=workspace)))
     spaces: tuple[str, ...] = () if tool == COLCON else ("devel",)
     env = ros_environment(workspace, spaces=spaces)
     for args in request.builds:
@@ -316,7 +356,11 @@ class TransportRunner:
         channel = self.transport.exec(wrap(step.script, tty=self.pty, python=self.python),
                                       pty=self.pty)
         try:
-            status = attach(channel, pty=self.pty, stdin=0 if self.pty else None,
+            if step.password is not None:
+                # sudo -S reads its first line; the command after it sees the end of stdin
+                channel.send_all(step.password.encode("utf-8") + b"\n")
+            status = attach(channel, pty=self.pty,
+                            stdin=0 if self.pty and step.password is None else None,
                             stdout=self.stdout)
         finally:
             channel.close()
@@ -362,7 +406,7 @@ def _failure(step: Step, status: int, where: str) -> BuildError:
         hint = f"rosdep update downloads the rosdep sources: is {where} online?"
     elif step.program == "rosdep":
         hint = (f"rosdep installs system packages with sudo on {where}, which needs a "
-                "terminal to ask for a password or a sudoers rule")
+                f"terminal to ask for a password, {SUDO_PASSWORD_VAR}, or a sudoers rule")
     return BuildError(f"{step.what} failed on {where} with exit status {status}",
                       exit_code=status, hint=hint)
 
@@ -393,15 +437,54 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
                                  python=remote_python())
         tool = request.tool
         announce = _announcer(2)
+        password = None
+        if request.install_deps:
+            password = _rosdep_sudo(runner, target.remote_workspace, pty=pty)
         if tool == "auto" and request.builds:
             markers, distros = split_probe(runner.probe(marker_probe(target.remote_workspace)))
             choice = choose_tool(markers, manifests(src), distros)
             announce(f"build tool: {choice.tool} ({choice.reason} on {target.robot})")
             tool = choice.tool
-        steps = plan(request, workspace=target.remote_workspace, tool=tool)
+        steps = plan(request, workspace=target.remote_workspace, tool=tool,
+                     sudo_password=password)
         execute(steps, runner, announce=announce)
     finally:
         transport.close()
+
+
+def deps_probe(workspace: str) -> str:
+    """A command printing whether rosdep is found in ``workspace``'s ROS environment, the
+    user's uid, and whether sudo needs a password (``rosdep=missing``, ``uid=N``, ``sudo=...``)."""
+    body = ("command -v rosdep >/dev/null 2>&1 || echo rosdep=missing\n"
+            'echo "uid=$(id -u)"\n'
+            "if ! command -v sudo >/dev/null 2>&1; then echo sudo=missing\n"
+            "elif sudo -n true </dev/null >/dev/null 2>&1; then echo sudo=nopasswd\n"
+            "else echo sudo=password; fi")
+    lines = script(body, environment=ros_environment(workspace, announce=False),
+                   directory=workspace)
+    return f"bash -c {shlex.quote(lines)}"
+
+
+def _rosdep_sudo(runner: TransportRunner, workspace: str, *, pty: bool) -> str | None:
+    """The sudo password ``rosdep install`` needs on the robot, None when it needs none or
+    can ask on our terminal; a one-line error when rosdep is missing or nothing can answer."""
+    facts = dict(line.split("=", 1) for line in runner.probe(deps_probe(workspace)).split()
+                 if "=" in line)
+    where = runner.where
+    if facts.get("rosdep") == "missing":
+        raise BuildError(f"rosdep is not installed on {where}", exit_code=127,
+                         hint=f"on {where}: sudo apt install python3-rosdep && sudo rosdep init")
+    if facts.get("uid") == "0" or facts.get("sudo") != "password" or pty:
+        return None  # root; sudo without a password (or none at all); sudo asks on our terminal
+    from fetchsync.account import check_password
+
+    password = os.environ.get(SUDO_PASSWORD_VAR)
+    if not password:
+        raise BuildError(f"rosdep install needs sudo on {where}, which asks for a password, "
+                         "and there is no terminal to type it on", exit_code=2,
+                         hint=f"run it at a terminal, or set {SUDO_PASSWORD_VAR} "
+                              "(sent to sudo on its stdin)")
+    return check_password(password, what="sudo password")
 
 
 def build_locally(workspace: Path, request: BuildRequest, *, quiet_stdout: bool = False) -> None:
