@@ -5,7 +5,18 @@ whether it needs sudo, and whether it is a system, ROS 1 or ROS 2 command),
 run in parallel over one SSH connection, one channel each, and written into
 one ``.tar.gz`` with a ``manifest.json``. :data:`DEFAULT_COLLECTORS` is the
 default set; :func:`select_collectors` applies ``--only``, ``--skip``,
-``--extra`` and a configuration file (:func:`load_config`).
+``--extra`` and a configuration file (:func:`load_config`). :data:`PROFILES`
+names the sets: ``generic`` (the default) and ``fetch``, fetch_tools'
+``debug-snapshot`` collection (:data:`FETCH_COLLECTORS`, with its 10 s bag of
+:data:`FETCH_BAG_TOPICS`). The archive is a ``.tar.gz`` or, as fetch_tools
+made, a ``.zip``.
+
+A collector may name what it needs on the robot (``needs``: a shell test, such
+as a file that must exist); when that is absent the collector is ``skipped``
+and its manifest entry says what was missing, so a robot without, say, Fetch's
+``read_board`` or a ``robot.service`` gives a complete snapshot of the rest. A
+``tar`` collector prints a tar stream whose files land under ``NAME/`` (the
+bag, ``~/.ros/log``).
 
 How a command runs on the robot, from the outside in::
 
@@ -30,6 +41,7 @@ written.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import io
 import json
@@ -37,12 +49,14 @@ import logging
 import os
 import re
 import shlex
+import shutil
 import socket
 import tarfile
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+import zipfile
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,6 +91,8 @@ MANIFEST_FORMAT = 1
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")
 _TOPIC = re.compile(r"/?[A-Za-z~][A-Za-z0-9_/~]*\Z")
 _NOT_FOUND = re.compile(rb"command not found|: not found\b")
+_ABSENT_MARK = "fetchsync-absent: "
+_ABSENT = re.compile(rb"^fetchsync-absent: ([^\n]*)", re.MULTILINE)
 # Local deadline beyond the remote `timeout`: its KILL grace plus the round trip.
 _DEADLINE_MARGIN = KILL_GRACE + 5.0
 _BAG_MARGIN = 120.0  # recording stops on the robot; this bounds the transfer too
@@ -95,6 +111,12 @@ class Collector:
     """Run through sudo when the login user is not root (dmesg, the system journal)."""
     kind: str = "system"
     """``system``, ``ros`` (either version), ``ros1`` or ``ros2``."""
+    needs: str = ""
+    """A shell test run first; when it fails the collector is skipped as absent."""
+    absent: str = ""
+    """What is absent when ``needs`` fails, for the manifest (``/var/log/syslog``)."""
+    tar: bool = False
+    """The command prints a tar stream; its files go into the archive under ``NAME/``."""
 
     def validate(self) -> None:
         """Raise ConfigError when a field is out of range."""
@@ -123,8 +145,36 @@ class Collector:
 
 
 def _c(name: str, command: str, timeout: float = DEFAULT_TIMEOUT, *, sudo: bool = False,
-       kind: str = "system") -> Collector:
-    return Collector(name=name, command=command, timeout=timeout, needs_sudo=sudo, kind=kind)
+       kind: str = "system", needs: str = "", absent: str = "", tar: bool = False) -> Collector:
+    return Collector(name=name, command=command, timeout=timeout, needs_sudo=sudo, kind=kind,
+                     needs=needs, absent=absent, tar=tar)
+
+
+def _file(name: str, path: str, *, sudo: bool = False) -> Collector:
+    """``cat PATH``, skipped when the robot has no such file."""
+    q = shlex.quote(path)
+    return _c(name, f"cat {q}", sudo=sudo, needs=f"[ -e {q} ]", absent=path)
+
+
+def _unit(name: str) -> tuple[Collector, Collector]:
+    """fetch_tools' pair for a systemd unit: its file and ``service NAME status``."""
+    path = f"/lib/systemd/system/{name}.service"
+    return (_file(f"{name}.service", path),
+            _c(f"{name}.service_status", f"service {name} status", needs=f"[ -e {path} ]",
+               absent=path))
+
+
+def _read_board(name: str, address: str) -> Collector:
+    """Fetch's board query: ``read_board`` on PATH, else fetch_drivers' through rosrun."""
+    return _c(name, "if command -v read_board >/dev/null 2>&1; then read_board "
+              f"{address}; else rosrun fetch_drivers read_board {address}; fi", 15, kind="ros1",
+              needs="command -v read_board || rospack find fetch_drivers",
+              absent="read_board (fetch_drivers)")
+
+
+# The last day of ~/.ros/log, as a tar stream (find -type f: the `latest` links stay out).
+_ROS_LOG = ('cd "$HOME/.ros" && find log -type f -mtime -1 -print0 | '
+            'tar --null --no-recursion -T - -cf -')
 
 
 DEFAULT_COLLECTORS: tuple[Collector, ...] = (
@@ -153,7 +203,60 @@ DEFAULT_COLLECTORS: tuple[Collector, ...] = (
     _c("ros_topics", "ros2 topic list -t", 15, kind="ros2"),
     _c("ros_services", "ros2 service list -t", 15, kind="ros2"),
     _c("ros_params", "ros2 param list", 30, kind="ros2"),
+    _c("ros_doctor", "ros2 doctor --report", 60, kind="ros2"),
+    _c("ros_log", _ROS_LOG, 30, kind="ros2", needs='[ -d "$HOME/.ros/log" ]', absent="~/.ros/log",
+       tar=True),
 )
+
+FETCH_BAG_TOPICS = ("/robot_state", "/diagnostics", "/diagnostics_agg", "/battery_state")
+"""What fetch_tools' debug-snapshot recorded, for 10 s."""
+
+FETCH_COLLECTORS: tuple[Collector, ...] = (
+    # fetch_tools' debug-snapshot, its file names kept (Fetch's support knows them).
+    _c("dpkg_fetch", "COLUMNS=200 dpkg -l 'ros-*-fetch-*'", 20),
+    _c("dpkg_ros", "COLUMNS=200 dpkg -l 'ros-*'", 20),
+    _c("dpkg_all", "COLUMNS=200 dpkg -l", 20),
+    _c("lsusb", "lsusb -v", 20),
+    _c("lspci", "lspci -vv", 20),
+    _c("roswtf", "roswtf", 60, kind="ros1"),
+    _c("rosnode_list", "rosnode list", 15, kind="ros1"),
+    _c("rostopic_list", "rostopic list", 15, kind="ros1"),
+    _c("rossrv_list", "rosservice list", 15, kind="ros1"),
+    _c("rosparam_list", "rosparam list", 15, kind="ros1"),
+    _c("rosparam_dump", "rosparam get /", 15, kind="ros1"),
+    _c("dmesg", "dmesg", sudo=True),
+    _file("syslog", "/var/log/syslog"),
+    _c("date", "date"),
+    _c("meminfo", "cat /proc/meminfo"),
+    _c("ip_route", "ip route"),
+    _c("ifconfig", "ifconfig -a"),
+    _c("iwconfig", "iwconfig"),
+    _file("network_interfaces", "/etc/network/interfaces"),
+    _c("netplan_full", "cat /etc/netplan/*.yaml", needs="ls /etc/netplan/*.yaml",
+       absent="/etc/netplan/*.yaml"),
+    _c("hosts", "cat /etc/hosts"),
+    _c("env", "env"),
+    *_unit("roscore"),
+    *_unit("robot"),
+    _c("robot.journalctl", "journalctl -u robot --no-pager", 20,
+       needs="[ -e /lib/systemd/system/robot.service ]",
+       absent="/lib/systemd/system/robot.service"),
+    *_unit("ps3joy"),
+    *_unit("ps4joy"),
+    _read_board("read_board_charger", "0x3f"),
+    _read_board("read_board_mainboard", "0x00"),
+    _read_board("read_board_wheel_left", "0x11"),
+    _read_board("read_board_wheel_right", "0x12"),
+    _read_board("read_board_gripper", "0x80"),
+    _c("battery_state", "rostopic echo -n 1 /battery_state", 15, kind="ros1"),
+    _c("robot_state", "rostopic echo -n 1 /robot_state", 15, kind="ros1"),
+    _c("top", "top -n 1 -b"),
+    _file("robot_log", "/var/log/ros/robot.log", sudo=True),
+)
+
+PROFILES: dict[str, tuple[Collector, ...]] = {"generic": DEFAULT_COLLECTORS,
+                                              "fetch": FETCH_COLLECTORS}
+"""The collector sets by name; ``generic`` is the default."""
 
 
 # --- the set -----------------------------------------------------------------------------------
@@ -359,6 +462,12 @@ def probe_command(*, ros_root: str = DEFAULT_ROS_ROOT, check_sudo: bool) -> str:
         '  then echo "ros=1 $d"; fi\n'
         'done\n'
         'echo "ros_distro=${ROS_DISTRO:-}"\n'
+        # ROS already on the login PATH (sourced by ~/.bashrc, a source build): used when
+        # nothing is under the ROS root. Not rosversion: pip's rospkg installs one anywhere.
+        'command -v ros2 >/dev/null 2>&1 && echo "ros_path=2"\n'
+        'for t in roscore rosbag rostopic rosnode; do\n'
+        '  if command -v $t >/dev/null 2>&1; then echo "ros_path=1"; break; fi\n'
+        'done\n'
     )
     return "sh -c " + shlex.quote(script)
 
@@ -367,11 +476,14 @@ def parse_probe(text: str) -> RobotInfo:
     """Read :func:`probe_command`'s output (a login shell may print noise around it)."""
     values: dict[str, str] = {}
     found: list[RosInstall] = []
+    on_path: set[int] = set()
     for line in text.splitlines():
         key, sep, value = line.partition("=")
         if not sep:
             continue
-        if key == "ros":
+        if key == "ros_path" and value.strip() in ("1", "2"):
+            on_path.add(int(value.strip()))
+        elif key == "ros":
             version, _, prefix = value.partition(" ")
             if version in ("1", "2") and prefix.startswith("/"):
                 found.append(RosInstall(int(version), prefix.rstrip("/").rsplit("/", 1)[-1], prefix))
@@ -385,6 +497,9 @@ def parse_probe(text: str) -> RobotInfo:
     preferred = [r for r in found if r.distro == values.get("ros_distro")]
     candidates = preferred or found
     ros = candidates[-1] if candidates else None
+    if ros is None and on_path:
+        # Nothing to source: the login environment already has it (prefix "").
+        ros = RosInstall(max(on_path), values.get("ros_distro", ""), "")
     return RobotInfo(uid=uid, user=values.get("user", ""), has_timeout=values.get("timeout") == "yes",
                      sudo=values.get("sudo") or None, ros=ros, ros_found=tuple(found))
 
@@ -646,6 +761,12 @@ def _run(transport: Transport, job: _Job, workdir: Path, *, has_timeout: bool) -
     else:
         result.status = classify(status, err.head, timeout=job.timeout if has_timeout else None,
                                  elapsed=result.duration)
+        absent = _ABSENT.search(err.head)
+        if absent:
+            result.status = SKIPPED
+            result.error = "not on the robot: " + absent.group(1).decode("utf-8", "replace")
+        elif result.status == MISSING and not result.error:
+            result.error = "not installed on the robot"
     return result
 
 
@@ -667,6 +788,11 @@ def remote_command(collector: Collector, *, info: RobotInfo, sudo: SudoPlan,
                    overlay: str | None = None) -> str:
     """The command line the robot runs for ``collector``; it never holds a password."""
     script = collector.command
+    if collector.needs:
+        # Absent: a line the classifier knows, and no output to keep.
+        script = (f"if ! {{ {collector.needs}; }} >/dev/null 2>&1; then "
+                  f"echo {shlex.quote(_ABSENT_MARK + (collector.absent or collector.needs))} >&2; "
+                  f"exit 0; fi; {script}")
     shell = "sh"
     if collector.kind != "system":
         if info.ros is None:
@@ -697,7 +823,8 @@ def _ros_env_script(ros: RosInstall, overlay: str | None) -> str:
     collectors' stderr. (``run``'s ``fetchsync.remote`` builds a similar
     environment; it was not in the repository yet when this was written.)
     """
-    parts = [f"source {shlex.quote(ros.prefix + '/setup.bash')} >/dev/null 2>&1"]
+    parts = [f"source {shlex.quote(ros.prefix + '/setup.bash')} >/dev/null 2>&1"] if ros.prefix \
+        else []
     if overlay:
         ws = _shell_path(overlay)
         parts.append(
@@ -705,7 +832,7 @@ def _ros_env_script(ros: RosInstall, overlay: str | None) -> str:
             f"{ws}/install/setup.bash; do if [ -f \"$_f\" ]; then source \"$_f\" >/dev/null 2>&1; "
             "break; fi; done; unset _f"
         )
-    return "; ".join(parts) + "; "
+    return "; ".join(parts) + "; " if parts else ""
 
 
 def _shell_path(path: str) -> str:
@@ -770,10 +897,14 @@ class Snapshot:
         return {"archive": str(self.archive), "size": self.size, **self.manifest}
 
 
-def archive_name(robot: str, when: _dt.datetime) -> str:
-    """``snapshot-<robot>-<YYYYmmdd-HHMMSS>.tar.gz``, the robot name made file-safe."""
+ARCHIVE_FORMATS = ("tar", "zip")
+_SUFFIX = {"tar": ".tar.gz", "zip": ".zip"}
+
+
+def archive_name(robot: str, when: _dt.datetime, *, archive_format: str = "tar") -> str:
+    """``snapshot-<robot>-<YYYYmmdd-HHMMSS>.tar.gz`` (``.zip``), the robot name made file-safe."""
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", robot).strip("._") or "robot"
-    return f"snapshot-{safe}-{when.strftime('%Y%m%d-%H%M%S')}.tar.gz"
+    return f"snapshot-{safe}-{when.strftime('%Y%m%d-%H%M%S')}{_SUFFIX[archive_format]}"
 
 
 def take_snapshot(
@@ -790,6 +921,7 @@ def take_snapshot(
     overlay: str | None = None,
     ros_root: str = DEFAULT_ROS_ROOT,
     progress: Callable[[CommandResult], None] | None = None,
+    archive_format: str = "tar",
 ) -> Snapshot:
     """Run ``collectors`` on the robot behind ``transport`` and write the archive.
 
@@ -798,8 +930,11 @@ def take_snapshot(
     when a password is to be had), ``always`` or ``never``; ``password`` is
     asked only when sudo wants one. ``overlay`` is the remote workspace whose
     setup is sourced after the distribution's. ``progress`` is called (from a
-    worker thread) as each command finishes.
+    worker thread) as each command finishes. ``archive_format`` is ``tar``
+    (``.tar.gz``) or ``zip``.
     """
+    if archive_format not in ARCHIVE_FORMATS:
+        raise ValueError(f"archive_format must be tar or zip, not {archive_format!r}")
     if sudo not in ("auto", "always", "never"):
         raise ValueError(f"sudo must be auto, always or never, not {sudo!r}")
     if not 1 <= jobs <= MAX_JOBS:
@@ -842,7 +977,7 @@ def take_snapshot(
              remote=remote_command(c, info=info, sudo=plan, overlay=overlay),
              deadline=c.timeout + _DEADLINE_MARGIN, timeout=c.timeout,
              stdin=plan.stdin() if c.needs_sudo else b"",
-             sudo=c.needs_sudo and plan.mode != "none")
+             sudo=c.needs_sudo and plan.mode != "none", tar=c.tar)
         for c in runnable
     ]
     if topics and bag_skipped is None and info.ros is not None:
@@ -856,7 +991,7 @@ def take_snapshot(
 
     out_path = Path(output)
     if out_path.is_dir():
-        out_path = out_path / archive_name(robot, started)
+        out_path = out_path / archive_name(robot, started, archive_format=archive_format)
     with tempfile.TemporaryDirectory(prefix="fetchsync-snapshot-") as tmp:
         results = _run_all(transport, work_list, Path(tmp), jobs=jobs,
                            has_timeout=info.has_timeout, progress=progress)
@@ -883,7 +1018,8 @@ def take_snapshot(
             "remote_timeout": info.has_timeout,
             "notes": list(notes),
         }
-        size = write_archive(out_path, results=ordered, manifest=manifest)
+        size = write_archive(out_path, results=ordered, manifest=manifest,
+                             archive_format=archive_format)
 
     lost = [r for r in ordered if r.link_lost]
     return Snapshot(archive=out_path, size=size, manifest=manifest, notes=notes,
@@ -929,29 +1065,29 @@ def _in_order(collectors: Sequence[Collector], results: dict[str, CommandResult]
 
 
 def write_archive(path: Path, *, results: Sequence[CommandResult],
-                  manifest: dict[str, Any]) -> int:
-    """Write the ``.tar.gz`` (a ``.part`` renamed into place) and return its size.
+                  manifest: dict[str, Any], archive_format: str = "tar") -> int:
+    """Write the ``.tar.gz`` or ``.zip`` (a ``.part`` renamed into place); return its size.
 
     Everything lies under one directory named like the archive. Adds the
     per-command entries (``commands``) and the ``summary`` to ``manifest``.
     """
     top = path.name
-    for suffix in (".gz", ".tgz", ".tar"):
+    for suffix in (".gz", ".tgz", ".tar", ".zip"):
         top = top.removesuffix(suffix)
     top = top or "snapshot"
     part = path.with_name(path.name + ".part")
     now = time.time()
     try:
-        with tarfile.open(part, "w:gz") as tar:
+        with _writer(part, archive_format) as add:
             files: list[tuple[str, Path]] = []
-            bags: list[Path] = []
+            streams: list[tuple[str, Path]] = []
             for r in results:
                 if r.status == SKIPPED or r.stdout is None:
                     continue
                 names = _bag_names(r) if r.tar else []
                 if r.tar:  # still: _bag_names clears it when the stream is unreadable
-                    r.files = [f"{BAG_NAME}/{name}" for name in names]
-                    bags.append(r.stdout)
+                    r.files = [f"{r.name}/{name}" for name in names]
+                    streams.append((r.name, r.stdout))
                 else:
                     r.files.append(f"{r.name}.txt")
                     files.append((f"{r.name}.txt", r.stdout))
@@ -962,12 +1098,12 @@ def write_archive(path: Path, *, results: Sequence[CommandResult],
             manifest["commands"] = entries
             manifest["summary"] = {s: sum(e["status"] == s for e in entries) for s in STATUSES}
             data = (json.dumps(manifest, indent=2) + "\n").encode()
-            _add(tar, f"{top}/{MANIFEST}", io.BytesIO(data), len(data), now)
+            add(f"{top}/{MANIFEST}", io.BytesIO(data), len(data), now)
             for name, src in files:
                 with open(src, "rb") as f:
-                    _add(tar, f"{top}/{name}", f, src.stat().st_size, now)
-            for bag in bags:
-                _copy_bag(tar, bag, f"{top}/{BAG_NAME}")
+                    add(f"{top}/{name}", f, src.stat().st_size, now)
+            for name, stream in streams:
+                _copy_bag(add, stream, f"{top}/{name}")
         os.replace(part, path)
     except OSError as exc:
         try:
@@ -976,6 +1112,30 @@ def write_archive(path: Path, *, results: Sequence[CommandResult],
             pass
         raise ConfigError(f"cannot write the snapshot archive {path}: {exc.strerror or exc}") from exc
     return path.stat().st_size
+
+
+_Add = Callable[[str, IO[bytes], int, float], None]
+"""Adds one file to an archive being written: (name, content, size, mtime)."""
+
+
+@contextlib.contextmanager
+def _writer(path: Path, archive_format: str) -> Iterator[_Add]:
+    """An archive being written, ``tar`` (gzip) or ``zip`` (deflate), file by file."""
+    if archive_format != "zip":
+        with tarfile.open(path, "w:gz") as tar:
+            yield lambda name, f, size, mtime: _add(tar, name, f, size, mtime)
+        return
+
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        def add(name: str, f: IO[bytes], size: int, mtime: float) -> None:
+            when = time.localtime(max(mtime, 315532800))[:6]  # zip dates start in 1980
+            info = zipfile.ZipInfo(name, date_time=when)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            with archive.open(info, "w") as dst:
+                shutil.copyfileobj(f, dst, 1 << 20)
+
+        yield add
 
 
 def _bag_members(source: tarfile.TarFile) -> Iterable[tuple[str, tarfile.TarInfo]]:
@@ -1001,7 +1161,7 @@ def _bag_names(r: CommandResult) -> list[str]:
         return []
 
 
-def _copy_bag(tar: tarfile.TarFile, stream: Path, under: str) -> None:
+def _copy_bag(add: _Add, stream: Path, under: str) -> None:
     if stream.stat().st_size == 0:
         return
     try:
@@ -1009,9 +1169,9 @@ def _copy_bag(tar: tarfile.TarFile, stream: Path, under: str) -> None:
             for name, member in _bag_members(source):
                 f = source.extractfile(member)
                 if f is not None:
-                    _add(tar, f"{under}/{name}", f, member.size, member.mtime)
+                    add(f"{under}/{name}", f, member.size, member.mtime)
     except tarfile.TarError as exc:  # cut short after its index was read: keep what came
-        log.warning("the bag's tar stream ended early: %s", exc)
+        log.warning("the tar stream of %s ended early: %s", under, exc)
 
 
 def _add(tar: tarfile.TarFile, name: str, f: IO[bytes], size: int, mtime: float) -> None:
@@ -1021,8 +1181,12 @@ def _add(tar: tarfile.TarFile, name: str, f: IO[bytes], size: int, mtime: float)
 
 
 __all__ = [
+    "ARCHIVE_FORMATS",
     "DEFAULT_COLLECTORS",
+    "FETCH_BAG_TOPICS",
+    "FETCH_COLLECTORS",
     "KINDS",
+    "PROFILES",
     "STATUSES",
     "Collector",
     "CommandResult",

@@ -81,9 +81,11 @@ def test_default_set_is_valid_and_covers_the_issue():
     names = set(SYSTEM_NAMES)
     assert {"uname", "os_release", "uptime", "meminfo", "df", "top", "dmesg", "journal",
             "ip_addr", "ip_route", "lsusb", "lspci", "dpkg_ros"} <= names
-    for kind in ("ros1", "ros2"):
-        assert {c.name for c in DEFAULT_COLLECTORS if c.kind == kind} == {
-            "ros_nodes", "ros_topics", "ros_services", "ros_params"}
+    shared = {"ros_nodes", "ros_topics", "ros_services", "ros_params"}
+    assert {c.name for c in DEFAULT_COLLECTORS if c.kind == "ros1"} == shared
+    # ROS 2 adds its doctor's report and the logs (issue 26)
+    assert {c.name for c in DEFAULT_COLLECTORS if c.kind == "ros2"} == shared | {
+        "ros_doctor", "ros_log"}
     assert {c.name for c in DEFAULT_COLLECTORS if c.needs_sudo} == {"dmesg", "journal"}
 
 
@@ -436,3 +438,128 @@ def test_sudo_wrong_or_no_password(sudo_user, tmp_path):
     assert "without sudo" in result.stderr
     _manifest, files = read_archive(only_archive(tmp_path))
     assert files["root_id.txt"] != b"0\n"
+
+
+# --- fetch_tools' collection and ROS 2's, with fakes on a robot user's PATH ----------------------
+
+
+def _fake_tools(user: str, tools: dict[str, str]) -> Path:
+    """Put fake executables in ~USER/fakebin, first on the PATH of the user's SSH commands
+    (bash reads ~/.bashrc for them), as a robot's own tools would be."""
+    home = Path(os.path.expanduser(f"~{user}"))
+    bin_dir = home / "fakebin"
+    bin_dir.mkdir(exist_ok=True)
+    for name, body in tools.items():
+        (bin_dir / name).write_text("#!/bin/bash\n" + body)
+        (bin_dir / name).chmod(0o755)
+    (home / ".bashrc").write_text(f'export PATH="{bin_dir}:$PATH"\n')
+    for path in (bin_dir, *bin_dir.iterdir(), home / ".bashrc"):
+        shutil.chown(path, user, user)
+    return home
+
+
+def _read_zip(path: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        names = z.namelist()
+        assert len({n.split("/", 1)[0] for n in names}) == 1, names
+        files = {n.split("/", 1)[1]: z.read(n) for n in names}
+    return json.loads(files["manifest.json"]), files
+
+
+FAKE_ROSBAG = ('[ "$1" = record ] || exit 2; out=; args="$*"; while [ $# -gt 0 ]; do '
+               'case $1 in -O) out=$2; shift;; esac; shift; done; echo "$args" > "$out"\n')
+
+
+@pytest.mark.ssh
+def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
+    name, password = sudo_user
+    _fake_tools(name, {"read_board": 'echo "board $1"\n', "rosbag": FAKE_ROSBAG})
+    result = CliRunner().invoke(cli, ["debug-snapshot", "--user", name, "--output", str(tmp_path)],
+                                env={"FETCHSYNC_SUDO_PASSWORD": password})
+    assert result.exit_code == 0, result.output
+    (archive,) = tmp_path.glob("snapshot-robot-*.zip")
+    manifest, files = _read_zip(archive)
+    entries = by_name(manifest)
+    assert manifest["user"] == name and manifest["ros"]["version"] == 1
+    assert manifest["sudo"] == "password" and entries["dmesg"]["sudo"] is True
+    # the five board queries, through the robot's read_board
+    for entry, address in (("charger", "0x3f"), ("mainboard", "0x00"), ("wheel_left", "0x11"),
+                           ("wheel_right", "0x12"), ("gripper", "0x80")):
+        assert files[f"read_board_{entry}.txt"] == f"board {address}\n".encode()
+    # fetch_tools' 10 s bag of its four topics
+    assert entries["rosbag"]["status"] == OK
+    assert files["rosbag/snapshot.bag"] == (b"record -q --duration=10 -O snapshot.bag /robot_state "
+                                            b"/diagnostics /diagnostics_agg /battery_state\n")
+    assert b"fakebin" in files["env.txt"] and b"MemTotal" in files["meminfo.txt"]
+    # what this machine lacks is skipped, each with a note saying what was absent
+    for item, absent in (("robot_log", "/var/log/ros/robot.log"),
+                         ("robot.service_status", "/lib/systemd/system/robot.service"),
+                         ("roscore.service", "/lib/systemd/system/roscore.service"),
+                         ("ps4joy.service_status", "/lib/systemd/system/ps4joy.service")):
+        assert entries[item]["status"] == "skipped", entries[item]
+        assert entries[item]["error"] == f"not on the robot: {absent}"
+        assert f"{item}.txt" not in files and f"{item}.stderr.txt" not in files
+        assert f"skipped: {item} (not on the robot: {absent})" in result.stderr
+    assert entries["roswtf"]["status"] == "missing"
+    assert entries["roswtf"]["error"] == "not installed on the robot"
+    assert password.encode() not in b"".join(files.values())
+
+
+@pytest.mark.ssh
+def test_debug_snapshot_logs_in_as_fetch_like_fetch_tools(sudo_user, tmp_path):
+    name, _password = sudo_user
+    # FETCH_USER is the developer's account; fetch_tools' debug-snapshot used `fetch` anyway
+    result = CliRunner().invoke(cli, ["debug-snapshot", "--output", str(tmp_path)],
+                                env={"FETCH_USER": name, "FETCHSYNC_USER": name})
+    assert result.exit_code == 3
+    assert "permission denied for fetch@robot" in result.stderr, result.stderr
+
+
+FAKE_ROS2 = """case "$1 $2" in
+  "doctor --report") echo "doctor report: all good";;
+  "node list") echo /talker;;
+  "topic list") echo "/chatter [std_msgs/msg/String]";;
+  "service list") echo /talker/describe_parameters;;
+  "param list") echo /talker:;;
+  *) echo "ros2 $*"; exit 1;;
+esac
+"""
+
+
+@pytest.mark.ssh
+def test_generic_profile_collects_ros2_counterparts(sudo_user, tmp_path):
+    name, _password = sudo_user
+    home = _fake_tools(name, {"ros2": FAKE_ROS2})
+    only = ["--only", "uname", "--only", "ros_doctor", "--only", "ros_nodes",
+            "--only", "ros_topics", "--only", "ros_log"]
+    # no ~/.ros/log yet: skipped, said so
+    result = run_cli("--user", name, "--output", str(tmp_path / "one.tar.gz"), *only)
+    assert result.exit_code == 0, result.output
+    manifest, files = read_archive(tmp_path / "one.tar.gz")
+    entries = by_name(manifest)
+    assert manifest["ros"]["version"] == 2
+    assert files["ros_doctor.txt"] == b"doctor report: all good\n"
+    assert files["ros_nodes.txt"] == b"/talker\n"
+    assert files["ros_topics.txt"] == b"/chatter [std_msgs/msg/String]\n"
+    assert entries["ros_log"]["status"] == "skipped"
+    assert entries["ros_log"]["error"] == "not on the robot: ~/.ros/log"
+
+    # the last day of logs, in ros_log/, into a .zip this time
+    log_dir = home / ".ros" / "log"
+    (log_dir / "2026-11-26-10-00-00-123").mkdir(parents=True)
+    (log_dir / "python3_1234_1700000000000.log").write_text("recent\n")
+    (log_dir / "2026-11-26-10-00-00-123" / "launch.log").write_text("launch\n")
+    old = log_dir / "python3_1_1.log"
+    old.write_text("old\n")
+    os.utime(old, (1.0e9, 1.0e9))
+    subprocess.run(["chown", "-R", f"{name}:{name}", str(home / ".ros")], check=True)
+    result = run_cli("--user", name, "--output", str(tmp_path), "--zip", *only)
+    assert result.exit_code == 0, result.output
+    (archive,) = tmp_path.glob("snapshot-robot-*.zip")
+    manifest, files = _read_zip(archive)
+    assert by_name(manifest)["ros_log"]["status"] == OK
+    assert files["ros_log/log/python3_1234_1700000000000.log"] == b"recent\n"
+    assert files["ros_log/log/2026-11-26-10-00-00-123/launch.log"] == b"launch\n"
+    assert "ros_log/log/python3_1_1.log" not in files

@@ -1,4 +1,9 @@
-"""``fetchsync snapshot`` (alias ``debug-snapshot``): the click layer over :mod:`fetchsync.snapshot`."""
+"""``fetchsync snapshot`` (alias ``debug-snapshot``): the click layer over :mod:`fetchsync.snapshot`.
+
+Called by fetch_tools' name, ``debug-snapshot``, it does what fetch_tools'
+did: the ``fetch`` profile, logged in as ``fetch``, into a ``.zip``; called
+``snapshot``, the ``generic`` profile into a ``.tar.gz``. Options override both.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +19,9 @@ from fetchsync.commands.common import resolve, target_options
 from fetchsync.snapshot import (
     DEFAULT_BAG_DURATION,
     DEFAULT_JOBS,
+    FETCH_BAG_TOPICS,
     MAX_JOBS,
+    PROFILES,
     Collector,
     CommandResult,
     PasswordSource,
@@ -25,10 +32,21 @@ from fetchsync.snapshot import (
 )
 
 PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
+FETCH_TOOLS_NAME = "debug-snapshot"
+FETCH_LOGIN = "fetch"
+"""fetch_tools' debug-snapshot logged in as Fetch's admin account."""
 
 
 @click.command("snapshot")
 @target_options
+@click.option("--profile", type=click.Choice(sorted(PROFILES)), default=None,
+              help="What to collect: generic (the default), or fetch: fetch_tools' "
+                   "debug-snapshot (read_board, robot/roscore/joystick services, robot.log, "
+                   "syslog, netplan, roswtf, a 10 s bag...), logged in as fetch unless --user. "
+                   "Default: fetch when called as debug-snapshot.")
+@click.option("--zip/--tar", "as_zip", default=None,
+              help="Write a .zip (as fetch_tools) or a .tar.gz. Default: .zip when called as "
+                   "debug-snapshot or --output ends in .zip, else .tar.gz.")
 @click.option("--output", "-o", type=click.Path(), default=".",
               help="Archive path, or a directory for snapshot-<robot>-<time>.tar.gz. "
               "Default: the current directory.")
@@ -40,7 +58,9 @@ PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, exists=True),
               help="TOML (or .json) file with collectors to add and only/skip lists.")
 @click.option("--bag", "bag_topics", multiple=True, metavar="TOPIC",
-              help="Record this topic into a short bag (rosbag / ros2 bag); repeatable.")
+              help="Record this topic into a short bag (rosbag / ros2 bag); repeatable. The "
+                   "fetch profile records /robot_state /diagnostics /diagnostics_agg "
+                   "/battery_state unless given.")
 @click.option("--bag-duration", type=click.FloatRange(min=0, min_open=True, max=3600),
               default=DEFAULT_BAG_DURATION, show_default=True, metavar="SECONDS",
               help="How long to record the bag.")
@@ -55,8 +75,10 @@ PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
 @click.option("--list", "list_only", is_flag=True,
               help="Print the collectors that would run and exit; connects to nothing.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
-def command(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None, accept_host_key: str | None, output: str,
+@click.pass_context
+def command(ctx: click.Context, robot: str | None, user: str | None, workspace: str | None,
+            remote_workspace: str | None, accept_host_key: str | None, profile: str | None,
+            as_zip: bool | None, output: str,
             only: tuple[str, ...], skip: tuple[str, ...], extra: tuple[str, ...],
             config_file: str | None, bag_topics: tuple[str, ...], bag_duration: float,
             use_sudo: bool | None, fetch_password: str | None, jobs: int, list_only: bool,
@@ -69,10 +91,19 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     optionally a short bag. Commands run in parallel, each with a timeout; a
     tool the robot lacks is recorded as missing. manifest.json in the archive
     lists every command with its exit code, duration and status.
+
+    As debug-snapshot (fetch_tools' name): --profile fetch into a .zip.
     """
+    fetch_tools = ctx.info_name == FETCH_TOOLS_NAME
+    profile = profile or ("fetch" if fetch_tools else "generic")
+    if as_zip is None:
+        as_zip = fetch_tools or output.lower().endswith(".zip")
     config = load_config(config_file) if config_file else None
     collectors = select_collectors(config=config, only=only, skip=skip,
-                                   extra=[parse_extra(e) for e in extra])
+                                   extra=[parse_extra(e) for e in extra], base=PROFILES[profile])
+    if profile == "fetch":
+        bag_topics = bag_topics or FETCH_BAG_TOPICS
+        user = user or FETCH_LOGIN
     if list_only:
         _print_list(collectors, as_json)
         return
@@ -94,7 +125,7 @@ def command(robot: str | None, user: str | None, workspace: str | None,
             transport, robot=target.robot, collectors=collectors, output=output, jobs=jobs,
             sudo=policy, password=_password_source(target.robot, fetch_password),
             bag_topics=bag_topics, bag_duration=bag_duration, overlay=overlay,
-            progress=progress)
+            progress=progress, archive_format="zip" if as_zip else "tar")
     finally:
         progress.close()
         transport.close()
@@ -195,6 +226,8 @@ def _print_snapshot(snap: Snapshot, as_json: bool) -> None:
             click.echo(f"  failed: {entry['name']} ({why})", err=True)
         elif status in ("missing", "timeout"):
             click.echo(f"  {status}: {entry['name']}", err=True)
+        elif status == "skipped" and str(entry.get("error", "")).startswith("not on the robot"):
+            click.echo(f"  skipped: {entry['name']} ({entry['error']})", err=True)
     for note in snap.notes:
         click.echo(f"  note: {note}", err=True)
 
