@@ -121,7 +121,7 @@ class Choice:
     reason: str
 
 
-def _colcon_only(text: str) -> str | None:
+def ros2_reason(text: str) -> str | None:
     """Why the package in ``text`` needs colcon (ament or plain build types, format 3 without
     catkin), or None when catkin builds it."""
     m = _BUILD_TYPE.search(text)
@@ -157,7 +157,7 @@ def choose_tool(markers: Collection[str], manifests: Iterable[str] = (),
             return Choice(tool, f"the workspace has {hit}")
     catkin_pkg = None
     for text in manifests:
-        why = _colcon_only(text)
+        why = ros2_reason(text)
         name = _PKG_NAME.search(text)
         label = name.group(1) if name else "a package"
         if why is not None:

@@ -1,27 +1,29 @@
-"""Lint ROS sources the way ROS's roslint does, for ``fetchsync lint``.
+"""Lint ROS sources the way ROS's own tools do, for ``fetchsync lint``.
 
-Three tools, each on what it understands:
+Two styles, chosen per package (``--style auto``) from its package.xml:
 
-- ``pycodestyle`` (in process) on Python files: ``.py`` and extensionless
-  scripts with a python shebang; lines up to 120 characters (roslint's
-  ``roslint_python``), pycodestyle's default ignores plus E266 (``##``
-  Doxygen comments, as fetch_tools allowed).
-- ``cpplint`` (a subprocess, ``python -m cpplint``) on C/C++ files with
-  roslint's settings: lines up to 120 characters, the category filters of
-  ``roslint_cpp`` and of roslint's cpplint wrapper (ROS's brace placement,
-  include order, streams and access specifiers differ from Google's), and
-  ROS's header guards (``PKG_PATH_FILE_H`` from the package or ``include/``
-  directory), checked here in place of cpplint's own.
-- ``catkin_lint`` (a subprocess, offline) on packages, with the workspace's
-  ``src/`` as its package path, so a dependency on a sibling workspace package
-  that ``package.xml`` does not declare is reported.
+- ``roslint``, fetch_tools' rules exactly, for catkin (ROS 1) packages and
+  files outside any package: ``pycodestyle`` (in process; pep8 at its 79
+  columns, ignoring only E266 as fetch_tools' ``--ignore`` did, which also
+  dropped pep8's default ignores; W504, which pep8 did not have and which
+  contradicts W503, is off); ``cpplint`` through roslint's wrapper
+  (:mod:`fetchsync.roslint_cpplint`: ROS's braces, header guards, 120
+  columns) with fetch_tools' ``--filter=+,-runtime/references,-runtime/
+  threadsafe_fn``; ``catkin_lint -W2`` (offline) on the packages, with the
+  workspace's ``src/`` as its package path.
+- ``ament``, for ROS 2 packages (package.xml format 3 without catkin, or an
+  ``ament_*``/``cmake`` build type), what ``ament_lint_common`` runs:
+  ``ament_cpplint`` and ``ament_pep257`` (the ament packages of PyPI), and
+  ``flake8`` with ament_flake8's settings (99 columns, its ignore list):
+  ament_flake8 itself does not run with the flake8 this project needs, so
+  flake8 runs with its configuration, and the output's first line says so.
+  Never catkin_lint.
 
 What is linted comes from one argument (:func:`resolve_targets`): an existing
-file, a directory (walked with fetchsync's exclude rules; every package in it
-is linted by catkin_lint too), or the name of a package found by its
-``package.xml`` under the workspace's ``src/``. :func:`lint` runs the tools
-and returns a :class:`LintReport`; findings are data, a missing tool or a bad
-argument is a :class:`~fetchsync.errors.FetchsyncError`.
+file, a directory (walked with fetchsync's exclude rules), or the name of a
+package found by its ``package.xml`` under the workspace's ``src/``.
+:func:`lint` runs the tools and returns a :class:`LintReport`; findings are
+data, a missing tool or a bad argument is a :class:`~fetchsync.errors.FetchsyncError`.
 """
 
 from __future__ import annotations
@@ -50,37 +52,46 @@ log = logging.getLogger(__name__)
 PYCODESTYLE = "pycodestyle"
 CPPLINT = "cpplint"
 CATKIN_LINT = "catkin_lint"
-TOOLS: tuple[str, ...] = (PYCODESTYLE, CPPLINT, CATKIN_LINT)
+FLAKE8 = "flake8"
+AMENT_PEP257 = "ament_pep257"
+AMENT_CPPLINT = "ament_cpplint"
+ROSLINT_TOOLS: tuple[str, ...] = (PYCODESTYLE, CPPLINT, CATKIN_LINT)
+AMENT_TOOLS: tuple[str, ...] = (FLAKE8, AMENT_PEP257, AMENT_CPPLINT)
+TOOLS: tuple[str, ...] = ROSLINT_TOOLS + AMENT_TOOLS
 
-# The ROS style guides' line length (roslint_python, roslint's cpplint wrapper).
-DEFAULT_MAX_LINE_LENGTH = 120
+AUTO, ROSLINT, AMENT = "auto", "roslint", "ament"
+STYLES: tuple[str, ...] = (AUTO, ROSLINT, AMENT)
+STYLE_TOOLS = {ROSLINT: ROSLINT_TOOLS, AMENT: AMENT_TOOLS}
+STYLE_NOTES = {
+    ROSLINT: "fetch_tools' rules: pep8 at 79 columns, roslint's cpplint, catkin_lint -W2",
+    AMENT: "ament_lint_common's rules: ament_cpplint, ament_pep257, and flake8 with "
+           "ament_flake8's settings (ament_flake8 itself needs an older flake8)",
+}
+
+# Lines: pep8's default (fetch_tools passed none), roslint's cpplint wrapper,
+# ament_flake8's configuration, ament_cpplint's default.
+PEP8_MAX_LINE_LENGTH = 79
+ROSLINT_CPP_MAX_LINE_LENGTH = 120
+AMENT_FLAKE8_MAX_LINE_LENGTH = 99
+AMENT_CPPLINT_MAX_LINE_LENGTH = 100
+DEFAULT_MAX_LINE_LENGTH = PEP8_MAX_LINE_LENGTH  # the default style's Python limit
 
 CPP_SUFFIXES = frozenset({".c", ".cc", ".cpp", ".cxx", ".h", ".hh", ".hpp", ".hxx"})
-HEADER_SUFFIXES = frozenset({".h", ".hh", ".hpp", ".hxx"})
 
-# pycodestyle's own defaults stay ignored; E266 lets `## ` Doxygen comments be.
-PYCODESTYLE_EXTRA_IGNORE = ("E266",)
+# fetch_tools' --ignore list: its pylint codes mean nothing to pep8, so E266
+# (`## ` Doxygen comments) is what it ignored, and pep8's own default ignores
+# were dropped with it. W504 did not exist in pep8 and contradicts W503.
+PYCODESTYLE_IGNORE = ("E266", "W504")
 
-# roslint_cpp's default (-runtime/references), fetch_tools' (-runtime/threadsafe_fn),
-# and what roslint's cpplint wrapper suppresses because ROS style differs from
-# Google's: include order and streams are free, braces go on their own line.
-# Header guards are checked by check_header_guard() with ROS's names instead.
-CPPLINT_FILTERS = (
-    "-runtime/references",
-    "-runtime/threadsafe_fn",
-    "-build/include_order",
-    "-build/include_alpha",
-    "-readability/streams",
-    "-readability/braces",
-    "-whitespace/braces",
-    "-build/header_guard",
-)
-# Messages roslint drops by text: ROS puts access specifiers at the class's
-# indentation and `else` on its own line after `}`.
-CPPLINT_SUPPRESSED_MESSAGES = (
-    re.compile(r".*should be indented \+1 space inside"),
-    re.compile(r"An else should appear on the same line as the preceding \}"),
-)
+# fetch_tools' cpplint filter, after roslint's own (-runtime/references)
+CPPLINT_FILTER = "+,-runtime/references,-runtime/threadsafe_fn"
+
+# ament_flake8's configuration (ament_flake8/configuration/ament_flake8.ini)
+AMENT_FLAKE8_IGNORE = ("B902", "C816", "D100", "D101", "D102", "D103", "D104", "D105", "D106",
+                       "D107", "D203", "D212", "D404", "I202")
+# ament_cpplint's filters, used when ament_cpplint itself is not installed
+AMENT_CPPLINT_FILTERS = ("-build/c++11", "-runtime/references", "-whitespace/braces",
+                         "-whitespace/indent", "-whitespace/parens", "-whitespace/semicolon")
 
 # Directories catkin (and colcon) skip: linting them would report packages
 # that are never built.
@@ -90,6 +101,8 @@ _CPPLINT_LINE = re.compile(
     r"^(?P<path>.+?):(?P<line>\d+):  (?P<message>.*)  \[(?P<code>[^\]]+)\] \[\d\]$"
 )
 _PY_SHEBANG = re.compile(rb"^#!.*\bpython[0-9.]*\b")
+_FLAKE8_LINE = re.compile(r"^(?P<path>.+?):(?P<line>\d+):(?P<col>\d+): (?P<code>[A-Z]+\d+) (?P<message>.*)$")
+_PEP257_LINE = re.compile(r"^(?P<path>.+?):(?P<line>\d+) .*?: (?P<code>D\d+): (?P<message>.*)$")
 _CPPLINT_CHUNK = 50
 
 
@@ -127,9 +140,22 @@ class Targets:
 
 @dataclass
 class LintReport:
-    """The findings of every tool that was asked for, in a stable order."""
+    """The findings of every tool that was asked for, in a stable order, and the styles used
+    (style -> the packages linted with it; ``(files)`` for files outside any package)."""
 
     tools: dict[str, ToolResult]
+    styles: dict[str, list[str]] = field(default_factory=dict)
+
+    def style_line(self) -> str:
+        """The output's first line: which rules were applied, to what."""
+        if not self.styles:
+            return "lint: nothing to lint"
+        if len(self.styles) == 1:
+            style = next(iter(self.styles))
+            return f"lint: style {style} ({STYLE_NOTES[style]})"
+        parts = [f"{style} for {', '.join(names)}" for style, names in self.styles.items()]
+        return "lint: style " + "; ".join(parts) + " (" + "; ".join(
+            f"{style}: {STYLE_NOTES[style]}" for style in self.styles) + ")"
 
     @property
     def total(self) -> int:
@@ -150,11 +176,11 @@ class LintReport:
                     for f in sorted(result.findings, key=Finding.sort_key)
                 ],
             }
-        return {"tools": tools, "total": self.total}
+        return {"tools": tools, "total": self.total, "styles": self.styles}
 
     def lines(self, *, base: Path | None = None) -> list[str]:
         """``path:line: [tool] code message`` per finding, then one summary line per tool."""
-        out = []
+        out = [self.style_line()]
         for f in self.findings():
             where = display_path(f.path, base) + (f":{f.line}" if f.line is not None else "")
             out.append(f"{where}: [{f.tool}] {f.code} {f.message}")
@@ -193,24 +219,104 @@ def display_path(path: str, base: Path | None) -> str:
 
 
 def lint(target: str, *, workspace: str | os.PathLike[str] | None = None,
-         tools: Iterable[str] = TOOLS, max_line_length: int = DEFAULT_MAX_LINE_LENGTH,
-         environ: Mapping[str, str] = os.environ) -> LintReport:
-    """Lint a file, a directory or a workspace package with the chosen tools."""
-    wanted = set(tools)
-    chosen = [t for t in TOOLS if t in wanted]
+         tools: Iterable[str] | None = None, max_line_length: int | None = None,
+         style: str = AUTO, environ: Mapping[str, str] = os.environ) -> LintReport:
+    """Lint a file, a directory or a workspace package with the style of each package.
+
+    ``style`` ``auto`` picks per package (:func:`package_style`); ``tools``
+    keeps only those tools; ``max_line_length`` overrides every tool's limit.
+    """
+    if style not in STYLES:
+        raise UsageError(f"unknown style {style!r}; choose from {', '.join(STYLES)}")
+    wanted = set(TOOLS if tools is None else tools)
     unknown = wanted - set(TOOLS)
     if unknown:
         raise UsageError(f"unknown tool {min(unknown)!r}; choose from {', '.join(TOOLS)}")
     found = resolve_targets(target, workspace=workspace, environ=environ)
+    parts = split_by_style(found, style)
     results: dict[str, ToolResult] = {}
-    for tool in chosen:
-        if tool == PYCODESTYLE:
-            results[tool] = run_pycodestyle(found.python_files, max_line_length=max_line_length)
-        elif tool == CPPLINT:
-            results[tool] = run_cpplint(found.cpp_files, max_line_length=max_line_length)
-        else:
-            results[tool] = run_catkin_lint(found.packages, search_path=found.search_path)
-    return LintReport(results)
+    styles: dict[str, list[str]] = {}
+    for name, part in parts.items():
+        chosen = [t for t in STYLE_TOOLS[name] if t in wanted]
+        if not chosen:
+            continue
+        styles[name] = sorted(set(part.packages.values()))
+        if any(_package_of(p) is None for p in part.python_files + part.cpp_files):
+            styles[name].append("files outside packages")
+        for tool in chosen:
+            results[tool] = _run_tool(tool, part, max_line_length)
+    if not results:
+        # nothing of the chosen tools' style was found: say so per tool
+        for tool in [t for t in TOOLS if t in wanted and t in STYLE_TOOLS[
+                AMENT if style == AMENT else ROSLINT]]:
+            results[tool] = ToolResult()
+    return LintReport(results, styles)
+
+
+def _run_tool(tool: str, part: Targets, max_line_length: int | None) -> ToolResult:
+    if tool == PYCODESTYLE:
+        return run_pycodestyle(part.python_files,
+                               max_line_length=max_line_length or PEP8_MAX_LINE_LENGTH)
+    if tool == CPPLINT:
+        return run_cpplint(part.cpp_files,
+                           max_line_length=max_line_length or ROSLINT_CPP_MAX_LINE_LENGTH)
+    if tool == CATKIN_LINT:
+        return run_catkin_lint(part.packages, search_path=part.search_path)
+    if tool == FLAKE8:
+        return run_flake8(part.python_files,
+                          max_line_length=max_line_length or AMENT_FLAKE8_MAX_LINE_LENGTH)
+    if tool == AMENT_PEP257:
+        return run_pep257(part.python_files)
+    return run_ament_cpplint(part.cpp_files,
+                             max_line_length=max_line_length or AMENT_CPPLINT_MAX_LINE_LENGTH)
+
+
+def package_style(manifest_text: str) -> str:
+    """``ament`` for a ROS 2 package (what colcon alone builds), else ``roslint``."""
+    from fetchsync.build import ros2_reason
+
+    return AMENT if ros2_reason(manifest_text) is not None else ROSLINT
+
+
+def _package_of(path: Path) -> Path | None:
+    """The package directory holding ``path``: the nearest ancestor with a package.xml."""
+    for parent in path.parents:
+        if (parent / "package.xml").is_file():
+            return parent
+    return None
+
+
+def split_by_style(found: Targets, style: str) -> dict[str, Targets]:
+    """``found`` split by the style of the package each file and package belongs to (files
+    outside any package: roslint, fetch_tools' default); ``style`` other than auto: all of it."""
+    if style != AUTO:
+        return {style: found}
+    cache: dict[Path | None, str] = {None: ROSLINT}
+
+    def style_of(pkg: Path | None) -> str:
+        if pkg not in cache:
+            assert pkg is not None
+            try:
+                text = (pkg / "package.xml").read_text(encoding="utf-8", errors="replace")
+            except OSError:
+                text = ""
+            cache[pkg] = package_style(text)
+        return cache[pkg]
+
+    parts: dict[str, Targets] = {}
+
+    def part(name: str) -> Targets:
+        if name not in parts:
+            parts[name] = Targets(search_path=list(found.search_path))
+        return parts[name]
+
+    for pkg, name in found.packages.items():
+        part(style_of(pkg)).packages[pkg] = name
+    for path in found.python_files:
+        part(style_of(_package_of(path))).python_files.append(path)
+    for path in found.cpp_files:
+        part(style_of(_package_of(path))).cpp_files.append(path)
+    return dict(sorted(parts.items(), key=lambda kv: list(STYLE_TOOLS).index(kv[0])))
 
 
 def resolve_targets(target: str, *, workspace: str | os.PathLike[str] | None = None,
@@ -429,8 +535,8 @@ def _run(args: Sequence[str]) -> subprocess.CompletedProcess[str]:
 
 
 def run_pycodestyle(files: Sequence[Path], *,
-                    max_line_length: int = DEFAULT_MAX_LINE_LENGTH) -> ToolResult:
-    """pycodestyle on ``files``, with roslint's line length."""
+                    max_line_length: int = PEP8_MAX_LINE_LENGTH) -> ToolResult:
+    """pycodestyle on ``files`` as fetch_tools ran pep8 (see :data:`PYCODESTYLE_IGNORE`)."""
     result = ToolResult(checked=len(files))
     if not files:
         return result
@@ -447,102 +553,110 @@ def run_pycodestyle(files: Sequence[Path], *,
                                         text[5:].strip()))
             return code
 
-    ignore = [*pycodestyle.DEFAULT_IGNORE.split(","), *PYCODESTYLE_EXTRA_IGNORE]
-    guide = pycodestyle.StyleGuide(max_line_length=max_line_length, ignore=ignore,
-                                   reporter=_Collect, quiet=True)
+    guide = pycodestyle.StyleGuide(max_line_length=max_line_length,
+                                   ignore=list(PYCODESTYLE_IGNORE), reporter=_Collect, quiet=True)
     for path in files:
         guide.input_file(str(path))
     return result
 
 
+def _in_chunks(base: Sequence[str], files: Sequence[Path]) -> list[subprocess.CompletedProcess[str]]:
+    """``base + chunk`` for chunks of ``files``, a few at a time."""
+    chunks = [files[i:i + _CPPLINT_CHUNK] for i in range(0, len(files), _CPPLINT_CHUNK)]
+    workers = max(1, min(len(chunks), os.cpu_count() or 1, 8))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(lambda chunk: _run([*base, *(str(p) for p in chunk)]), chunks))
+
+
 def run_cpplint(files: Sequence[Path], *,
-                max_line_length: int = DEFAULT_MAX_LINE_LENGTH) -> ToolResult:
-    """cpplint with roslint's filters on ``files``, plus ROS's header guard check."""
+                max_line_length: int = ROSLINT_CPP_MAX_LINE_LENGTH) -> ToolResult:
+    """roslint's cpplint (:mod:`fetchsync.roslint_cpplint`) with fetch_tools' filter."""
     result = ToolResult(checked=len(files))
     if not files:
         return result
     _require("cpplint", "cpplint")
-    base = [sys.executable, "-m", "cpplint", "--output=emacs", "--quiet",
-            f"--linelength={max_line_length}", "--filter=" + ",".join(CPPLINT_FILTERS)]
-    chunks = [files[i:i + _CPPLINT_CHUNK] for i in range(0, len(files), _CPPLINT_CHUNK)]
-    workers = max(1, min(len(chunks), os.cpu_count() or 1, 8))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        procs = list(pool.map(lambda chunk: _run(base + [str(p) for p in chunk]), chunks))
-    for proc in procs:
-        result.findings.extend(parse_cpplint(proc.stderr))
-    for path in files:
-        if path.suffix.lower() in HEADER_SUFFIXES:
-            result.findings.extend(check_header_guard(path))
+    base = [sys.executable, "-m", "fetchsync.roslint_cpplint", "--output=emacs", "--quiet",
+            f"--linelength={max_line_length}", f"--filter={CPPLINT_FILTER}"]
+    for proc in _in_chunks(base, files):
+        result.findings.extend(parse_cpplint(proc.stderr, tool=CPPLINT))
     return result
 
 
-def parse_cpplint(output: str) -> list[Finding]:
-    """cpplint's emacs-style lines as findings, without the messages ROS style allows."""
+def run_ament_cpplint(files: Sequence[Path], *,
+                      max_line_length: int = AMENT_CPPLINT_MAX_LINE_LENGTH) -> ToolResult:
+    """ament_cpplint on ``files``; cpplint with its filters where it is not installed."""
+    result = ToolResult(checked=len(files))
+    if not files:
+        return result
+    if importlib.util.find_spec("ament_cpplint") is not None:
+        base = [sys.executable, "-m", "ament_cpplint.main", "--output=emacs",
+                f"--linelength={max_line_length}"]
+    else:
+        _require("cpplint", "cpplint")
+        log.info("ament_cpplint is not installed: cpplint with its filters")
+        base = [sys.executable, "-m", "cpplint", "--output=emacs", "--quiet",
+                f"--linelength={max_line_length}", "--filter=" + ",".join(AMENT_CPPLINT_FILTERS)]
+    for proc in _in_chunks(base, files):
+        result.findings.extend(parse_cpplint(proc.stderr, tool=AMENT_CPPLINT))
+    return result
+
+
+def run_flake8(files: Sequence[Path], *,
+               max_line_length: int = AMENT_FLAKE8_MAX_LINE_LENGTH) -> ToolResult:
+    """flake8 with ament_flake8's settings; its plugins (docstrings, import order, quotes)
+    check too where installed."""
+    result = ToolResult(checked=len(files))
+    if not files:
+        return result
+    _require("flake8", "flake8")
+    base = [sys.executable, "-m", "flake8", "--isolated", f"--max-line-length={max_line_length}",
+            "--extend-ignore=" + ",".join(AMENT_FLAKE8_IGNORE),
+            "--format=%(path)s:%(row)d:%(col)d: %(code)s %(text)s"]
+    for proc in _in_chunks(base, files):
+        for line in proc.stdout.splitlines():
+            m = _FLAKE8_LINE.match(line)
+            if m is None:
+                if line.strip():
+                    log.debug("flake8: %s", line)
+                continue
+            result.findings.append(Finding(m.group("path"), int(m.group("line")), FLAKE8,
+                                           m.group("code"), m.group("message")))
+        if proc.returncode not in (0, 1):
+            why = next((ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()),
+                       f"exit status {proc.returncode}")
+            result.findings.append(Finding(str(files[0]), None, FLAKE8, "failed", why.strip()))
+    return result
+
+
+def run_pep257(files: Sequence[Path]) -> ToolResult:
+    """ament_pep257 (pydocstyle with ament's conventions) on ``files``."""
+    result = ToolResult(checked=len(files))
+    if not files:
+        return result
+    _require("ament_pep257", "ament-lint-pep257")
+    for proc in _in_chunks([sys.executable, "-m", "ament_pep257.main"], files):
+        for line in proc.stderr.splitlines():
+            m = _PEP257_LINE.match(line)
+            if m is None:
+                if line.strip():
+                    log.debug("ament_pep257: %s", line)
+                continue
+            result.findings.append(Finding(m.group("path"), int(m.group("line")), AMENT_PEP257,
+                                           m.group("code"), m.group("message")))
+    return result
+
+
+def parse_cpplint(output: str, *, tool: str = CPPLINT) -> list[Finding]:
+    """cpplint's emacs-style lines as findings."""
     out = []
     for line in output.splitlines():
         m = _CPPLINT_LINE.match(line)
         if m is None:
             if line.strip():
-                log.debug("cpplint: %s", line)
+                log.debug("%s: %s", tool, line)
             continue
-        message = m.group("message")
-        if any(rx.match(message) for rx in CPPLINT_SUPPRESSED_MESSAGES):
-            continue
-        out.append(Finding(m.group("path"), int(m.group("line")) or None, CPPLINT,
-                           m.group("code"), message))
-    return out
-
-
-def ros_header_guard(path: Path) -> str:
-    """The guard ROS style asks for: the path from the package or ``include/`` dir, upper-cased.
-
-    ``pkg/include/pkg/thing.h`` -> ``PKG_THING_H``; ``pkg/src/util.h`` -> ``SRC_UTIL_H``.
-    A header outside any package is named by its file name.
-    """
-    parts = [path.name]
-    for parent in path.parents:
-        if parent.name == "include" or (parent / "package.xml").is_file():
-            break
-        if not parent.name:
-            parts = [path.name]
-            break
-        parts.insert(0, parent.name)
-    return re.sub(r"[-./\s]", "_", "_".join(parts)).upper()
-
-
-def check_header_guard(path: Path) -> list[Finding]:
-    """ROS-style header guard findings for one header (``#pragma once`` is fine too)."""
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as exc:
-        return [Finding(str(path), None, CPPLINT, "build/header_guard", f"cannot read: {exc}")]
-    if any(re.search(r"//\s*NOLINT\(build/header_guard\)", ln) for ln in lines):
-        return []
-    if any(re.match(r"\s*#\s*pragma\s+once\b", ln) for ln in lines):
-        return []
-    expected = ros_header_guard(path)
-    ifndef = define = None
-    ifndef_line = endif_line = 0
-    for number, ln in enumerate(lines, 1):
-        words = ln.split()
-        if len(words) >= 2 and ifndef is None and words[0] == "#ifndef":
-            ifndef, ifndef_line = words[1], number
-        if len(words) >= 2 and define is None and words[0] == "#define":
-            define = words[1]
-        if ln.startswith("#endif"):
-            endif_line = number
-    code = "build/header_guard"
-    if ifndef is None or ifndef != define:
-        return [Finding(str(path), 1, CPPLINT, code,
-                        f"No #ifndef header guard found, suggested CPP variable is: {expected}")]
-    out = []
-    if ifndef not in (expected, expected + "_"):
-        out.append(Finding(str(path), ifndef_line, CPPLINT, code,
-                           f"#ifndef header guard has wrong style, please use: {expected}"))
-    endif = lines[endif_line - 1] if endif_line else ""
-    if not re.match(r"#endif\s*(//|/\*)\s*" + re.escape(ifndef) + r"\b", endif):
-        out.append(Finding(str(path), endif_line or len(lines), CPPLINT, code,
-                           f'#endif line should be "#endif  // {ifndef}"'))
+        out.append(Finding(m.group("path"), int(m.group("line")) or None, tool,
+                           m.group("code"), m.group("message")))
     return out
 
 
@@ -593,25 +707,34 @@ def _last_json(text: str) -> dict[str, Any] | None:
 
 
 __all__ = [
+    "AMENT",
+    "AMENT_CPPLINT",
+    "AMENT_PEP257",
     "CATKIN_LINT",
     "CPPLINT",
     "DEFAULT_MAX_LINE_LENGTH",
+    "FLAKE8",
     "PYCODESTYLE",
+    "ROSLINT",
+    "STYLES",
     "TOOLS",
     "Finding",
     "LintReport",
     "Targets",
     "ToolResult",
-    "check_header_guard",
     "classify",
     "enclosing_src",
     "find_package",
     "lint",
+    "package_style",
     "parse_cpplint",
     "resolve_targets",
-    "ros_header_guard",
     "run_catkin_lint",
     "run_cpplint",
+    "run_ament_cpplint",
+    "run_flake8",
+    "run_pep257",
     "run_pycodestyle",
+    "split_by_style",
     "workspace_packages",
 ]
