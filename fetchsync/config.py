@@ -4,11 +4,14 @@ The contract of fetch_tools is kept, with fetchsync's own variables first::
 
     robot             --robot > FETCHSYNC_ROBOT > FETCH_ROBOT > host of ROS_MASTER_URI
     user              --user > FETCHSYNC_USER > FETCH_USER > ssh config User > $USER
-    workspace         --workspace > FETCHSYNC_WORKSPACE > FETCH_WORKSPACE > ~/$ROS_DISTRO
+    workspace         --workspace > FETCHSYNC_WORKSPACE > FETCH_WORKSPACE
+                      > the workspace around the current directory > ~/$ROS_DISTRO
     remote workspace  --remote-workspace > FETCHSYNC_REMOTE_WORKSPACE
                       > FETCH_REMOTE_WORKSPACE > the workspace with $HOME written as ``~``
 
-An empty variable counts as unset. Each step is its own function so it can be
+An empty variable counts as unset. A workspace around the current directory
+is the nearest directory at or above it that has ``src/`` and a mark of a
+workspace (:data:`WORKSPACE_MARKERS`), as catkin and colcon leave them. Each step is its own function so it can be
 resolved and tested alone; :func:`resolve_target` puts them together. Nothing
 here touches the network: host names (``fetch7.local`` included) are left to
 the system resolver and the SSH configuration. paramiko is imported only when
@@ -100,6 +103,12 @@ def resolve_target(
 
 def resolve_robot(robot: str | None = None, *, environ: Mapping[str, str] = os.environ) -> str:
     """The robot's name: the option, the variables, else the host of ROS_MASTER_URI."""
+    return robot_with_source(robot, environ=environ)[0]
+
+
+def robot_with_source(robot: str | None = None, *,
+                      environ: Mapping[str, str] = os.environ) -> tuple[str, str]:
+    """:func:`resolve_robot`, and where the name came from (``--robot``, a variable's name)."""
     source, value = _first(robot, "--robot", environ, ROBOT_VARS)
     if value is None:
         uri = _get(environ, "ROS_MASTER_URI")
@@ -110,14 +119,18 @@ def resolve_robot(robot: str | None = None, *, environ: Mapping[str, str] = os.e
             )
         source, value = f"ROS_MASTER_URI={uri}", ros_master_host(uri)
     if value == LOCAL_ROBOT:
-        return value
+        return value, source
+    if "," in value:
+        # the fleet issue will make a list mean several robots; until then, say so
+        raise ConfigError(f"several robots ({value}, from {source}) are not supported yet: "
+                          "give one robot")
     _check_robot_name(value, source)
     if is_loopback(value):
         raise ConfigError(
             f"the robot resolves to this machine ({value}, from {source}): "
             "pass --robot NAME or set FETCHSYNC_ROBOT=NAME (--robot local is the built-in local robot)"
         )
-    return value
+    return value, source
 
 
 def ros_master_host(uri: str) -> str:
@@ -157,14 +170,26 @@ def resolve_user(
     ssh_config: SSHConfigSource | None = None,
 ) -> str:
     """The login user on ``host``: option, variables, the ssh config's User, else ours."""
-    _source, value = _first(user, "--user", environ, USER_VARS)
+    return user_with_source(user, host=host, environ=environ, ssh_config=ssh_config)[0]
+
+
+def user_with_source(
+    user: str | None = None,
+    *,
+    host: str,
+    environ: Mapping[str, str] = os.environ,
+    ssh_config: SSHConfigSource | None = None,
+) -> tuple[str, str]:
+    """:func:`resolve_user`, and where the name came from."""
+    source, value = _first(user, "--user", environ, USER_VARS)
     if value is None:
         value = ssh_config_user(host, ssh_config=ssh_config, environ=environ)
+        source = f"the ssh config's User for {host}"
     if value is None:
-        value = _get(environ, "USER") or getpass.getuser()
+        value, source = _get(environ, "USER") or getpass.getuser(), "$USER"
     if value.startswith("-") or any(c.isspace() or c in "@/\0" for c in value):
         raise ConfigError(f"invalid user name {value!r}: pass --user NAME")
-    return value
+    return value, source
 
 
 def ssh_config_user(
@@ -196,25 +221,149 @@ def ssh_config_user(
     return str(found) if found else None
 
 
+_NOT_NOTED = (b"match", b"canonicalizehostname")
+
+
+def login_name(target: Target, *, environ: Mapping[str, str] = os.environ) -> str | None:
+    """The user the connection to ``target`` logs in as (None for the local robot).
+
+    A user left to the transport (see ``defer_ssh_user``) is looked up as it
+    would: the ssh config's User, else ours. The config's answer is noted in the
+    cache by the config's content, host, home and login name, so a later call
+    reads the note instead of importing paramiko (~40 ms, a quarter of a no-op
+    push through a connection master). A config with ``Match`` (its answer
+    depends on more than the file) or hostname canonicalisation is never noted.
+    """
+    if target.is_local:
+        return None
+    if target.user is not None:
+        return target.user
+    path = _home(environ) / ".ssh" / "config"
+    try:
+        content = path.read_bytes()
+    except FileNotFoundError:
+        content = None
+    except OSError:
+        content = b""  # unreadable: ssh_config_user says why
+    found: str | None
+    if content is None:
+        found = None
+    elif any(line.strip().lower().startswith(word) for line in content.splitlines()
+             for word in _NOT_NOTED):
+        found = ssh_config_user(target.host, ssh_config=path, environ=environ)
+    else:
+        found = _noted_user(target.host, path, content, environ)
+    return found or _get(environ, "USER") or getpass.getuser()
+
+
+def _noted_user(host: str, path: Path, content: bytes, environ: Mapping[str, str]) -> str | None:
+    import hashlib
+    import json
+    import stat
+
+    from fetchsync.protocol.loader import cache_dir
+
+    key = json.dumps([host, hashlib.sha256(content).hexdigest(), str(_home(environ)),
+                      getpass.getuser()])
+    note = os.path.join(cache_dir(), "user-" + hashlib.sha256(key.encode()).hexdigest()[:32])
+    try:
+        fd = os.open(note, os.O_RDONLY | os.O_NOFOLLOW)
+        try:
+            st = os.fstat(fd)
+            if st.st_uid == os.getuid() and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+                noted = json.loads(os.read(fd, 4096))
+                if isinstance(noted, dict) and isinstance(noted.get("user"), (str, type(None))):
+                    return noted["user"]  # type: ignore[no-any-return]
+        finally:
+            os.close(fd)
+    except (OSError, ValueError):
+        pass
+    found = ssh_config_user(host, ssh_config=path, environ=environ)
+    try:  # only a cache: a failure passes
+        os.makedirs(os.path.dirname(note), exist_ok=True)
+        tmp = f"{note}.{os.getpid()}.tmp"
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as fh:
+            fh.write(json.dumps({"user": found}))
+        os.replace(tmp, note)
+    except OSError:
+        pass
+    return found
+
+
 def resolve_workspace(
     workspace: str | os.PathLike[str] | None = None,
     *,
     environ: Mapping[str, str] = os.environ,
+    cwd: str | None = None,
 ) -> Path:
-    """The local workspace as an absolute path (it need not exist yet)."""
+    """The local workspace as an absolute path (it need not exist yet).
+
+    ``cwd`` is where a workspace around is looked for (default: the current
+    directory as the shell shows it, ``$PWD``).
+    """
+    return workspace_with_source(workspace, environ=environ, cwd=cwd)[0]
+
+
+def workspace_with_source(
+    workspace: str | os.PathLike[str] | None = None,
+    *,
+    environ: Mapping[str, str] = os.environ,
+    cwd: str | None = None,
+) -> tuple[Path, str]:
+    """:func:`resolve_workspace`, and where it came from."""
     given = os.fspath(workspace) if workspace is not None else None
-    _source, value = _first(given, "--workspace", environ, WORKSPACE_VARS)
+    source, value = _first(given, "--workspace", environ, WORKSPACE_VARS)
     if value is None:
+        here = cwd if cwd is not None else current_directory(environ)
+        around = workspace_around(here) if here is not None else None
+        if around is not None:
+            return around, "the current directory, inside that workspace"
         distro = _get(environ, "ROS_DISTRO")
         if distro is None:
             raise ConfigError(
-                "no workspace given: pass --workspace DIR or set FETCHSYNC_WORKSPACE=DIR "
-                "(the default ~/$ROS_DISTRO needs ROS_DISTRO, set by sourcing ROS)"
+                "no workspace given: pass --workspace DIR, set FETCHSYNC_WORKSPACE=DIR or cd into "
+                "a workspace (the default ~/$ROS_DISTRO needs ROS_DISTRO, set by sourcing ROS)"
             )
-        value = f"~/{distro}"
+        source, value = f"~/$ROS_DISTRO (ROS_DISTRO={distro})", f"~/{distro}"
     if "\0" in value:
         raise ConfigError(f"invalid workspace path {value!r}")
-    return Path(os.path.abspath(_expand_home(value, environ)))
+    return Path(os.path.abspath(_expand_home(value, environ))), source
+
+
+WORKSPACE_MARKERS = (".catkin_workspace", ".catkin_tools", "devel", "install", "build",
+                     "log/COLCON_IGNORE", "src/CMakeLists.txt")
+"""What, beside ``src/``, makes a directory a workspace: catkin_make's and catkin_tools'
+marks (``src/CMakeLists.txt`` is catkin_init_workspace's link), the result spaces of
+catkin (``devel/``) and colcon (``build/``, ``install/``), and colcon's log directory."""
+
+
+def workspace_around(directory: str | os.PathLike[str]) -> Path | None:
+    """The nearest directory at or above ``directory`` that is a workspace, or None.
+
+    A directory holding a ``package.xml`` is a package (which may have ``src/``
+    and ``build/`` of its own), never a workspace; ``/`` is never one either.
+    """
+    path = Path(os.path.abspath(directory))
+    for candidate in (path, *path.parents):
+        if candidate.parent == candidate:
+            break
+        if (candidate / "src").is_dir() and not os.path.lexists(candidate / "package.xml") \
+                and any(os.path.lexists(candidate / mark) for mark in WORKSPACE_MARKERS):
+            return candidate
+    return None
+
+
+def current_directory(environ: Mapping[str, str] = os.environ) -> str | None:
+    """The current directory as the shell shows it: ``$PWD`` when it is this directory
+    (symbolic links kept, so a home reached through one still reads ``~/...``), else the
+    real path; None when it is gone."""
+    pwd = environ.get("PWD", "")
+    try:
+        if os.path.isabs(pwd) and os.path.samefile(pwd, "."):
+            return pwd
+        return os.getcwd()
+    except OSError:
+        return None
 
 
 def resolve_remote_workspace(
@@ -228,10 +377,24 @@ def resolve_remote_workspace(
     By default the local workspace with the home directory written as ``~``
     (``/home/alice/noetic`` -> ``~/noetic``); a path outside home stays absolute.
     """
+    return remote_workspace_with_source(remote_workspace, workspace=workspace, environ=environ)[0]
+
+
+def remote_workspace_with_source(
+    remote_workspace: str | None = None,
+    *,
+    workspace: Path | None,
+    environ: Mapping[str, str] = os.environ,
+) -> tuple[str, str]:
+    """:func:`resolve_remote_workspace`, and where it came from; with no local ``workspace``
+    only an option or a variable gives one (else ConfigError)."""
     source, value = _first(remote_workspace, "--remote-workspace", environ, REMOTE_WORKSPACE_VARS)
     if value is None:
+        if workspace is None:
+            raise ConfigError("no remote workspace given: pass --remote-workspace DIR")
         source, value = f"the workspace {workspace}", home_relative(workspace, environ=environ)
-    return check_remote_workspace(value, source=source)
+    return check_remote_workspace(value, source=source), (
+        source if not source.startswith("the workspace ") else "the local workspace, with ~ for home")
 
 
 def home_relative(path: Path, *, environ: Mapping[str, str] = os.environ) -> str:
@@ -287,6 +450,12 @@ def _check_robot_name(name: str, source: str) -> None:
         )
 
 
+def first_given(given: str | None, names: tuple[str, ...], *,
+                environ: Mapping[str, str] = os.environ) -> bool:
+    """Whether the option or one of the variables ``names`` gives a value."""
+    return _first(given, "", environ, names)[1] is not None
+
+
 def _first(
     given: str | None, option: str, environ: Mapping[str, str], names: tuple[str, ...]
 ) -> tuple[str, str | None]:
@@ -317,15 +486,24 @@ def _expand_home(path: str, environ: Mapping[str, str]) -> str:
 
 
 __all__ = [
+    "WORKSPACE_MARKERS",
     "Target",
     "check_remote_workspace",
+    "current_directory",
+    "first_given",
     "home_relative",
     "is_loopback",
+    "login_name",
+    "remote_workspace_with_source",
     "resolve_remote_workspace",
     "resolve_robot",
     "resolve_target",
     "resolve_user",
     "resolve_workspace",
+    "robot_with_source",
     "ros_master_host",
     "ssh_config_user",
+    "user_with_source",
+    "workspace_around",
+    "workspace_with_source",
 ]
