@@ -18,12 +18,13 @@ import click
 from fetchsync import __version__
 from fetchsync.commands.build_options import BuildCommand, build_options, build_request
 from fetchsync.commands.common import resolve as _resolve
-from fetchsync.commands.common import target_options
+from fetchsync.commands.common import say_where, target_options
 from fetchsync.errors import FetchsyncError
 from fetchsync.protocol.errors import ProtocolError
 
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
+    "config": "fetchsync.commands.config:command",
     "create-account": "fetchsync.commands.create_account:command",
     "lint": "fetchsync.commands.lint:command",
     "run": "fetchsync.commands.run:command",
@@ -142,6 +143,43 @@ def _print_report(report: Any, as_json: bool) -> None:
         click.echo(f"  error: {e['path']}: {e['error']}", err=True)
 
 
+# another name for a command, kept for fetch_tools' users: named on its command's
+# line in the list, not listed itself
+ALIASES: dict[str, str] = {"debug-snapshot": "snapshot"}
+
+_VERBOSE = "fetchsync.verbose"
+QUIET = "fetchsync.quiet"
+
+
+def _verbose(ctx: click.Context, _param: click.Parameter, count: int) -> None:
+    """More log output; counts add up wherever ``-v`` is given (before or after the verb)."""
+    if not count:
+        return
+    import logging
+
+    meta = ctx.find_root().meta
+    meta[_VERBOSE] = meta.get(_VERBOSE, 0) + count
+    root = logging.getLogger()
+    if not root.handlers:
+        logging.basicConfig(format="%(name)s: %(message)s")
+    root.setLevel(logging.DEBUG if meta[_VERBOSE] > 1 else logging.INFO)
+
+
+def _quiet(ctx: click.Context, _param: click.Parameter, quiet: bool) -> None:
+    if quiet:
+        ctx.find_root().meta[QUIET] = True
+
+
+def _everywhere_options() -> list[click.Option]:
+    """The options every verb takes, as the group does: ``-v``, ``-q``."""
+    return [
+        click.Option(["-v", "--verbose"], count=True, expose_value=False, callback=_verbose,
+                     help="More log output (repeat for debug)."),
+        click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_quiet,
+                     help="Do not say where the answer goes (the line before a robot verb starts)."),
+    ]
+
+
 class _Group(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(set(super().list_commands(ctx)) | set(LAZY_COMMANDS))
@@ -152,7 +190,27 @@ class _Group(click.Group):
             module, attr = LAZY_COMMANDS[name].split(":")
             cmd = getattr(importlib.import_module(module), attr)
             self.add_command(cmd, name)
-        return super().get_command(ctx, name)
+        cmd = super().get_command(ctx, name)
+        if cmd is not None and not any(p.name == "verbose" for p in cmd.params):
+            cmd.params.extend(_everywhere_options())
+        return cmd
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The list of verbs with each one's whole first sentence (click cuts them to the
+        terminal's width), and an alias on its command's line."""
+        rows = []
+        for name in self.list_commands(ctx):
+            cmd = self.get_command(ctx, name)
+            if cmd is None or cmd.hidden or name in ALIASES:
+                continue
+            text = cmd.get_short_help_str(limit=1000)
+            aliases = [a for a, target in ALIASES.items() if target == name]
+            if aliases:
+                text = f"{text.rstrip('.')} (fetch_tools' name: {', '.join(aliases)})."
+            rows.append((name, text))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -169,13 +227,12 @@ class _Group(click.Group):
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="fetchsync")
-@click.option("-v", "--verbose", count=True, help="More log output (repeat for debug).")
-def cli(verbose: int) -> None:
+@click.option("-v", "--verbose", count=True, expose_value=False, callback=_verbose,
+              help="More log output (repeat for debug); also after the verb.")
+@click.option("-q", "--quiet", is_flag=True, expose_value=False, callback=_quiet,
+              help="Do not say where the answer goes; also after the verb.")
+def cli() -> None:
     """Mirror a ROS workspace's src/ to a robot over SSH, safely."""
-    if verbose:
-        import logging
-        logging.basicConfig(level=logging.DEBUG if verbose > 1 else logging.INFO,
-                            format="%(name)s: %(message)s")
 
 
 @cli.command(cls=BuildCommand)
@@ -196,7 +253,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     refuses instead); deleted files go to a bounded .fetchsync/trash/.
     With --build or --install-deps, then builds on the robot.
     """
-    from fetchsync.errors import SyncError
+    from fetchsync.errors import ConfigError, SyncError
     from fetchsync.protocol.ignore import build_rules
     from fetchsync.session import connect, open_state
 
@@ -205,8 +262,9 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     src = target.workspace / "src"
     if not force:
         if not src.is_dir():
-            raise SyncError(f"{src} does not exist; nothing to push",
-                            hint="check --workspace, or pass --force to empty the robot's src/")
+            # most often the wrong workspace: --force would empty the robot's src/
+            raise ConfigError(f"{src} does not exist; nothing to push",
+                              hint="check --workspace; fetchsync config shows where it came from")
         try:
             empty = not any(os.scandir(src))
         except OSError as exc:
@@ -217,6 +275,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                             hint="pass --force if that is what you want")
     else:
         src.mkdir(parents=True, exist_ok=True)
+    say_where("push", target, local=src, remote=target.remote_workspace + "/src")
     rules = build_rules(excludes)
     # a running watch agent for this robot and workspace already holds the
     # connection and the state: a plain push goes through it
@@ -290,6 +349,8 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
             f"paths under {target.workspace / 'src'} (replaced files are kept in .fetchsync/). Continue?",
             default=False)
 
+    say_where("pull", target, local=target.workspace / "src", remote=target.remote_workspace + "/src",
+              direction="from")
     rules = build_rules(excludes)
     progress = _Progress(not as_json)
     state = open_state(target)

@@ -71,6 +71,13 @@ def fetchsync(*args: str, env: dict | None = None, check: bool = True,
     return proc
 
 
+def without_where(text: str) -> list[str]:
+    """The non-empty lines of a verb's stderr but the line saying where its answer goes
+    (``push ~/ws/src → user@robot:~/ws/src``), which precedes a one-line error."""
+    return [line for line in text.strip().splitlines() if line.strip() and not (
+        line.startswith(("push ", "pull ", "workspace-status ")) and ("\u2192" in line or "\u2194" in line))]
+
+
 def report(proc: subprocess.CompletedProcess) -> dict:
     return json.loads(proc.stdout.decode().strip().splitlines()[-1])
 

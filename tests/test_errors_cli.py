@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from helpers import make_workspace
+from helpers import make_workspace, without_where
 from sshd import SSHD, find_sshd, make_ssh_home
 from terminal import Terminal
 
@@ -60,7 +60,7 @@ def one_line(proc: subprocess.CompletedProcess, code: int) -> str:
     err = proc.stderr.decode("utf-8", "replace")
     assert proc.returncode == code, f"exit {proc.returncode}, wanted {code}:\n{err}"
     assert "Traceback" not in err, err
-    lines = err.strip().splitlines()
+    lines = without_where(err)  # the line saying where a push goes may precede it
     assert len(lines) == 1, f"wanted one line on stderr, got {len(lines)}:\n{err}"
     assert lines[0].startswith("fetchsync: error: "), lines[0]
     return lines[0]
@@ -235,7 +235,7 @@ def test_key_refused_by_a_robot_without_passwords(keys_only_robot, sshd, remote_
     finally:
         term.close()
     text = term.output.decode("utf-8", "replace")
-    lines = [line for line in text.replace("\r", "").splitlines() if line.strip()]
+    lines = without_where(text.replace("\r", ""))
     assert code == CONNECT_EXIT and len(lines) == 1, text
     assert "password" not in lines[0] and "terminal" not in lines[0]
     assert lines[0].startswith(f"fetchsync: error: permission denied for {sshd.user}@robot")
@@ -315,7 +315,7 @@ def test_wrong_password(password_env, password_user) -> None:
         term.close()
     text = term.output.decode("utf-8", "replace")
     assert code == CONNECT_EXIT, text
-    lines = [line for line in text.replace("\r", "").splitlines() if line.strip()]
+    lines = without_where(text.replace("\r", ""))
     assert "Traceback" not in text and len(lines) == 1, text
     assert lines[0].startswith(f"fetchsync: error: permission denied for {name}@robot")
     assert "wrong password (1 try" in lines[0] and "check the password" in lines[0]

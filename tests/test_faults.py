@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, report, ssh_env, tree_of
+from helpers import fetchsync, report, ssh_env, tree_of, without_where
 
 pytestmark = pytest.mark.ssh
 
@@ -39,7 +39,7 @@ def assert_one_line_failure(proc: subprocess.CompletedProcess | tuple[int, bytes
     text = err.decode("utf-8", "replace")
     assert code not in (0, None), text
     assert "Traceback" not in text, text
-    lines = [line for line in text.strip().splitlines() if line.strip()]
+    lines = without_where(text)
     assert len(lines) == 1, text
     return lines[0]
 

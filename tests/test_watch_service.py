@@ -53,8 +53,8 @@ def test_install_service_writes_a_unit_that_runs_this_watch(env, tmp_path):
     assert os.path.isabs(argv[0]) and os.access(argv[0], os.X_OK)
     i = argv.index("watch")
     assert argv[i:] == ["watch", "--robot", "local", "--workspace", str(tmp_path / "ws"),
-                        "--remote-workspace", "~/robot_ws", "--exclude", "*.bag", "--build",
-                        "--build-args=-j4 -DX=50%"]
+                        "--remote-workspace", "~/robot_ws", "--exclude", "*.bag",
+                        "--build=-j4 -DX=50%"]
     # the unit's command line runs: its --help
     help_out = subprocess.run([*argv[:i], "watch", "--help"], capture_output=True, env=env, check=False)
     assert help_out.returncode == 0 and b"--install-service" in help_out.stdout

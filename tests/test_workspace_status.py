@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, tree_of
+from helpers import fetchsync, tree_of, without_where
 
 from fetchsync.workspace_status import (
     DIFFERS,
@@ -258,7 +258,7 @@ def test_an_unreachable_robot_is_a_column_not_a_failure(ssh_env, ssh_home):
     proc = status(ssh_env, "--robot", "deadrobot")
     assert proc.returncode == 0
     assert set(robot_column(proc).values()) == {"unreachable"}
-    err = proc.stderr.decode().splitlines()
+    err = without_where(proc.stderr.decode())
     assert len(err) == 1 and err[0].startswith("fetchsync: robot deadrobot unreachable:")
     rows = json.loads(status(ssh_env, "--robot", "deadrobot", "--json").stdout)
     assert {(r["robot"], r["differing"]) for r in rows} == {("unreachable", None)}

@@ -11,7 +11,7 @@ from typing import Any
 
 import click
 
-from fetchsync.commands.common import resolve, target_options
+from fetchsync.commands.common import resolve, say_where, target_options
 from fetchsync.errors import ConfigError, LinkLostError, TransportError
 
 LINK_EXIT = 255
@@ -46,30 +46,25 @@ def remote_command_line(words: Sequence[str], *, argv_form: bool) -> str:
 
 def _target(robot: str | None, user: str | None, workspace: str | None,
             remote_workspace: str | None) -> tuple[Any, str | None]:
-    """The target, and its remote workspace when one is known: run needs none."""
-    try:
-        target = resolve(robot, user, workspace, remote_workspace)
-        return target, target.remote_workspace
-    except ConfigError:
-        if workspace is not None or remote_workspace is not None:
-            raise
-        from fetchsync import config
+    """The target, and its remote workspace when one is known: run needs no local one.
 
-        config.resolve_robot(robot)  # raises the robot's error when that was the problem
-        try:
-            config.resolve_workspace(None)
-        except ConfigError:
-            pass  # no local workspace: then the robot's distribution only
-        else:
+    The remote workspace is the option or a variable, else the local workspace's
+    (its path under ~), else none: then only the robot's distribution is sourced.
+    """
+    from fetchsync import config
+
+    try:
+        local: Path | None = config.resolve_workspace(workspace)
+    except ConfigError:
+        if workspace is not None:
             raise
-        try:
-            # a remote workspace given by a variable still counts
-            remote = config.resolve_remote_workspace(None, workspace=Path("/"))
-        except ConfigError:
-            remote = None
-        # "/" stands in for the local workspace, only to resolve robot and user as usual
-        target = resolve(robot, user, "/", remote or "/fetchsync-no-workspace")
-        return target, remote
+        local = None
+    remote: str | None = None
+    if local is not None or config.first_given(remote_workspace, config.REMOTE_WORKSPACE_VARS):
+        remote = config.remote_workspace_with_source(remote_workspace, workspace=local)[0]
+    # "/" stands in for what run does not need, only to resolve robot and user as usual
+    target = resolve(robot, user, str(local or "/"), remote or "/fetchsync-no-workspace")
+    return target, remote
 
 
 @contextmanager
@@ -116,6 +111,8 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     argv_form = ctx.meta.get(_AFTER_DASHES) == list(words)
     line = remote_command_line(words, argv_form=argv_form)
     target, remote_ws = _target(robot, user, workspace, remote_workspace)
+    # stderr is the command's: said only to a person watching it
+    say_where("run on", target, remote=remote_ws, terminal_only=True)
     # the local robot runs commands over pipes only
     pty = (sys.stdin.isatty() if tty is None else tty) and not target.is_local
     body = script(line, environment=ros_environment(remote_ws))

@@ -12,7 +12,8 @@ from typing import Any
 
 import click
 
-from fetchsync.commands.common import resolve, target_options
+from fetchsync.commands.build_options import BUILD_TYPES, TOOLS, BuildCommand
+from fetchsync.commands.common import resolve, target_options, where_line
 from fetchsync.errors import SyncError, UsageError
 
 
@@ -20,21 +21,33 @@ def _stamp() -> str:
     return time.strftime("%H:%M:%S")
 
 
-BUILD_TYPES = ("Debug", "Release", "RelWithDebInfo", "MinSizeRel", "default")
-TOOLS = ("auto", "catkin_make", "catkin", "colcon")
+class _WatchCommand(BuildCommand):
+    """``--build [ARGS]`` as push's, also before another of watch's ``--option=value with spaces``
+    (which the optional value's rule would otherwise take as ARGS)."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        names = {name for p in self.params for name in getattr(p, "opts", ()) if name.startswith("--")}
+        out = list(args)
+        for i, arg in enumerate(out[:-1]):
+            if arg == "--":
+                break
+            if arg == "--build" and out[i + 1].split("=", 1)[0] in names:
+                out[i] = "--build="
+        return super().parse_args(ctx, out)
 
 
-@click.command()
+@click.command(cls=_WatchCommand)
 @target_options
 @click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
               help="Exclude paths matching PATTERN (gitignore syntax); repeatable.")
 @click.option("--strict", is_flag=True,
               help="Refuse to replace files changed on the robot since the last sync.")
-@click.option("--build", "build", is_flag=True,
-              help="After each batch, rebuild on the robot the packages it changed; a newer "
-                   "batch cancels a build in progress.")
-@click.option("--build-args", default="", metavar="ARGS",
-              help="Arguments for the build tool (shell text, e.g. '-j4'); implies --build.")
+@click.option("--build", "builds", multiple=True, metavar="[ARGS]",
+              help="After each batch, rebuild on the robot the packages it changed, passing ARGS "
+                   "to the build tool (--build=-j4), as push --build; a newer batch cancels a "
+                   "build in progress.")
+# the spelling of --build=ARGS before push and watch shared one; kept for units written then
+@click.option("--build-args", hidden=True, default=None)
 @click.option("--build-type", type=click.Choice(BUILD_TYPES), default="default",
               help="CMAKE_BUILD_TYPE of the builds ('default' passes none).")
 @click.option("--build-tool", type=click.Choice(TOOLS), default="auto",
@@ -46,9 +59,9 @@ TOOLS = ("auto", "catkin_make", "catkin", "colcon")
 @click.option("--uninstall-service", is_flag=True,
               help="Remove the systemd user unit of this workspace and robot.")
 def watch(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool, build: bool,
-          build_args: str, build_type: str, build_tool: str, install_service: bool,
-          uninstall_service: bool) -> None:
+          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool,
+          builds: tuple[str, ...], build_args: str | None, build_type: str, build_tool: str,
+          install_service: bool, uninstall_service: bool) -> None:
     """Keep the robot's src/ identical to the local one while you work.
 
     Checks everything once, says it is live, then mirrors each change within
@@ -56,7 +69,7 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
     sent when it is back. Stop with Ctrl-C. Talk to it with `fetchsync status`
     and `fetchsync flush`; `fetchsync push` goes through it.
 
-    With --build, each batch that changed something is followed by a build on
+    With --build [ARGS], each batch that changed something is followed by a build on
     the robot of the packages it touched (the nearest package.xml above each
     path), its output streamed here.
     """
@@ -64,7 +77,11 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
     from fetchsync.sync import build_rules
 
     target = resolve(robot, user, workspace, remote_workspace)
-    build = build or bool(build_args.strip())
+    given = [*builds, *([build_args] if build_args is not None else [])]
+    with_args = [b for b in given if b.strip()]
+    if len(with_args) > 1:
+        raise UsageError("watch builds each batch one way: give --build ARGS once")
+    build, build_args = bool(given), (with_args[0] if with_args else "")
     if not build and (build_type != "default" or build_tool != "auto"):
         click.echo("fetchsync: warning: --build-type and --build-tool have no effect without --build",
                    err=True)
@@ -84,9 +101,7 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
             if accept_host_key:
                 args += ["--accept-host-key", accept_host_key]
             if build:
-                args.append("--build")
-                if build_args.strip():
-                    args.append(f"--build-args={build_args}")
+                args.append(f"--build={build_args}" if build_args.strip() else "--build")
                 if build_type != "default":
                     args += ["--build-type", build_type]
                 if build_tool != "auto":
@@ -114,7 +129,8 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    click.echo(f"{_stamp()} watching {src} for {target.robot} (status: fetchsync status)", err=True)
+    where = where_line("watch", target, local=src, remote=target.remote_workspace + "/src")
+    click.echo(f"{_stamp()} {where} (status: fetchsync status)", err=True)
     try:
         agent.run()
     finally:
@@ -131,10 +147,10 @@ def _agent_socket(robot: str | None, user: str | None, workspace: str | None,
 
 
 @click.command()
-@target_options
+@target_options(host_key=False)  # it asks the agent, which holds the connection
 @click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
 def status(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-           accept_host_key: str | None, as_json: bool) -> None:
+           as_json: bool) -> None:
     """Show what the running agent is doing: live, syncing or offline."""
     from fetchsync.agent.control import call
 

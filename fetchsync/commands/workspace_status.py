@@ -6,7 +6,7 @@ import json
 
 import click
 
-from fetchsync.commands.common import target_options
+from fetchsync.commands.common import say_where, target_options
 from fetchsync.config import resolve_workspace
 from fetchsync.workspace_status import DEFAULT_TIMEOUT, optional_target, workspace_status
 
@@ -35,6 +35,9 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     target = None if no_robot else optional_target(
         robot=robot, user=user, workspace=workspace, remote_workspace=remote_workspace)
     ws = target.workspace if target is not None else resolve_workspace(workspace)
+    if target is not None:
+        say_where("workspace-status", target, local=ws / "src",
+                  remote=target.remote_workspace + "/src", direction="both")
     status = workspace_status(ws / "src", target=target, excludes=excludes,
                               accept_fingerprint=accept_host_key, timeout=timeout)
     for note in status.notes:
