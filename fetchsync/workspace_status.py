@@ -18,6 +18,7 @@ import os
 import subprocess
 import threading
 import time
+import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -92,10 +93,38 @@ class RobotView:
 
 
 @dataclass(frozen=True)
+class Package:
+    """A ROS package in a row's repository: what builds it, ROS 1's or ROS 2's."""
+
+    name: str
+    path: str             # its directory, relative to src/
+    format: int           # package.xml's format attribute (1 when absent)
+    build_type: str       # <export><build_type>, else catkin or ament_* from the buildtool
+
+    @property
+    def ros(self) -> int:
+        """2 for what only colcon builds (ament_*, plain cmake or python, format 3 without
+        catkin), 1 for catkin packages."""
+        return 1 if self.build_type == "catkin" else 2
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "path": self.path, "format": self.format,
+                "build_type": self.build_type, "ros": self.ros}
+
+
+@dataclass(frozen=True)
 class Row:
     found: Found
     git: GitInfo = GitInfo()
     robot: RobotView | None = None
+    packages: tuple[Package, ...] = ()
+
+    def packages_text(self) -> str:
+        """``2 catkin`` or ``1 ament_cmake, 1 ament_python``: how many packages of each type."""
+        counts: dict[str, int] = {}
+        for p in self.packages:
+            counts[p.build_type] = counts.get(p.build_type, 0) + 1
+        return ", ".join(f"{n} {t}" for t, n in sorted(counts.items())) or "-"
 
     @property
     def path(self) -> str:
@@ -121,7 +150,7 @@ class Row:
         out: dict[str, Any] = {
             "path": self.path, "git": self.found.is_git, "branch": self.git.branch,
             "detached": self.git.detached, "sha": self.git.sha, "dirty": self.git.dirty,
-            "error": self.git.error,
+            "error": self.git.error, "packages": [p.to_json() for p in self.packages],
         }
         if self.robot is not None:
             out["robot"] = self.robot.state
@@ -147,8 +176,11 @@ class WorkspaceStatus:
         if not self.rows:
             return [title, "no directories under src/"]
         with_robot = self.robot is not None
-        header = ["repository", "branch", "sha"] + (["robot"] if with_robot else [])
+        with_packages = any(r.packages for r in self.rows)
+        header = (["repository", "branch", "sha"] + (["packages"] if with_packages else [])
+                  + (["robot"] if with_robot else []))
         cells = [[r.path, r.branch_text(), r.sha_text()]
+                 + ([r.packages_text()] if with_packages else [])
                  + ([r.robot.text() if r.robot is not None else ""] if with_robot else [])
                  for r in self.rows]
         widths = [max(len(c[i]) for c in [header, *cells]) for i in range(len(header))]
@@ -200,6 +232,68 @@ def find_repositories(src: Path) -> list[Found]:
             elif not rel and not src_is_repo:
                 found.append(Found(path, False))
     return sorted(found, key=lambda f: f.path.split("/"))
+
+
+_IGNORE_MARKERS = ("CATKIN_IGNORE", "COLCON_IGNORE", "AMENT_IGNORE")
+
+
+def read_package(pkg_dir: Path, rel: str) -> Package | None:
+    """The package whose package.xml is in ``pkg_dir`` (None when it is not one)."""
+    try:
+        root = ET.parse(pkg_dir / "package.xml").getroot()
+    except (OSError, ET.ParseError) as exc:
+        log.debug("cannot read %s/package.xml: %s", pkg_dir, exc)
+        return None
+    if root.tag != "package":
+        return None
+    try:
+        fmt = int(root.get("format", "1"))
+    except ValueError:
+        fmt = 1
+    name = (root.findtext("name") or "").strip() or pkg_dir.name
+    build_type = (root.findtext("export/build_type") or "").strip()
+    if not build_type:
+        tools = [(e.text or "").strip() for e in root.findall("buildtool_depend")]
+        ament = next((t for t in tools if t.startswith("ament_")), None)
+        if "catkin" in tools:
+            build_type = "catkin"
+        elif ament is not None:
+            build_type = ament
+        else:
+            # format 3 without catkin is a ROS 2 package (colcon's default: ament_cmake)
+            build_type = "ament_cmake" if fmt >= 3 else "catkin"
+    return Package(name=name, path=rel or ".", format=fmt, build_type=build_type)
+
+
+def find_packages(src: Path) -> list[Package]:
+    """Every package under ``src`` the build tools would see: not inside another package,
+    nor under a ``CATKIN_IGNORE``/``COLCON_IGNORE``/``AMENT_IGNORE``, nor hidden."""
+    out: list[Package] = []
+    for dirpath, dirs, files in os.walk(src):
+        rel = os.path.relpath(dirpath, src).replace(os.sep, "/")
+        rel = "" if rel == "." else rel
+        if rel and any(m in files for m in _IGNORE_MARKERS):
+            dirs[:] = []
+            continue
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        if "package.xml" in files:
+            dirs[:] = []
+            pkg = read_package(Path(dirpath), rel)
+            if pkg is not None:
+                out.append(pkg)
+    return out
+
+
+def packages_by_row(packages: Iterable[Package], rows: Iterable[str]) -> dict[str, list[Package]]:
+    """Each package under the innermost row (repository) holding it."""
+    ordered = sorted(rows, key=lambda r: -len(r))
+    out: dict[str, list[Package]] = {}
+    for pkg in packages:
+        for row in ordered:
+            if row == "." or pkg.path == row or pkg.path.startswith(row + "/"):
+                out.setdefault(row, []).append(pkg)
+                break
+    return out
 
 
 # --------------------------------------------------------------------------- git
@@ -503,7 +597,9 @@ def workspace_status(src: Path, *, target: Target | None = None, excludes: Itera
     for path, info in infos.items():
         if info.error is not None:
             notes.append(f"git failed in {src / path}: {info.error}")
-    rows = [Row(f, infos.get(f.path, GitInfo()), views.get(f.path)) for f in found]
+    packages = packages_by_row(find_packages(src), [f.path for f in found])
+    rows = [Row(f, infos.get(f.path, GitInfo()), views.get(f.path), tuple(packages.get(f.path, ())))
+            for f in found]
     where = None
     if target is not None:
         where = f"{target.robot}:{target.remote_workspace.rstrip('/')}/src"
@@ -519,12 +615,14 @@ __all__ = [
     "UNREACHABLE",
     "Found",
     "GitInfo",
+    "Package",
     "RobotView",
     "Row",
     "WorkspaceStatus",
     "compare_with_robot",
     "count_by_row",
     "differing_paths",
+    "find_packages",
     "find_repositories",
     "inspect_all",
     "inspect_repository",

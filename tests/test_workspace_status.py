@@ -164,7 +164,7 @@ def test_json_shape(ws: Path, tmp_path: Path):
     by_path = {r["path"]: r for r in rows}
     assert [r["path"] for r in rows] == ["alpha", "alpha/nested", "beta", "delta", "gamma",
                                          "loose", "loose/inner", "sub"]
-    assert set(rows[0]) == {"path", "git", "branch", "detached", "sha", "dirty", "error"}
+    assert set(rows[0]) == {"path", "git", "branch", "detached", "sha", "dirty", "error", "packages"}
     assert by_path["beta"]["dirty"] is True and by_path["alpha"]["dirty"] is False
     assert by_path["gamma"]["branch"] is None and by_path["gamma"]["detached"] is True
     assert by_path["delta"]["sha"] is None and by_path["delta"]["branch"] == "wip"
