@@ -33,6 +33,15 @@ Each direction has a reader thread (counts, timestamps, queues) and a writer
 thread (sleeps until a segment's arrival time, writes every segment due).
 Counts are taken when the proxy reads the bytes, shaped or not.
 
+**Outages** (shaped links only), for measuring recovery: the file
+``COUNTDIR/link.state`` (:func:`set_link_state`) says ``up`` (or is absent),
+``blackhole`` or ``cut``, and every proxy of that directory looks at it every
+20 ms. *blackhole*: nothing is read or delivered, in either direction, and
+a new connection hangs before connecting (its SYN lost); once ``up`` again,
+what was held is delivered at once (TCP's retransmissions, without their
+backoff). *cut*: every open connection ends at once, and a new one fails at
+once (connection refused) while it lasts.
+
 Counters are live rather than written at exit because a connection may outlive
 the command that opened it: fetchsync leaves a connection master holding its
 SSH connection between calls. The bytes one push costs are then the growth of
@@ -61,11 +70,14 @@ import time
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["LINKS", "Counter", "Link", "Totals", "parse_link"]
+__all__ = ["LINKS", "Counter", "Link", "Totals", "link_state", "parse_link", "set_link_state"]
 
 _CHUNK = 256 * 1024
 _REC = struct.Struct("<QQQ")
 _U64 = struct.Struct("<Q")
+
+STATE_FILE = "link.state"
+STATES = ("up", "blackhole", "cut")
 
 QUEUE_SECONDS = 0.025
 """The most a direction's queue holds, in time at its rate, before the sender is held back."""
@@ -93,6 +105,25 @@ LINKS: dict[str, Link | None] = {
     "wifi": Link("wifi", 40e6 / 8, 0.004),
     "weak": Link("weak", 8e6 / 8, 0.025),
 }
+
+
+def link_state(countdir: str | Path) -> str:
+    """``up``, ``blackhole`` or ``cut``: what ``COUNTDIR/link.state`` says (``up`` if absent)."""
+    try:
+        state = Path(countdir, STATE_FILE).read_text().strip()
+    except OSError:
+        return "up"
+    return state if state in STATES else "up"
+
+
+def set_link_state(countdir: str | Path, state: str) -> None:
+    """Put every shaped proxy of ``countdir`` (and every one started later) into ``state``."""
+    if state not in STATES:
+        raise ValueError(f"link state {state!r}: one of {', '.join(STATES)}")
+    path = Path(countdir, STATE_FILE)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(state + "\n")
+    os.replace(tmp, path)
 
 
 def parse_link(text: str) -> Link | None:
@@ -139,7 +170,7 @@ def proxy(host: str, port: int, countdir: str, link: Link | None = None) -> int:
         signal.signal(sig, _on_signal)
     counts = _open_counts(countdir)
     if link is not None:
-        return _shaped(host, port, counts, link)
+        return _shaped(host, port, counts, link, countdir)
     up = down = 0
     try:
         sock = socket.create_connection((host, port))
@@ -189,8 +220,10 @@ class _Direction:
         count: Callable[[int], None],
         at_eof: Callable[[], None],
         failed: Callable[[], None],
+        up: threading.Event,
     ) -> None:
         self.link = link
+        self.up = up  # cleared while the link is a blackhole
         self.read, self.write, self.count = read, write, count
         self.at_eof, self.failed = at_eof, failed
         self.queue: collections.deque[tuple[float, bytes | None]] = collections.deque()
@@ -203,6 +236,7 @@ class _Direction:
         link, seg = self.link, self.link.segment
         try:
             while True:
+                self.up.wait()
                 data = self.read()
                 if not data:
                     break
@@ -244,6 +278,7 @@ class _Direction:
                             break
                         out.append(piece)
                 if out:
+                    self.up.wait()
                     self.write(b"".join(out))
                 if eof:
                     self.at_eof()
@@ -252,9 +287,22 @@ class _Direction:
             self.failed()
 
 
-def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
+def _shaped(host: str, port: int, counts: mmap.mmap, link: Link, countdir: str) -> int:
     up = down = 0
     done = threading.Event()
+    link_up = threading.Event()
+
+    def watch_state() -> None:
+        while not done.is_set():
+            state = link_state(countdir)
+            if state == "cut":
+                done.set()
+                return
+            if state == "blackhole":
+                link_up.clear()
+            else:
+                link_up.set()
+            time.sleep(0.02)
 
     def count_up(n: int) -> None:
         nonlocal up
@@ -266,7 +314,15 @@ def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
         down += n
         _U64.pack_into(counts, 8, down)
 
+    refused = False
     try:
+        while link_state(countdir) == "blackhole":  # the SYN is lost until the link is back
+            time.sleep(0.02)
+        if link_state(countdir) == "cut":
+            refused = True
+            raise OSError("the link is cut")
+        link_up.set()
+        threading.Thread(target=watch_state, daemon=True).start()
         sock = socket.create_connection((host, port))
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         stdin, stdout = sys.stdin.fileno(), sys.stdout.fileno()
@@ -284,6 +340,7 @@ def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
             count=count_up,
             at_eof=end_up,
             failed=done.set,
+            up=link_up,
         )
         _Direction(
             link,
@@ -292,6 +349,7 @@ def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
             count=count_down,
             at_eof=done.set,  # the server is done: nothing more can be said to it
             failed=done.set,
+            up=link_up,
         )
         while not done.wait(1.0):
             pass
@@ -300,7 +358,7 @@ def _shaped(host: str, port: int, counts: mmap.mmap, link: Link) -> int:
     finally:
         _REC.pack_into(counts, 0, up, down, 1)
         counts.flush()
-    os._exit(0)  # the threads may be blocked reading: do not wait for them
+    os._exit(1 if refused else 0)  # the threads may be blocked reading: do not wait for them
 
 
 class Totals:

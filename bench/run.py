@@ -183,6 +183,16 @@ def wait_quiet(
         pids, before = after_pids, _cpu_ticks(after_pids)
 
 
+def robot_python(cache: Path) -> str:
+    """The robot's Python for a fetchsync of this run, with a cache of its own there.
+
+    The robot is this machine, logged in as root, so its endpoint's cache would
+    be /root/.cache/fetchsync: shared with every test suite running here (some
+    damage it on purpose) and, in an A/B run, with the other version. ``env``
+    costs the robot one exec a connection."""
+    return shlex.join(["env", f"XDG_CACHE_HOME={cache}", "python3"])
+
+
 # --------------------------------------------------------------------------- the tools
 class Tool:
     """One push tool: a command run as a new process per push, and its remote tree."""
@@ -301,6 +311,7 @@ class FetchsyncPush(Tool):
             XDG_STATE_HOME=str(self.state_home),
             XDG_CACHE_HOME=str(self.bench.workdir / f"{self.name}-cache"),
             PYTHONPATH=str(self.checkout),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot" / f"{self.name}-cache"),
         )
         if self.checkout != REPO:
             env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / "b")
@@ -1139,6 +1150,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the link both tools reach the robot through (bench/countproxy.py; default loopback)",
     )
     ap.add_argument(
+        "--settle",
+        type=float,
+        help=f"seconds at most to wait for the robot's disk to create files at its usual speed "
+        f"(default {CREATE_WAIT:.0f}; --quick 0)",
+    )
+    ap.add_argument(
         "--baseline-rev",
         metavar="REV",
         help="also push with the fetchsync of git revision REV, side by side (an A/B run)",
@@ -1155,7 +1172,7 @@ def main(argv: list[str] | None = None) -> int:
         reps_initial=a.reps_initial or (1 if a.quick else 2),
         seed=a.seed,
         cold=(not a.quick) if a.cold is None else a.cold,
-        settle=0.0 if a.quick else CREATE_WAIT,  # a smoke run measures nothing
+        settle=a.settle if a.settle is not None else 0.0 if a.quick else CREATE_WAIT,
         link=a.link,
     )
 

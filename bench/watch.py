@@ -19,7 +19,12 @@ each into its own remote directory:
 3. **burst**: writes M new files into a new directory as fast as it can, then
    polls until all M are on the robot with the right content: time after the
    last write (and after the first);
-4. verifies the whole remote tree again (paths, kinds, modes, links, SHA-256).
+4. verifies the whole remote tree again (paths, kinds, modes, links, SHA-256);
+5. **recovery** (shaped links only, ``--recovery N`` cycles, default 5): the
+   shaper turns the link into a blackhole for 12 s, then cuts it for 8 s
+   (``bench/countproxy.py``'s outages); a second into each outage a file is
+   saved; when the link is back, the robot's copy is polled until it holds
+   the save, and the whole tree is verified: link back -> robot identical.
 
 Then, on a second, 7,000-file workspace, **idle cost**: each tool is started,
 waits until live, is left alone 2 s, then its CPU time (utime+stime of the
@@ -63,8 +68,8 @@ for _p in (str(BENCH), str(REPO / "tests")):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from countproxy import LINKS, Link, proxy_command
-from run import _workdir, differences, link_line, load_average, machine_info, snapshot
+from countproxy import LINKS, Link, proxy_command, set_link_state
+from run import _workdir, differences, link_line, load_average, machine_info, robot_python, snapshot
 from sshd import SSHD, make_ssh_home, running_sshd
 from workspace import Workspace, generate
 
@@ -224,6 +229,7 @@ class FetchsyncWatch(WatchTool):
             FETCHSYNC_WORKSPACE=str(self.ws.root),
             FETCHSYNC_REMOTE_WORKSPACE=str(self.remote),
             XDG_STATE_HOME=str(self.bench.workdir / f"state-{self.remote.name}"),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot-cache"),
         )
         return env
 
@@ -365,6 +371,45 @@ def measure_burst(tool: WatchTool, n: int, tag: str) -> dict[str, Any]:
         "after_first": None if t_done is None else t_done - t_first,
         "missing": len(pending),
     }
+
+
+OUTAGES = (("blackhole", 12.0), ("cut", 8.0))
+RECOVERY_TARGET = 1.0  # seconds, link back -> robot identical, median (issue 24)
+
+
+def measure_recovery(
+    tool: WatchTool, targets: list[Path], cycles: int, outages: tuple[tuple[str, float], ...], tag: str
+) -> list[dict[str, Any]]:
+    """Per cycle and outage: seconds from the link coming back to the save made during
+    the outage being on the robot (None: not within 60 s), and the tree's differences then."""
+    wire = tool.bench.workdir / "wire"
+    out: list[dict[str, Any]] = []
+    for cycle in range(cycles):
+        for kind, seconds in outages:
+            path = targets[(cycle + len(out)) % len(targets)]
+            rel = path.relative_to(tool.ws.src)
+            set_link_state(wire, kind)
+            t_down = time.perf_counter()
+            time.sleep(min(1.0, seconds / 2))
+            body = path.read_bytes()
+            marker = b"\n// fetchsync-bench "
+            if marker in body:
+                body = body[: body.rindex(marker)]
+            data = body + marker + f"{tag} {kind} {cycle} {time.time_ns()}\n".encode()
+            path.write_bytes(data)
+            time.sleep(max(0.0, seconds - (time.perf_counter() - t_down)))
+            set_link_state(wire, "up")
+            t_up = time.perf_counter()
+            t_arrived = wait_arrival(tool.remote_src / rel, data, timeout=60)
+            after = None if t_arrived is None else t_arrived - t_up
+            diffs = differences(snapshot(tool.ws.src), snapshot(tool.remote_src))
+            out.append({"cycle": cycle, "outage": kind, "seconds": seconds, "after_up": after,
+                        "differences": diffs[:10]})
+            log(f"{tool.name}: {kind} {seconds:.0f} s, cycle {cycle}: on the robot "
+                f"{_ms(after)} after the link came back; tree "
+                + ("identical" if not diffs else f"{len(diffs)} difference(s)"))
+            time.sleep(1.0)
+    return out
 
 
 def measure_idle(tool: WatchTool, settle: float, seconds: float) -> dict[str, Any]:
@@ -588,6 +633,35 @@ def render(res: dict[str, Any]) -> str:
             f"| {name} | {_ms(b['write_seconds'])} | {_ms(b['after_last'])} | "
             f"{_ms(b['after_first'])} | {b['missing']} |"
         )
+    if res.get("recovery"):
+        out += [
+            "",
+            (
+                "Recovery: a save made a second into an outage of the link (blackhole: nothing "
+                "passes; cut: connections end and new ones are refused), then the link back: "
+                "time until the save is on the robot, and the tree identical"
+            ),
+            "",
+            "| tool | outage | median | min | max | lost | trees identical | target |",
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |",
+        ]
+        for name, rows in res["recovery"].items():
+            allx = [r["after_up"] for r in rows if r["after_up"] is not None]
+            for kind in sorted({r["outage"] for r in rows}) + ["all"]:
+                sel = [r for r in rows if kind in ("all", r["outage"])]
+                xs = [r["after_up"] for r in sel if r["after_up"] is not None]
+                st = _stats(xs)
+                ok = sum(1 for r in sel if not r["differences"])
+                target = "—"
+                if kind == "all" and name == "fetchsync":
+                    met = bool(allx) and len(allx) == len(rows) and statistics.median(allx) <= RECOVERY_TARGET
+                    target = f"≤ {RECOVERY_TARGET:g} s {'**PASS**' if met else '**MISS**'}"
+                secs = sel[0]["seconds"] if kind != "all" else None
+                label = kind if secs is None else f"{kind} {secs:.0f} s"
+                out.append(
+                    f"| {name} | {label} | {_ms(st.get('median'))} | {_ms(st.get('min'))} | "
+                    f"{_ms(st.get('max'))} | {len(sel) - len(xs)} | {ok}/{len(sel)} | {target} |"
+                )
     if res.get("idle"):
         iw = res["idle_workspace"]
         out += [
@@ -655,6 +729,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tools", default="fetchsync,lsyncd", help="comma-separated (default both)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument(
+        "--recovery",
+        type=int,
+        help="outage cycles on a shaped link: a 12 s blackhole, then an 8 s cut (default 5; "
+        "--quick 1 of 2 s each; 0 skips)",
+    )
+    ap.add_argument(
         "--link",
         choices=sorted(LINKS),
         default="loopback",
@@ -674,8 +754,11 @@ def main(argv: list[str] | None = None) -> int:
         "idle_files": a.idle_files if a.idle_files is not None else (300 if q else 7000),
         "idle_seconds": a.idle_seconds or (1.0 if q else 10.0),
         "idle_settle": 1.0 if q else 2.0,
+        "recovery": a.recovery if a.recovery is not None else (1 if q else 5),
         "seed": a.seed,
     }
+    outages = tuple((k, 2.0) for k, _ in OUTAGES) if q else OUTAGES
+    params["outages"] = [list(o) for o in outages]
     tools = [t for t in a.tools.split(",") if t]
     if "lsyncd" in tools and shutil.which("lsyncd") is None:
         raise SystemExit(
@@ -696,6 +779,7 @@ def main(argv: list[str] | None = None) -> int:
         "idle": {},
         "start_seconds": {},
         "verification": {},
+        "recovery": {},
     }
     classes: dict[str, Callable[..., WatchTool]] = {"fetchsync": FetchsyncWatch, "lsyncd": Lsyncd}
     with _workdir(a.workdir, a.keep) as workdir:
@@ -737,6 +821,12 @@ def main(argv: list[str] | None = None) -> int:
                             f"{name}: burst on the robot {_ms(b['after_last'])} after the last write"
                         )
                         res["verification"][f"{name} after saves and burst"] = verify(tool)
+                        if bench.link is not None and params["recovery"]:
+                            log(f"{name}: {params['recovery']} outage cycles")
+                            res["recovery"][name] = measure_recovery(
+                                tool, targets, params["recovery"], outages, name
+                            )
+                            res["verification"][f"{name} after the outages"] = verify(tool)
                     finally:
                         tool.stop()
                 if params["idle_files"]:
@@ -777,6 +867,7 @@ def main(argv: list[str] | None = None) -> int:
             a.json_out.write_text(json.dumps(res, indent=1, sort_keys=True, default=str) + "\n")
     lost = any(x is None for v in res["latency"].values() for x in v)
     lost |= any(b["missing"] for b in res["burst"].values())
+    lost |= any(r["after_up"] is None for v in res["recovery"].values() for r in v)
     return 1 if lost or any(res["verification"].values()) else 0
 
 

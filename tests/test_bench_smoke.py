@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import select
 import socket
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from helpers import run_bench
 BENCH = Path(__file__).resolve().parent.parent / "bench"
 sys.path.insert(0, str(BENCH))
 
-from countproxy import LINKS, Counter, parse_link
+from countproxy import LINKS, Counter, link_state, parse_link, set_link_state
 
 
 class _Echo:
@@ -98,6 +99,40 @@ def test_shaper_delivers_intact_and_never_faster_than_the_link(tmp_path: Path, n
     if link is not None:
         assert ping_pong >= 2 * link.delay
         assert bulk >= len(data) / link.rate + 2 * link.delay
+
+
+def test_shaper_outages_hold_then_deliver_and_cuts_refuse(tmp_path: Path) -> None:
+    """``link.state``: a blackhole holds bytes (none arrive) and delivers them once the link
+    is back; a cut ends an open connection and refuses a new one until the link is up."""
+    wire = tmp_path / "wire"
+    wire.mkdir()
+    echo = _Echo()
+    proc = _proxy(echo.port, wire, "wifi")
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        proc.stdin.write(b"a")
+        proc.stdin.flush()
+        assert _read_exactly(proc, 1) == b"a"
+        set_link_state(wire, "blackhole")
+        time.sleep(0.2)
+        proc.stdin.write(b"b")
+        proc.stdin.flush()
+        ready, _, _ = select.select([proc.stdout], [], [], 0.5)
+        assert not ready  # held while the link is a blackhole
+        set_link_state(wire, "up")
+        assert _read_exactly(proc, 1) == b"b"
+        set_link_state(wire, "cut")
+        assert proc.wait(5) == 0 and proc.stdout.read() == b""  # the connection ended
+        refused = _proxy(echo.port, wire, "wifi")
+        assert refused.wait(5) == 1  # a new one is refused while cut
+    finally:
+        for p in (proc,):
+            if p.poll() is None:
+                p.kill()
+        echo.close()
+    assert link_state(wire) == "cut"
+    set_link_state(wire, "up")
+    assert link_state(wire) == "up"
 
 
 def test_link_profiles_and_custom_links() -> None:
