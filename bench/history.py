@@ -152,6 +152,8 @@ class History:
     def push_all(self, kind: str, index: int, label: str) -> None:
         for tool in self.bench.order(index):
             s = self.bench.push_sample(tool, kind, index)
+            if s is None:
+                continue
             self.log(
                 f"  {kind:7} {index:2} {label:24} {tool.name:18} {s.seconds:6.3f} s "
                 f"{_human(s.bytes):>10}"
@@ -180,16 +182,17 @@ class History:
             self.push_all("switch", j, f"to {version}")
 
     def verified_ok(self) -> bool:
-        return bool(self.steps) and all(not d for st in self.steps for d in st["verified"].values())
+        return not self.bench.failures and bool(self.steps) and all(not d for st in self.steps for d in st["verified"].values())
 
     # ---------------------------------------------------------------------- results
     def summary(self, ours: str, theirs: str, *, targets: bool = True) -> dict[str, Any]:
         samples = self.bench.samples
+        def noop_median(tool: str, key: str) -> float:
+            xs = [getattr(s, key) for s in samples if s.tool == tool and s.scenario == "noop"]
+            return statistics.median(xs) if xs else 0.0
+
         noop = {
-            t: {
-                "seconds": statistics.median(s.seconds for s in samples if s.tool == t and s.scenario == "noop"),
-                "bytes": statistics.median(s.bytes for s in samples if s.tool == t and s.scenario == "noop"),
-            }
+            t: {"seconds": noop_median(t, "seconds"), "bytes": noop_median(t, "bytes")}
             for t in (ours, theirs)
         }
         rows: dict[str, Any] = {"noop": noop}
@@ -203,8 +206,8 @@ class History:
                     for s in samples
                     if s.tool == t and s.scenario == kind
                 }
-            if not per[ours]:
-                continue
+            if not per[ours] or not per[theirs]:
+                continue  # every push of one of them failed (see the failures)
             row: dict[str, Any] = {"title": title, "n": len(per[ours])}
             for t in (ours, theirs):
                 secs = [v[0] for v in per[t].values()]
@@ -316,6 +319,9 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
         )
     else:
         out.append("verification: FAIL")
+        for f in bench.failures:
+            out.append(f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
+                       + " ".join(f["error"].split())[-400:])
         for st in hist.steps:
             for tool, diffs in st["verified"].items():
                 if diffs:
@@ -413,6 +419,7 @@ def main(argv: list[str] | None = None) -> int:
                             for t in names
                             if t != "fetchsync"
                         },
+                        "failures": bench.failures,
                         "verified": hist.verified_ok(),
                     },
                     indent=1,

@@ -488,6 +488,7 @@ class Bench:
             )
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
         self.samples: list[Sample] = []
+        self.failures: list[dict[str, Any]] = []
         self.allocator: dict[str, float] | None = None  # see settle_allocator
         self.verified: dict[str, dict[str, list[str]]] = {}
         self.repairs: dict[str, dict[str, dict[str, Any]]] = {}
@@ -559,9 +560,19 @@ class Bench:
         k = rep % len(self.tools)
         return self.tools[k:] + self.tools[:k]
 
-    def push_sample(self, tool: Tool, scenario: str, rep: int) -> Sample:
-        """One timed push, kept with the samples."""
-        s = tool.push(scenario, rep)
+    def push_sample(self, tool: Tool, scenario: str, rep: int) -> Sample | None:
+        """One timed push, kept with the samples. A push that fails is logged and kept in
+        ``failures`` (the run then fails; the verification after the scenario shows and
+        repairs its tree), and the run goes on: one tool's error must not lose the others'."""
+        try:
+            s = tool.push(scenario, rep)
+        except PushFailed as exc:
+            self.failures.append(
+                {"tool": tool.name, "scenario": scenario, "rep": rep, "error": str(exc)[-4000:]}
+            )
+            first = next((ln for ln in str(exc).splitlines() if "error" in ln), str(exc)[:200])
+            self.log(f"  {scenario:8} #{rep} {tool.name:14} FAILED: {first[:300]}")
+            return None
         self.samples.append(s)
         return s
 
@@ -578,8 +589,9 @@ class Bench:
             for tool in self.order(rep):
                 if each is not None:
                     each(tool)
-                s = tool.push(scenario, rep)
-                self.samples.append(s)
+                s = self.push_sample(tool, scenario, rep)
+                if s is None:
+                    continue
                 inner = f" (in-process {s.report['seconds']:.3f} s)" if s.report else ""
                 self.log(
                     f"  {scenario:8} #{rep} {tool.name:14} {s.seconds:7.3f} s{inner} "
@@ -609,7 +621,10 @@ class Bench:
         done: list[Sample] = []
         diffs: list[str] = []
         for k in range(tries):
-            done.append(tool.push("repair", k))
+            try:
+                done.append(tool.push("repair", k))
+            except PushFailed as exc:
+                self.log(f"  repair {scenario}: {tool.name} failed: {str(exc)[-300:]}")
             diffs = differences(local, snapshot(tool.remote_src))
             if not diffs:
                 break
@@ -652,7 +667,7 @@ class Bench:
         )
 
     def verified_ok(self) -> bool:
-        return set(self.verified) == {sc for sc, _ in SCENARIOS} and all(
+        return not self.failures and set(self.verified) == {sc for sc, _ in SCENARIOS} and all(
             not d for r in self.verified.values() for d in r.values()
         )
 
@@ -668,6 +683,10 @@ class Bench:
         for scenario, title in SCENARIOS:
             if not any(s.scenario == scenario for s in self.samples):
                 continue
+            if not all(
+                any(s.tool == t and s.scenario == scenario for s in self.samples) for t in (ours, theirs)
+            ):
+                continue  # every push of one of them failed (see the failures)
             row: dict[str, Any] = {"title": title}
             for tool in (ours, theirs):
                 sel = [s for s in self.samples if s.tool == tool and s.scenario == scenario]
@@ -968,6 +987,9 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
     else:
         out.append("verification: FAIL")
         out.append("")
+        for f in bench.failures:
+            out.append(f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
+                       + " ".join(f["error"].split())[-400:])
         for sc, res in bench.verified.items():
             for tool, diffs in res.items():
                 if diffs:
@@ -1229,6 +1251,7 @@ def main(argv: list[str] | None = None) -> int:
                         },
                         "verification": bench.verified,
                         "repairs": bench.repairs,
+                        "failures": bench.failures,
                         "allocator": bench.allocator,
                         "verified": bench.verified_ok(),
                     },
