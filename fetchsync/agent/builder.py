@@ -136,13 +136,35 @@ def lock_prelude(workspace: str) -> str:
     """bash lines taking a lock (``flock``) held by every process of the build until it ends.
 
     The lock's descriptor is inherited by all the build's processes: a new
-    build starts only when the last process of a cancelled one is gone.
+    build starts only when the last process of a cancelled one is gone. The
+    lock file lives in the robot user's private directory,
+    ``$XDG_RUNTIME_DIR/fetchsync`` or else ``~/.cache/fetchsync``, made 0700
+    and used only when it is a real directory owned by the user: in a shared
+    ``/tmp``, another user could create the file first and hold its lock,
+    blocking every build. Without such a directory (or ``flock``), the build
+    runs without the lock and says so.
     """
     key = hashlib.sha256(workspace.encode("utf-8", "surrogateescape")).hexdigest()[:16]
-    lock = f'"${{TMPDIR:-/tmp}}/fetchsync-build-$(id -u)-{key}.lock"'
-    return (f"if command -v flock >/dev/null 2>&1 && exec 9>>{lock}; then\n"
-            "  flock 9\n"
-            "fi")
+    return "\n".join([
+        "__fetchsync_lockdir=",
+        'if [ -n "${XDG_RUNTIME_DIR:-}" ] && [ -d "$XDG_RUNTIME_DIR" ] && '
+        '[ ! -L "$XDG_RUNTIME_DIR" ] && [ -O "$XDG_RUNTIME_DIR" ]; then',
+        '  __fetchsync_lockdir="$XDG_RUNTIME_DIR/fetchsync"',
+        "else",
+        '  __fetchsync_lockdir="$HOME/.cache/fetchsync"',
+        "fi",
+        '(umask 077; mkdir -p -- "$__fetchsync_lockdir") 2>/dev/null',
+        'if [ -d "$__fetchsync_lockdir" ] && [ ! -L "$__fetchsync_lockdir" ] && '
+        '[ -O "$__fetchsync_lockdir" ] && chmod 700 -- "$__fetchsync_lockdir" 2>/dev/null && '
+        "command -v flock >/dev/null 2>&1 && "
+        f'exec 9>>"$__fetchsync_lockdir/build-{key}.lock"; then',
+        "  flock 9",
+        "else",
+        '  echo "fetchsync: warning: no private directory for the build lock'
+        ' ($__fetchsync_lockdir); building without it" >&2',
+        "fi",
+        "unset __fetchsync_lockdir",
+    ])
 
 
 # --------------------------------------------------------------------------- the thread
