@@ -1,9 +1,11 @@
+# Python 3.6 runs this (no `from __future__ import annotations`, no capture_output):
+# ruff: noqa: FA100, UP022
 """The robot side of ``fetchsync create-account``: one program, run as root, fed on stdin.
 
 :mod:`fetchsync.account` sends this file's text over the SSH channel and a
 short bootstrap in the command line executes it (see ``BOOTSTRAP`` there);
-nothing is installed on the robot. It runs on the robot's Python (3.8 and
-later) with the standard library only.
+nothing is installed on the robot. It runs on the robot's Python (3.6 and
+later: Ubuntu 18.04, Fetch's Melodic image) with the standard library only.
 
 Input: one JSON line on stdin, the request (see :func:`main`). The new
 password travels only in it: it reaches ``chpasswd`` on that command's stdin,
@@ -19,8 +21,6 @@ link the user planted cannot make root write outside their home, and every
 file the user gets is theirs.
 """
 
-from __future__ import annotations
-
 import base64
 import glob
 import grp
@@ -34,7 +34,7 @@ import sys
 import tempfile
 import time
 import traceback
-from typing import Any
+from typing import Any, Dict, List, Optional, Tuple
 
 RESULT_PREFIX = "FETCHSYNC-ACCOUNT-RESULT "
 STATE_DIR = ".fetchsync"
@@ -55,7 +55,7 @@ class Failure(Exception):
 
 
 def main() -> int:
-    result: dict[str, Any] = {}
+    result: Dict[str, Any] = {}
     try:
         line = sys.stdin.buffer.readline()
         request = json.loads(line.decode("utf-8"))
@@ -74,12 +74,12 @@ def main() -> int:
     return status
 
 
-def apply(request: dict[str, Any]) -> dict[str, Any]:
+def apply(request: Dict[str, Any]) -> Dict[str, Any]:
     """Create or repair the account described by ``request``; the result as a dict."""
     if os.geteuid() != 0:
         raise Failure("the account program is not running as root")
     name = request["user"]
-    result: dict[str, Any] = {"user": name}
+    result: Dict[str, Any] = {"user": name}
     try:
         entry = pwd.getpwnam(name)
     except KeyError:
@@ -122,11 +122,12 @@ def uid_min() -> int:
     return DEFAULT_UID_MIN
 
 
-def run(argv: list[str], *, stdin: bytes | None = None) -> None:
+def run(argv: List[str], *, stdin: Optional[bytes] = None) -> None:
     """Run a system tool; raise Failure with its stderr (never its stdin) when it fails."""
     try:
         proc = subprocess.run(argv, input=stdin if stdin is not None else b"",
-                              capture_output=True, env=_tool_env(), check=False)
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_tool_env(),
+                              check=False)
     except OSError as exc:
         raise Failure(f"cannot run {argv[0]} on the robot: {exc.strerror}") from None
     if proc.returncode != 0:
@@ -150,7 +151,7 @@ def set_password(name: str, password: str) -> None:
 
 
 def add_groups(name: str, entry: pwd.struct_passwd,
-               wanted: list[str]) -> tuple[list[str], list[str]]:
+               wanted: List[str]) -> Tuple[List[str], List[str]]:
     """Add ``name`` to those of ``wanted`` that exist; (added, absent)."""
     added, absent = [], []
     for group in wanted:
@@ -177,8 +178,8 @@ def ensure_home(entry: pwd.struct_passwd) -> bool:
     return True
 
 
-def in_home_as(entry: pwd.struct_passwd, request: dict[str, Any], *,
-               overwrite: bool, password: str | None = None) -> dict[str, Any]:
+def in_home_as(entry: pwd.struct_passwd, request: Dict[str, Any], *,
+               overwrite: bool, password: Optional[str] = None) -> Dict[str, Any]:
     """Do the home-directory work in a child that has become the user; its result."""
     read_fd, write_fd = os.pipe()
     sys.stdout.flush()
@@ -186,7 +187,7 @@ def in_home_as(entry: pwd.struct_passwd, request: dict[str, Any], *,
     pid = os.fork()
     if pid == 0:  # the child
         os.close(read_fd)
-        out: dict[str, Any] = {}
+        out: Dict[str, Any] = {}
         code = 0
         try:
             become(entry)
@@ -219,10 +220,10 @@ def become(entry: pwd.struct_passwd) -> None:
     os.chdir(entry.pw_dir)
 
 
-def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
-            overwrite: bool, password: str | None = None) -> dict[str, Any]:
+def furnish(entry: pwd.struct_passwd, request: Dict[str, Any], *,
+            overwrite: bool, password: Optional[str] = None) -> Dict[str, Any]:
     """As the user: key, skeleton, initialize.sh. Runs in the home directory."""
-    out: dict[str, Any] = {"key": install_key(request.get("key"))}
+    out: Dict[str, Any] = {"key": install_key(request.get("key"))}
     out["skeleton_added"] = copy_skeleton(request.get("skeleton") or [], overwrite=overwrite)
     # Before initialize.sh, which reads it: the workspace push uses, fixed on every run.
     out.update(record_workspace(entry, request))
@@ -254,7 +255,7 @@ def furnish(entry: pwd.struct_passwd, request: dict[str, Any], *,
     return out
 
 
-def record_workspace(entry: pwd.struct_passwd, request: dict[str, Any]) -> dict[str, Any]:
+def record_workspace(entry: pwd.struct_passwd, request: Dict[str, Any]) -> Dict[str, Any]:
     """Write the account's workspace (and ROS distribution) where its shells read them.
 
     A file fetchsync (or fetch_tools) wrote is rewritten when it says otherwise, so
@@ -268,7 +269,7 @@ def record_workspace(entry: pwd.struct_passwd, request: dict[str, Any]) -> dict[
     path = FETCH_TOOLS_FILE if legacy else WORKSPACE_FILE
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
-            old: str | None = f.read()
+            old: Optional[str] = f.read()
     except FileNotFoundError:
         old = None
     if old is not None and not is_ours(old):
@@ -333,9 +334,9 @@ def _fetch_tools_workspace(text: str) -> str:
     return ""
 
 
-def read_exports(path: str) -> dict[str, str]:
+def read_exports(path: str) -> Dict[str, str]:
     """``export NAME=VALUE`` lines of a shell file, unquoted; {} when unreadable."""
-    out: dict[str, str] = {}
+    out: Dict[str, str] = {}
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()
@@ -364,7 +365,7 @@ def _only_distro() -> str:
     return os.path.basename(os.path.dirname(found[0])) if len(found) == 1 else ""
 
 
-def install_key(key: str | None) -> str:
+def install_key(key: Optional[str]) -> str:
     """Append ``key`` to ~/.ssh/authorized_keys unless it is there; what happened."""
     if not key:
         return "none"
@@ -387,7 +388,7 @@ def install_key(key: str | None) -> str:
     return "added"
 
 
-def copy_skeleton(entries: list[dict[str, Any]], *, overwrite: bool) -> list[str]:
+def copy_skeleton(entries: List[Dict[str, Any]], *, overwrite: bool) -> List[str]:
     """Create the skeleton's directories and files; existing files are replaced only
     with ``overwrite`` (a new account, whose files came from /etc/skel)."""
     added = []
@@ -426,8 +427,8 @@ def write_file(path: str, data: bytes, mode: int) -> None:
         raise
 
 
-def run_init(entry: pwd.struct_passwd, script: str, extra: dict[str, str], *,
-             password: str | None = None) -> int:
+def run_init(entry: pwd.struct_passwd, script: str, extra: Dict[str, str], *,
+             password: Optional[str] = None) -> int:
     """Run initialize.sh as the user (we are the user already), its output on our stderr.
 
     With the account's password known (a new account, --reset-password), its
@@ -513,7 +514,7 @@ def sudo_wrapper(real_sudo: str, fd: int) -> str:
     )
 
 
-def _which(name: str) -> str | None:
+def _which(name: str) -> Optional[str]:
     for d in SAFE_PATH.split(":"):
         path = os.path.join(d, name)
         if os.path.isfile(path) and os.access(path, os.X_OK):
@@ -521,7 +522,7 @@ def _which(name: str) -> str | None:
     return None
 
 
-def _tool_env() -> dict[str, str]:
+def _tool_env() -> Dict[str, str]:
     env = {"PATH": SAFE_PATH, "LC_ALL": "C"}
     return env
 

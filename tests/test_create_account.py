@@ -38,6 +38,7 @@ from fetchsync.errors import ConfigError, UsageError
 REPO = Path(__file__).resolve().parent.parent
 BUILTIN_FILES = {".bashrc.d/10-shell.sh", ".bashrc.d/40-ros.sh"}
 PY38 = "/root/.pyenv/versions/3.8.18/bin/python3.8"
+PY36 = "/root/.pyenv/versions/3.6.15/bin/python3.6"  # Ubuntu 18.04's, Fetch's Melodic image
 
 
 # --- without a robot ------------------------------------------------------------------------
@@ -176,11 +177,11 @@ def test_request_repr_hides_the_password() -> None:
     assert "hunter2" not in repr(request)
 
 
-def test_the_robot_program_runs_on_python_38() -> None:
+def test_the_robot_program_runs_on_python_36() -> None:
     vermin = shutil.which("vermin")
     if vermin is None:
         pytest.skip("vermin not installed")
-    proc = subprocess.run([vermin, "-q", "--no-tips", "--violations", "--target=3.8-",
+    proc = subprocess.run([vermin, "-q", "--no-tips", "--violations", "--target=3.6-",
                            str(REPO / "fetchsync" / "account_robot.py")],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -586,8 +587,14 @@ def _watch_proc(secret: bytes, done: threading.Event, seen: list[str], looked: l
 
 @pytest.mark.ssh
 @needs_root
-def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_home,
-                                                                    accounts) -> None:
+@pytest.mark.parametrize("remote_python", [None, PY36], ids=["python3", "python3.6"])
+def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_home, accounts,
+                                                                    remote_python) -> None:
+    # On Python 3.6 (no os.memfd_create) the password goes in an unlinked temporary file.
+    if remote_python is not None and not os.path.exists(remote_python):
+        if os.environ.get("CI"):
+            pytest.fail(f"{remote_python} is missing (the test machines have it under pyenv)")
+        pytest.skip(f"{remote_python} not installed")
     if shutil.which("sudo") is None:
         pytest.skip("sudo not installed (apt-get install sudo)")
     import grp
@@ -611,9 +618,11 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
                                args=(password.encode(), done, seen, looked, allowed), daemon=True)
     watcher.start()
     try:
-        proc = _create_as_user(ssh_home, "--fullname", "Not A. Robot",
-                               env={"FETCH_USER": name, "ROS_DISTRO": "noetic",
-                                    "FETCHSYNC_NEW_PASSWORD": password}, started=allowed.add)
+        env = {"FETCH_USER": name, "ROS_DISTRO": "noetic", "FETCHSYNC_NEW_PASSWORD": password}
+        if remote_python is not None:
+            env["FETCHSYNC_REMOTE_PYTHON"] = remote_python
+        proc = _create_as_user(ssh_home, "--fullname", "Not A. Robot", env=env,
+                               started=allowed.add)
     finally:
         done.set()
         watcher.join(timeout=30)
