@@ -27,7 +27,8 @@ from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
-from fetchsync.protocol.ignore import IgnoreRules, build_rules  # noqa: F401  (the verbs' name for it)
+from fetchsync.protocol.ignore import IGNORE_FILENAME, MAX_IGNORE_FILE_SIZE, IgnoreRules
+from fetchsync.protocol.ignore import build_rules  # noqa: F401  (the verbs' name for it)
 from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
 from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan, stat_path
@@ -150,6 +151,45 @@ class LocalTree:
             else:
                 self.items[path] = M.Listed(path, "f", item.mode, item.size, hash=digest)
             self.unhashed.discard(path)
+
+
+class LocalRules:
+    """Whether the laptop's rules exclude a path: the verb's rules with the laptop's
+    ``.fetchsyncignore`` files along it, each read once (not only for paths a scan met:
+    the robot's paths the laptop no longer lists)."""
+
+    def __init__(self, root: str, rules: IgnoreRules) -> None:
+        self.root = root
+        self._below: dict[str, IgnoreRules] = {"": _with_ignore_file(rules, root, "")}
+
+    def _rules_below(self, dirpath: str) -> IgnoreRules:
+        got = self._below.get(dirpath)
+        if got is None:
+            parent = dirpath.rpartition("/")[0]
+            got = _with_ignore_file(self._rules_below(parent), self.root, dirpath)
+            self._below[dirpath] = got
+        return got
+
+    def __call__(self, path: str, is_dir: bool) -> bool:
+        return self._rules_below(path.rpartition("/")[0]).ignored_any(path, is_dir)
+
+
+def _with_ignore_file(rules: IgnoreRules, root: str, dirpath: str) -> IgnoreRules:
+    """``rules`` with the ``.fetchsyncignore`` of ``dirpath``, if it holds a regular one."""
+    full = os.path.join(root, dirpath, IGNORE_FILENAME)
+    try:
+        fd = os.open(full, OPEN_FLAGS)
+    except OSError:
+        return rules
+    try:
+        if not stat_mod.S_ISREG(os.fstat(fd).st_mode):
+            return rules
+        text = os.read(fd, MAX_IGNORE_FILE_SIZE).decode("utf-8", "surrogateescape")
+    except OSError:
+        return rules
+    finally:
+        os.close(fd)
+    return rules.with_file(dirpath, text)
 
 
 def _unreadable(reason: str) -> bool:
@@ -667,7 +707,14 @@ class Syncer:
             s = new_synced.get(path)
             return s.expectation() if s is not None else M.ABSENT
 
-        guarded = local.guarded()
+        # what the laptop could not read, and what its rules now exclude (an --exclude,
+        # a pattern added to a .fetchsyncignore), is left as the robot has it
+        unreadable = local.guarded()
+        excluded = LocalRules(self.local_root, self.rules)
+        left_alone = {p for p, r in remote.items() if p not in local.items and excluded(p, r.kind == "d")}
+
+        def guarded(path: str) -> bool:
+            return path in left_alone or unreadable(path)
 
         def has_sig(path: str, dst: M.Listed) -> bool:
             s = new_synced.get(path)
@@ -756,7 +803,9 @@ class Syncer:
         candidates = list(new_synced) if scope_paths is None else \
             [p for p in scope_paths if p in new_synced]
         for path in candidates:
-            if path not in remote and path not in upserts and (scope is None or scope(path)):
+            # an excluded path the robot did not list keeps its row: it is left alone there
+            if path not in remote and path not in upserts and (scope is None or scope(path)) \
+                    and not excluded(path, new_synced[path].kind == "d"):
                 deletes.add(path)
                 del new_synced[path]
         if not dry_run:

@@ -37,7 +37,7 @@ def env(tmp_path: Path) -> dict:
     e = dict(os.environ)
     e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
              FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws", FETCHSYNC_PERSIST="0")
+             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -111,3 +111,63 @@ def test_pull_drops_setuid_and_setgid(env):
     assert report(fetchsync("pull", "--json", "--yes", env=env))["ok"]
     assert stat.S_IMODE((src / "my_pkg/run.sh").stat().st_mode) == 0o755
     assert stat.S_IMODE((src / "my_pkg/CMakeLists.txt").stat().st_mode) == 0o644
+
+
+def test_a_pattern_added_to_a_fetchsyncignore_leaves_the_robots_files_alone(env):
+    """Issue 22 item 5: excluded means left alone, also when the pattern is added to an
+    ignore file that was already synced: the matching robot files are neither deleted
+    nor moved to the trash, and later pushes have nothing to do."""
+    src, ws = local_src(env), robot_ws(env)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    (src / ".fetchsyncignore").write_text("data.txt\n")
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    with open(src / ".fetchsyncignore", "a") as fh:
+        fh.write("scripts\n")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["ok"] and r["deleted"] == 0 and r["conflicts"] == []
+    assert (ws / "src/my_pkg/data.txt").read_bytes() == (src / "my_pkg/data.txt").read_bytes()
+    assert (ws / "src/my_pkg/scripts/run.py").exists()
+    assert (ws / "src/.fetchsyncignore").read_text() == (src / ".fetchsyncignore").read_text()
+    assert not kept(ws / ".fetchsync", "data.txt") and not kept(ws / ".fetchsync", "run.py")
+    # an excluded file deleted here is still left alone there
+    (src / "my_pkg/data.txt").unlink()
+    again = report(fetchsync("push", "--json", env=env))
+    assert again["ok"] and again["deleted"] == 0
+    assert (ws / "src/my_pkg/data.txt").exists()
+    assert report(fetchsync("push", "--json", env=env))["files"] == 0
+
+
+def test_patterns_added_to_a_synced_ignore_file_leave_the_robots_files_alone(engine):
+    """Issue 22 item 5, as the engine (and the watch agent) sees it: a full push and an
+    incremental one, with a pattern for a file and one for a directory added to an
+    ignore file the robot already holds."""
+    s, src, ws = engine
+    (src / ".fetchsyncignore").write_text("data.txt\n")  # a new ignore file
+    assert s.push().errors == []
+    (src / ".fetchsyncignore").write_text("data.txt\nscripts\n")  # a pattern added to it
+    r = s.push()
+    assert r.errors == [] and r.deleted == 0 and r.conflicts == []
+    (src / "my_pkg/.fetchsyncignore").write_text("package.xml\n")
+    r = s.push_paths({"my_pkg/.fetchsyncignore"})
+    assert r.errors == [] and r.deleted == 0 and r.conflicts == []
+    for path in ("my_pkg/data.txt", "my_pkg/scripts/run.py", "my_pkg/package.xml"):
+        assert (ws / "src" / path).read_bytes() == (src / path).read_bytes(), path
+    assert not (ws / ".fetchsync/trash").exists() or not any((ws / ".fetchsync/trash").iterdir())
+    assert s.push().changed == 0
+
+
+def test_an_exclude_then_a_plain_push_finds_no_conflict_and_resends_nothing(env):
+    """Issue 22 item 7: a push with --exclude DIR, then a plain one: DIR's files, the
+    same on both ends, are neither conflicts nor sent again."""
+    src, ws = local_src(env), robot_ws(env)
+    for i in range(30):
+        (src / f"my_pkg/src/f{i}.cpp").write_text(f"int f{i}() {{ return {i}; }}\n" * 50)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    (src / "my_pkg/package.xml").write_text("<changed/>\n")
+    r = report(fetchsync("push", "--json", "--exclude", "my_pkg/src", env=env))
+    assert r["ok"] and r["files"] == 1 and r["deleted"] == 0
+    plain = report(fetchsync("push", "--json", env=env))
+    assert plain["ok"] and plain["conflicts"] == [] and plain["files"] == 0, plain
+    assert plain["bytes_sent"] < 16 * 1024
+    assert not (ws / ".fetchsync/conflicts").exists() or not any((ws / ".fetchsync/conflicts").rglob("*.cpp"))
+    assert tree_of(src) == tree_of(ws / "src")
