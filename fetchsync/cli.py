@@ -105,6 +105,37 @@ def _push_via_agent(target: Any) -> Any:
     return report
 
 
+def _resume_agent(target: Any) -> None:
+    """Have a running agent (one paused before a mass deletion, say) push once more, now
+    that a forced push made the robot match: it then finds nothing to delete."""
+    from fetchsync.agent.control import call
+    from fetchsync.agent.service import agent_paths
+
+    call(agent_paths(target)[1], {"cmd": "push"}, timeout=60)
+
+
+# What a src/ may hold and still count as empty: catkin's, colcon's and ament's markers
+EMPTY_MARKERS = frozenset({"CATKIN_IGNORE", "COLCON_IGNORE", "AMENT_IGNORE"})
+
+
+def _holds_files(src: Any) -> bool:
+    """Whether ``src`` holds a file or link other than package markers (an empty
+    directory, or one of empty directories and a CATKIN_IGNORE, is an emptied src/)."""
+    from fetchsync.errors import SyncError
+
+    unlisted: list[OSError] = []
+    for dirpath, dirnames, filenames in os.walk(src, onerror=unlisted.append):
+        if any(name not in EMPTY_MARKERS for name in filenames):
+            return True
+        # os.walk lists a symlink to a directory among the directories
+        if any(os.path.islink(os.path.join(dirpath, d)) for d in dirnames):
+            return True
+    if unlisted and unlisted[0].filename == str(src):
+        exc = unlisted[0]
+        raise SyncError(f"cannot list {src}: {exc.strerror or exc}", hint="check its permissions")
+    return bool(unlisted)  # a directory it could not list may hold files: the push says
+
+
 def _connection_kind(conn: Any) -> str:
     name = type(conn.transport).__name__
     return {"MuxTransport": "master", "LocalTransport": "local"}.get(name, "ssh")
@@ -240,7 +271,8 @@ def cli() -> None:
 @sync_options
 @click.option("--strict", is_flag=True,
               help="Refuse to replace files changed on the robot since the last sync.")
-@click.option("--force", is_flag=True, help="Push even a missing or empty src/ (empties the robot's).")
+@click.option("--force", is_flag=True,
+              help="Push even a missing or empty src/, or one that deletes most of the robot's files.")
 @build_options
 def push(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
          accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
@@ -251,6 +283,8 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     Files changed on the robot since the last sync are kept under
     <remote workspace>/.fetchsync/conflicts/ before being replaced (--strict
     refuses instead); deleted files go to a bounded .fetchsync/trash/.
+    A push that would delete most of the robot's files needs --force (which
+    also resumes a watch agent paused for that reason).
     With --build or --install-deps, then builds on the robot.
     """
     from fetchsync.errors import ConfigError, SyncError
@@ -265,13 +299,9 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             # most often the wrong workspace: --force would empty the robot's src/
             raise ConfigError(f"{src} does not exist; nothing to push",
                               hint="check --workspace; fetchsync config shows where it came from")
-        try:
-            empty = not any(os.scandir(src))
-        except OSError as exc:
-            raise SyncError(f"cannot list {src}: {exc.strerror or exc}",
-                            hint="check its permissions") from None
-        if empty:
-            raise SyncError(f"{src} is empty; pushing it would empty the robot's src/",
+        if not _holds_files(src):
+            raise SyncError(f"{src} holds no files (only directories or ignore markers, if "
+                            "anything); pushing it would empty the robot's src/",
                             hint="pass --force if that is what you want")
     else:
         src.mkdir(parents=True, exist_ok=True)
@@ -279,7 +309,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     rules = build_rules(excludes)
     # a running watch agent for this robot and workspace already holds the
     # connection and the state: a plain push goes through it
-    report = None if (dry_run or strict or excludes) else _push_via_agent(target)
+    report = None if (dry_run or strict or excludes or force) else _push_via_agent(target)
     if report is None:
         progress = _Progress(not as_json)
         state = open_state(target)
@@ -297,11 +327,13 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
                 syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
                                 rules=rules, policy="refuse" if strict else "preserve")
                 report = syncer.push(dry_run=dry_run, progress=progress,
-                                     scanned=scanned[0] if scanned else None)
+                                     scanned=scanned[0] if scanned else None, confirm_deletions=force)
                 report.connection = _connection_kind(conn)
         finally:
             progress.close()
             state.close()
+        if force and not dry_run:
+            _resume_agent(target)
     report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
     _print_report(report, as_json)
     from fetchsync.sync import raise_for

@@ -597,11 +597,13 @@ class Syncer:
         return self._synced
 
     def push(self, *, dry_run: bool = False, progress: Progress | None = None,
-             scanned: ScanResult | None = None) -> Report:
+             scanned: ScanResult | None = None, confirm_deletions: bool = False) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
         ``scanned``: the local tree scanned (by :func:`scan_tree`) since the last push,
         such as the CLI's scan made while the robot's endpoint starts.
+        ``confirm_deletions``: delete most of the robot's files if that is what the
+        plan says (else :class:`MassDeletionError`, see :func:`refuse_mass_deletion`).
         """
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
@@ -625,7 +627,8 @@ class Syncer:
             # since need a plan, as the watch agent pushes them
             self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
             if differing:
-                done = self.push_paths(differing, progress=progress)
+                done = self.push_paths(differing, progress=progress,
+                                       confirm_deletions=confirm_deletions)
                 done.bytes_sent, done.bytes_received = self.conn.bytes_out - b_out, self.conn.bytes_in - b_in
                 done.seconds = time.monotonic() - t0
                 return done
@@ -637,7 +640,7 @@ class Syncer:
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
             self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                           progress=progress,
+                           progress=progress, confirm_deletions=confirm_deletions,
                            listed=remote if listing.get("full") else
                            [x[0] for x in listing.get("entries", [])])
         report.bytes_sent = self.conn.bytes_out - b_out
@@ -646,7 +649,7 @@ class Syncer:
         return report
 
     def push_paths(self, paths: Iterable[str], dirs: Iterable[str] = (), *,
-                   progress: Progress | None = None) -> Report:
+                   progress: Progress | None = None, confirm_deletions: bool = False) -> Report:
         """Push only what changed at ``paths`` and below ``dirs`` (the watch agent's fast path).
 
         No listing from the robot: the plan starts from the last-synced state,
@@ -658,10 +661,10 @@ class Syncer:
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         synced = self._load_synced()
         if not synced or self.state.epoch == "" or self.opened is None:
-            return self.push(progress=progress)
+            return self.push(progress=progress, confirm_deletions=confirm_deletions)
         paths, dirs = set(paths), set(dirs)
         if "" in dirs:
-            return self.push(progress=progress)
+            return self.push(progress=progress, confirm_deletions=confirm_deletions)
         paths.discard("")
         if not paths and not dirs:
             return report
@@ -673,9 +676,10 @@ class Syncer:
             remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
         _report_skipped(local, report)
         stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
-                               scope=scope, scope_paths=only, progress=progress)
+                               scope=scope, scope_paths=only, progress=progress,
+                               confirm_deletions=confirm_deletions)
         if stale:
-            return self.push(progress=progress)
+            return self.push(progress=progress, confirm_deletions=confirm_deletions)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
@@ -684,7 +688,8 @@ class Syncer:
     def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
                   epoch: str, gen: int, report: Report, *, dry_run: bool = False,
                   progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None) -> bool:
+                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None,
+                  confirm_deletions: bool = False) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer.
 
@@ -725,6 +730,8 @@ class Syncer:
             # what the laptop could not read is left as the robot has it
             planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
                        if not guarded(p.op.path)]
+            if _round == 0 and not dry_run and not confirm_deletions:
+                refuse_mass_deletion(planned, remote, synced)
             if dry_run:
                 for p in planned:
                     report.count(p)
@@ -1252,6 +1259,39 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
     return pieces, p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
+
+
+MASS_MIN = 20  # deleting more of the robot's files than this, and more than half, needs a confirmation
+
+
+class MassDeletionError(SyncError):
+    """A push would delete most of the robot's files; nothing was sent."""
+
+
+def refuse_mass_deletion(planned: list[Planned], remote: dict[str, M.Listed],
+                         synced: dict[str, Synced]) -> None:
+    """Raise :class:`MassDeletionError` if ``planned`` deletes more than MASS_MIN of the
+    robot's files (and links), and more than half of them.
+
+    A ``src/`` emptied by mistake (an ``rm -rf src/*``, a checkout of the wrong branch,
+    a workspace path that points elsewhere) would otherwise empty the robot's, and its
+    trash is bounded. ``remote`` may be a push's scope only: the whole is then the
+    state's count.
+    """
+    gone = {p.op.path for p in planned if p.op.kind == M.DELETE}
+    if not gone:
+        return
+    doomed = sum(1 for path, r in remote.items()
+                 if r.kind != "d" and (path in gone or any(a in gone for a in ancestors(path))))
+    if doomed <= MASS_MIN:
+        return
+    total = max(sum(1 for r in remote.values() if r.kind != "d"),
+                sum(1 for s in synced.values() if s.kind != "d"))
+    if doomed * 2 > total:
+        raise MassDeletionError(f"this push would delete {doomed} of the robot's {total} files; "
+                                "nothing was changed",
+                                hint="restore them here, or confirm with fetchsync push --force "
+                                     "(deleted files go to the robot's .fetchsync/trash/)")
 
 
 QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted

@@ -171,3 +171,66 @@ def test_an_exclude_then_a_plain_push_finds_no_conflict_and_resends_nothing(env)
     assert plain["bytes_sent"] < 16 * 1024
     assert not (ws / ".fetchsync/conflicts").exists() or not any((ws / ".fetchsync/conflicts").rglob("*.cpp"))
     assert tree_of(src) == tree_of(ws / "src")
+
+
+@pytest.mark.parametrize("left", ["empty directories", "a CATKIN_IGNORE"])
+def test_a_src_of_empty_directories_counts_as_empty(env, left):
+    """Issue 22 item 8: a src/ holding only empty directories, or a CATKIN_IGNORE, would
+    empty the robot's: refused without --force."""
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    src = local_src(env)
+    for p in sorted(src.rglob("*"), reverse=True):
+        p.unlink() if p.is_file() or p.is_symlink() else p.rmdir()
+    (src / "my_pkg/launch").mkdir(parents=True)
+    if left == "a CATKIN_IGNORE":
+        (src / "CATKIN_IGNORE").touch()
+    proc = fetchsync("push", "--json", env=env, check=False)
+    assert proc.returncode == 5 and b"empty the robot's src/" in proc.stderr
+    assert b"Traceback" not in proc.stderr
+    assert (robot_ws(env) / "src/my_pkg/package.xml").exists()
+    assert report(fetchsync("push", "--json", "--force", env=env))["ok"]
+    assert not (robot_ws(env) / "src/my_pkg/package.xml").exists()
+
+
+def many_files(src: Path, n: int = 40) -> None:
+    for i in range(n):
+        (src / "my_pkg/many").mkdir(exist_ok=True)
+        (src / f"my_pkg/many/f{i}.txt").write_text(f"file {i}\n")
+
+
+def test_deleting_most_of_the_robots_files_needs_force(env):
+    """The mass-deletion guard: a push that would delete more than half of the robot's
+    files (and more than a few) changes nothing without --force; fewer go as usual."""
+    src, ws = local_src(env), robot_ws(env)
+    many_files(src)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    for i in range(10):  # a few: no question
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    assert report(fetchsync("push", "--json", env=env))["deleted"] == 10
+    (src / "my_pkg/package.xml").write_text("<changed/>\n")
+    for p in (src / "my_pkg/many").iterdir():
+        p.unlink()
+    (src / "my_pkg/data.txt").unlink()
+    proc = fetchsync("push", "--json", env=env, check=False)
+    assert proc.returncode == 5 and b"would delete 31 of the robot's" in proc.stderr, proc.stderr
+    assert b"--force" in proc.stderr and b"Traceback" not in proc.stderr
+    assert len(list((ws / "src/my_pkg/many").iterdir())) == 30
+    assert (ws / "src/my_pkg/package.xml").read_text() != "<changed/>\n"  # nothing at all was sent
+    r = report(fetchsync("push", "--json", "--force", env=env))
+    assert r["ok"] and r["deleted"] >= 2
+    assert tree_of(src) == tree_of(ws / "src")
+
+
+def test_the_engine_refuses_a_mass_deletion_unless_confirmed(engine):
+    """The same guard where the watch agent meets it: an incremental push of a deleted
+    directory."""
+    s, src, ws = engine
+    many_files(src)
+    assert s.push().errors == []
+    for p in (src / "my_pkg/many").iterdir():
+        p.unlink()
+    with pytest.raises(sync.MassDeletionError):
+        s.push_paths(set(), {"my_pkg/many"})
+    assert len(list((ws / "src/my_pkg/many").iterdir())) == 40
+    r = s.push_paths(set(), {"my_pkg/many"}, confirm_deletions=True)
+    assert r.errors == [] and r.deleted == 40

@@ -133,6 +133,7 @@ class Agent:
         self.last_error = ""
         self.conflicts: list[dict[str, str]] = []
         self.last_report: dict[str, Any] | None = None
+        self.held: Pending | None = None  # the work of a push paused before a mass deletion
         self._conn: Any = None
         self._transport: Any = None
         self._syncer: Any = None
@@ -275,6 +276,8 @@ class Agent:
             self.stop()
 
     def _sync_loop(self) -> None:
+        from fetchsync.sync import MassDeletionError
+
         backoff = BACKOFF_FIRST
         # connect while the watcher puts its watches in place, so the first
         # sync finds the link up; a failure here is the first sync's to retry
@@ -292,6 +295,14 @@ class Agent:
                     return
                 work = self.pending
                 self.pending = Pending()
+                held, self.held = self.held, None
+                if held is not None:
+                    # paused before a mass deletion: what changed since may have
+                    # restored the files, or confirmed it (a forced push): look again
+                    work.paths |= held.paths
+                    work.dirs |= held.dirs
+                    work.full = True
+                    work.first = min((x for x in (work.first, held.first) if x), default=0)
             try:
                 self._ensure_connected()
                 self._set_state("syncing")
@@ -307,6 +318,8 @@ class Agent:
                 if self.stop_event.wait(backoff):
                     return
                 backoff = min(backoff * 2, BACKOFF_CAP)
+            except MassDeletionError as exc:
+                self._pause(work, exc)
             except FetchsyncError as exc:
                 with self.cond:
                     self.last_error = str(exc)
@@ -315,6 +328,19 @@ class Agent:
                     self.cond.notify_all()
                 self.say(f"error: {exc}")
                 self._set_state("live")
+
+    def _pause(self, work: Pending, exc: FetchsyncError) -> None:
+        """Hold a push that would delete most of the robot's files until the next change
+        or request (``fetchsync push --force`` makes one once it has pushed)."""
+        why = f"paused: {exc}; restore the files, or confirm with fetchsync push --force"
+        with self.cond:
+            self.held = work
+            self.last_error = why
+            self.failed = self.failed[-50:] + [(work.first, work.seq, why)]
+            self.done_seq = max(self.done_seq, work.seq)
+            self.state = "paused"
+            self.cond.notify_all()
+        self.say(why)
 
     def _ensure_connected(self) -> None:
         if self._syncer is not None:

@@ -1,0 +1,59 @@
+"""The watch agent before a mass deletion: it pauses, says so, and resumes once confirmed."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+from helpers import fetchsync, make_workspace, report, tree_of
+from test_watch import Watch, wait_for
+
+
+@pytest.fixture
+def agent_env(tmp_path: Path):
+    runtime = Path(tempfile.mkdtemp(prefix="fsw", dir="/tmp"))  # AF_UNIX paths are short
+    runtime.chmod(0o700)
+    e = dict(os.environ)
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
+        e.pop(k, None)
+    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
+             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    src = make_workspace(tmp_path / "ws") / "src"
+    (src / "many").mkdir()
+    for i in range(40):
+        (src / f"many/f{i}.txt").write_text(f"file {i}\n")
+    yield e
+    shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_watch_pauses_before_deleting_most_of_the_robots_files(agent_env, tmp_path):
+    src = Path(agent_env["FETCHSYNC_WORKSPACE"]) / "src"
+    robot = Path(agent_env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws" / "src"
+    w = Watch(agent_env, tmp_path / "watch.log")
+    try:
+        wait_for(lambda: w.status().get("state") == "live", what="the agent to be live")
+        assert tree_of(src) == tree_of(robot)
+        shutil.rmtree(src / "many")  # rm -rf of most of the tree
+        (src / "my_pkg/data.txt").unlink()
+        wait_for(lambda: w.status().get("state") == "paused", what="the agent to pause")
+        st = w.status()
+        assert "would delete" in st["last_error"] and "push --force" in st["last_error"]
+        assert len(list((robot / "many").iterdir())) == 40  # nothing deleted
+        text = fetchsync("status", env=agent_env).stdout.decode()
+        assert text.startswith("paused:") and "push --force" in text
+        wait_for(lambda: b"paused:" in (tmp_path / "watch.log").read_bytes(), what="the agent to say so")
+        flushed = fetchsync("flush", "--timeout", "5", env=agent_env, check=False)
+        assert flushed.returncode != 0 and b"paused" in flushed.stderr
+        # the confirmation: a forced push, which then has the agent look again
+        r = report(fetchsync("push", "--json", "--force", env=agent_env))
+        assert r["ok"] and r["deleted"] >= 2
+        wait_for(lambda: w.status().get("state") == "live", what="the agent to resume")
+        assert tree_of(src) == tree_of(robot)
+        (src / "my_pkg/package.xml").write_text("<after/>\n")
+        wait_for(lambda: tree_of(src) == tree_of(robot), what="the next change to be mirrored")
+    finally:
+        w.stop()
