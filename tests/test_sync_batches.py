@@ -71,7 +71,7 @@ def test_another_writer_between_batches_is_detected_and_survived(syncer, tmp_pat
     other_src.mkdir(parents=True)
     (other_src / "theirs.txt").write_text("theirs\n")
     sync.Syncer(other, other_state, local_root=str(other_src), remote_workspace="~/ws",
-                rules=sync.build_rules(), ).push()
+                rules=sync.build_rules(), ).push(confirm_deletions=True)  # it replaces everything
     other.close()
     other_state.close()
     # our next push must notice, re-list, and still end identical, keeping their work aside
