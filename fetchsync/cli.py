@@ -179,7 +179,32 @@ def _print_report(report: Any, as_json: bool) -> None:
 ALIASES: dict[str, str] = {"debug-snapshot": "snapshot"}
 
 _VERBOSE = "fetchsync.verbose"
+_ARGV = "fetchsync.argv"
 QUIET = "fetchsync.quiet"
+
+
+def quote_build_hint(args: list[str], option: str) -> str | None:
+    """For ``--build --pkg x`` (fetch_tools' users type it so), how to pass ``--pkg x`` to
+    the build tool: quoted as one argument, which ``--build`` then takes; None when
+    ``option`` did not follow a bare ``--build``."""
+    import shlex
+
+    for i in range(1, len(args)):
+        if args[i] == "--":
+            break
+        if args[i] == option and args[i - 1] == "--build":
+            words = [option]
+            for word in args[i + 1:]:
+                if word.startswith("-"):
+                    break
+                words.append(word)
+            text = " ".join(words)
+            if len(words) == 1:
+                return f"to pass {option} to the build tool, write --build={shlex.quote(option)}"
+            quoted = f'"{text}"' if all(c.isalnum() or c in " _-.,=:/+@%" for c in text) \
+                else shlex.quote(text)
+            return f"to pass it to the build tool, quote it with its value: --build {quoted}"
+    return None
 
 
 def _verbose(ctx: click.Context, _param: click.Parameter, count: int) -> None:
@@ -243,9 +268,18 @@ class _Group(click.Group):
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
 
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta[_ARGV] = list(args)
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
+        except click.NoSuchOption as exc:
+            hint = quote_build_hint(ctx.meta.get(_ARGV, []), exc.option_name)
+            if hint:
+                exc.message = f"{exc.message.rstrip('.')}; {hint}"
+            raise
         except (FetchsyncError, ProtocolError) as exc:
             # ProtocolError also comes from the robot-side tree, which cannot
             # depend on fetchsync.errors: a malformed answer is one line too

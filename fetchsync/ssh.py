@@ -602,7 +602,13 @@ def _tcp_error(settings: HostSettings, exc: OSError, timeout: float) -> ConnectE
     where = f"{settings.hostname} port {settings.port}"
     if isinstance(exc, socket.gaierror):
         alias = f" (for {settings.alias})" if settings.alias != settings.hostname else ""
-        return ConnectError(f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}")
+        # fetchsync CLI hint (habits-b): robots are usually NAME.local or an ssh config Host
+        zeroconf = ("check that the robot is on this network and avahi-daemon (zeroconf) runs here"
+                    if settings.hostname.endswith(".local") else "check the name" if "." in
+                    settings.hostname else f"on its network it may be {settings.hostname}.local (zeroconf)")
+        return ConnectError(f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}",
+                            hint=f"{zeroconf}; or give it a 'Host {settings.alias}' entry with its "
+                                 "HostName in ~/.ssh/config")
     if isinstance(exc, ConnectionRefusedError):
         return ConnectError(f"connection refused by {where} ({settings.alias})")
     if isinstance(exc, TimeoutError):  # socket.timeout is TimeoutError since Python 3.10
@@ -917,12 +923,15 @@ class _Auth:
         who = f"{self.s.user}@{self.s.display}"
         copy_id = f"ssh-copy-id {self.s.user}@{self.s.alias}"
         tried = ", ".join(self.tried) or "nothing: no agent, no key files, no password prompt"
+        # a robot refuses an account it does not have just the same (fetchsync CLI hint, habits-b)
+        account = (f"; if {self.s.user} has no account there yet, fetchsync create-account "
+                   f"--robot {self.s.alias} --user {self.s.user} makes one")
         if self.wrong_passwords:
             tries = "try" if self.wrong_passwords == 1 else "tries"
             return ConnectError(
                 f"permission denied for {who}: wrong password ({self.wrong_passwords} {tries}; "
                 f"tried: {tried})",
-                hint=f"check the password, or install your public key once with {copy_id}",
+                hint=f"check the password, or install your public key once with {copy_id}{account}",
             )
         wants_password = self.allowed is not None and bool(
             self.allowed & {"password", "keyboard-interactive"}
@@ -931,11 +940,11 @@ class _Auth:
             return ConnectError(
                 f"permission denied for {who} (tried: {tried}): the robot asks for a password "
                 "and there is no terminal to ask it on",
-                hint=f"run fetchsync in a terminal, or install your public key once with {copy_id}",
+                hint=f"run fetchsync in a terminal, or install your public key once with {copy_id}{account}",
             )
         return ConnectError(
             f"permission denied for {who} (tried: {tried})",
-            hint=f"{copy_id} installs your public key on the robot",
+            hint=f"{copy_id} installs your public key on the robot{account}",
         )
 
     def _ask_methods(self) -> None:

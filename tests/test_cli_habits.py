@@ -338,3 +338,53 @@ def test_verbose_works_after_the_verb(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "-v", "--", "echo", "-v"],
                           env=env, capture_output=True, timeout=60, stdin=subprocess.DEVNULL)
     assert (proc.returncode, proc.stdout) == (0, b"-v\n"), proc.stderr
+
+
+# -- hints ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("args", "hint"), [
+    (["push", "--build", "--pkg", "my_pkg"],
+     'to pass it to the build tool, quote it with its value: --build "--pkg my_pkg"'),
+    (["pull", "--yes", "--build", "--pkg", "a", "b", "--json"],
+     'quote it with its value: --build "--pkg a b"'),
+    (["watch", "--build", "--pkg", "a$b"], "quote it with its value: --build '--pkg a$b'"),
+    (["push", "--build", "--cmake-args"], "write --build=--cmake-args"),
+])
+def test_an_unquoted_build_argument_gets_a_quoting_hint(args: list[str], hint: str) -> None:
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2
+    error = result.output.split("Error: ")[1]
+    assert error.startswith(f"No such option '{args[args.index('--build') + 1]}'; ") and hint in error
+
+
+def test_an_unknown_option_elsewhere_gets_no_build_hint() -> None:
+    result = CliRunner().invoke(cli, ["push", "--pkg", "x"])
+    assert result.exit_code == 2 and "No such option '--pkg'" in result.output
+    assert "--build" not in result.output.split("Error:")[1]
+
+
+@pytest.mark.parametrize(("robot", "hint"), [
+    ("nosuchrobot", "on its network it may be nosuchrobot.local (zeroconf)"),
+    ("nosuchrobot.local", "avahi-daemon (zeroconf)"),
+])
+def test_an_unresolvable_robot_names_zeroconf_and_the_ssh_config(tmp_path: Path, robot: str,
+                                                                   hint: str) -> None:
+    (tmp_path / ".ssh").mkdir()
+    env = clean_env(HOME=str(tmp_path), FETCHSYNC_REMOTE_WORKSPACE="~/ws")
+    proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "--robot", robot, "true"],
+                          env=env, capture_output=True, timeout=60, stdin=subprocess.DEVNULL)
+    [line] = proc.stderr.decode().splitlines()
+    assert proc.returncode == 255 and line.startswith("fetchsync: error: cannot resolve host name")
+    assert hint in line and f"'Host {robot}' entry with its HostName in ~/.ssh/config" in line
+
+
+@pytest.mark.ssh
+def test_a_refused_login_suggests_create_account_and_ssh_copy_id(ssh_home, remote_dir,
+                                                                 tmp_path: Path) -> None:
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_USER="nosuchuser")
+    proc = fetchsync("push", env=env, check=False)
+    [line] = without_where(proc.stderr.decode())
+    assert proc.returncode == 3 and "permission denied for nosuchuser@" in line
+    assert "ssh-copy-id nosuchuser@robot" in line
+    assert "fetchsync create-account --robot robot --user nosuchuser" in line
