@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from typing import Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
@@ -21,9 +22,66 @@ from fetchsync.transport import Channel, Transport
 log = logging.getLogger(__name__)
 
 DEFAULT_PYTHON = "python3"
+DEFAULT_DEADLINE = 30.0
 SEND_PIECE = 256 * 1024
 # seconds without a byte from the robot before a waiting request checks the link
 LIVENESS_INTERVAL = 5.0
+
+
+def progress_deadline() -> float:
+    """Seconds a call waits on the robot without a byte moving either way before it
+    gives up: ``$FETCHSYNC_DEADLINE``, default 30."""
+    try:
+        value = float(os.environ.get("FETCHSYNC_DEADLINE", DEFAULT_DEADLINE))
+    except ValueError:
+        return DEFAULT_DEADLINE
+    return value if value > 0 else DEFAULT_DEADLINE
+
+
+class _Watchdog:
+    """Ends a call whose robot stopped making progress, with one clear error.
+
+    An SSH keepalive proves the link and sshd alive, not the endpoint: a robot
+    endpoint stopped, or blocked in I/O, with the link up, would keep a call
+    waiting forever. While the call waits on the robot (``waiting()``: its hello
+    not yet in, or requests unanswered) and no byte moves either way
+    (``progress()``) for ``deadline`` seconds, the channel is closed: whatever is
+    blocked on it wakes up, and :attr:`fired` is the error to report.
+    """
+
+    def __init__(self, channel: Channel, name: str, deadline: float, *,
+                 progress: Callable[[], Any], waiting: Callable[[], bool]) -> None:
+        self.channel = channel
+        self.name = name
+        self.deadline = deadline
+        self.progress = progress
+        self.waiting = waiting
+        self.fired: LinkLostError | None = None
+        self.on_fire: Callable[[LinkLostError], None] | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fetchsync-deadline", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        tick = min(1.0, self.deadline / 5)
+        last = self.progress()
+        since = time.monotonic()
+        while not self._stop.wait(tick):
+            now = self.progress()
+            if now != last or not self.waiting():
+                last, since = now, time.monotonic()
+                continue
+            if time.monotonic() - since >= self.deadline:
+                self.fired = LinkLostError(
+                    f"{self.name} made no progress for {self.deadline:g} s (is its fetchsync "
+                    "endpoint stopped or blocked?); gave up")
+                if self.on_fire is not None:
+                    self.on_fire(self.fired)
+                self.channel.close()
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
 
 
 def remote_python() -> str:
@@ -33,7 +91,8 @@ def remote_python() -> str:
 
 class Connection:
     def __init__(self, transport: Transport, channel: Channel, reader: wire.Reader,
-                 hello: dict[str, Any], algorithm: str, compress: bool) -> None:
+                 hello: dict[str, Any], algorithm: str, compress: bool,
+                 watchdog: _Watchdog | None = None) -> None:
         self.transport = transport
         self.channel = channel
         self.reader = reader
@@ -49,6 +108,12 @@ class Connection:
         # deadlock with an endpoint blocked on writing its first answer
         self._arrived = threading.Condition()
         self._failure: BaseException | None = None
+        self._owed: set[int] = set()  # requests sent (or being sent) and not answered yet
+        self._watchdog = watchdog
+        if watchdog is not None:
+            watchdog.progress = lambda: (self.reader.bytes_in, self.bytes_out)
+            watchdog.waiting = lambda: bool(self._owed)
+            watchdog.on_fire = self._fail
         self._reader = threading.Thread(target=self._read_loop, name="fetchsync-reader", daemon=True)
         self._reader.start()
 
@@ -62,6 +127,7 @@ class Connection:
                     break
                 with self._arrived:
                     self._pending[frame.req_id] = frame
+                    self._owed.discard(frame.req_id)
                     self._arrived.notify_all()
         except EOFError:
             failure = LinkLostError(f"the connection to {self.transport.name} ended mid-request")
@@ -69,8 +135,13 @@ class Connection:
             failure = exc
         except Exception as exc:  # anything else from the transport ends the session, reported
             failure = LinkLostError(f"the connection to {self.transport.name} failed: {exc}")
+        self._fail(failure)
+
+    def _fail(self, failure: BaseException) -> None:
+        """Record why the session ended (the first reason wins) and wake the waiters."""
         with self._arrived:
-            self._failure = failure
+            if self._failure is None:
+                self._failure = failure
             self._arrived.notify_all()
 
     @property
@@ -98,15 +169,30 @@ class Connection:
         channel = transport.exec(command)
         reader = wire.Reader(channel.recv)
         sent = 0
+        busy_here = threading.Event()  # our own work runs: the robot owes us nothing meanwhile
+        watchdog = _Watchdog(channel, transport.name, progress_deadline(),
+                             progress=lambda: reader.bytes_in, waiting=lambda: not busy_here.is_set())
         try:
-            if meanwhile is not None:
-                meanwhile(channel.ready)
-            sent += cls._deliver(channel, reader, archive)
-            hello = reader.read_hello()
-        except EOFError as exc:
-            raise cls._startup_error(transport, channel, exc) from exc
-        except ProtocolError:
-            channel.close()
+            try:
+                if meanwhile is not None:
+                    busy_here.set()
+                    meanwhile(channel.ready)
+                    busy_here.clear()
+                sent += cls._deliver(channel, reader, archive)
+                hello = reader.read_hello()
+            except EOFError as exc:
+                if watchdog.fired is not None:
+                    raise watchdog.fired from exc
+                raise cls._startup_error(transport, channel, exc) from exc
+            except ProtocolError:
+                channel.close()
+                raise
+            except LinkLostError as exc:
+                if watchdog.fired is not None:
+                    raise watchdog.fired from exc
+                raise
+        except BaseException:
+            watchdog.stop()
             raise
         if hello.get("version") != wire.VERSION:
             channel.close()
@@ -122,7 +208,7 @@ class Connection:
         ours = {"algorithm": algorithm, "compression": "zlib" if compress else "none"}
         data = wire.encode_hello(ours)
         channel.send_all(data)
-        conn = cls(transport, channel, reader, hello, algorithm, compress)
+        conn = cls(transport, channel, reader, hello, algorithm, compress, watchdog)
         conn.bytes_out = sent + len(data)
         log.debug("endpoint up: %s", hello)
         return conn
@@ -187,17 +273,26 @@ class Connection:
             parts = wire.encode_frame_parts(frame, blob_parts, compress=self.compress)
         total = sum(len(p) for p in parts)
         done = 0
+        with self._arrived:
+            if self._failure is not None:
+                raise self._failure
+            self._owed.add(req_id)
         # in pieces, so bytes_out shows progress during a long frame on a slow
         # link (check_link's callers tell a slow link from a dead one by it)
-        for data in parts:
-            view = memoryview(data)  # pieces of it, not copies
-            for start in range(0, len(data), SEND_PIECE):
-                piece = view[start:start + SEND_PIECE]
-                self.channel.send_all(piece)
-                self.bytes_out += len(piece)
-                done += len(piece)
-                if sent is not None:
-                    sent(done, total)
+        try:
+            for data in parts:
+                view = memoryview(data)  # pieces of it, not copies
+                for start in range(0, len(data), SEND_PIECE):
+                    piece = view[start:start + SEND_PIECE]
+                    self.channel.send_all(piece)
+                    self.bytes_out += len(piece)
+                    done += len(piece)
+                    if sent is not None:
+                        sent(done, total)
+        except LinkLostError as exc:
+            if self._watchdog is not None and self._watchdog.fired is not None:
+                raise self._watchdog.fired from exc
+            raise
         return req_id
 
     def check_link(self) -> None:
@@ -256,11 +351,19 @@ class Connection:
     def close(self) -> None:
         # Not waiting for the endpoint's exit: every answer is in, the robot
         # saved its index before sending each, and the end of our input ends it.
-        try:
-            self.send({"op": "bye"})
-            self.channel.shutdown_write()
-        except Exception:  # closing a dead link is not an error worth reporting
-            pass
+        # A session that failed, or is left with requests unanswered (Ctrl-C), is
+        # closed at once: a "bye" could block behind a stalled robot, and the
+        # closed channel ends the endpoint (EOF on its input) all the same.
+        with self._arrived:
+            clean = self._failure is None and not self._owed
+        if clean:
+            try:
+                self.send({"op": "bye"})
+                self.channel.shutdown_write()
+            except Exception:  # closing a dead link is not an error worth reporting
+                pass
+        if self._watchdog is not None:
+            self._watchdog.stop()
         self.channel.close()
 
     def __enter__(self) -> Connection:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import select
 import shlex
+import signal
 import subprocess
 import threading
 from pathlib import Path
@@ -77,6 +78,7 @@ class _ProcessChannel:
     def __init__(self, proc: subprocess.Popen[bytes]) -> None:
         self._proc = proc
         self._lock = threading.Lock()
+        self._eof_sent = False
 
     def send_all(self, data: bytes | memoryview) -> None:
         assert self._proc.stdin is not None
@@ -110,10 +112,11 @@ class _ProcessChannel:
             return b""
 
     def shutdown_write(self) -> None:
+        self._eof_sent = True
         if self._proc.stdin is not None and not self._proc.stdin.closed:
             try:
                 self._proc.stdin.close()
-            except OSError:
+            except (OSError, ValueError):
                 pass
 
     def exit_status(self, timeout: float | None = None) -> int | None:
@@ -123,17 +126,28 @@ class _ProcessChannel:
             return None
 
     def close(self) -> None:
-        self.shutdown_write()
         if self._proc.poll() is None:
+            if not self._eof_sent:
+                # an abandoned session (a stalled endpoint, Ctrl-C): end the endpoint's
+                # whole group at once, even stopped; closing a pipe first would wait on
+                # the thread blocked writing it (see connection._Watchdog)
+                try:
+                    os.killpg(self._proc.pid, signal.SIGKILL)
+                except OSError:
+                    pass
             self._proc.terminate()
             try:
                 self._proc.wait(2)
             except subprocess.TimeoutExpired:
                 self._proc.kill()
                 self._proc.wait()
+        self.shutdown_write()
         for stream in (self._proc.stdout, self._proc.stderr):
             if stream is not None:
-                stream.close()
+                try:
+                    stream.close()
+                except (OSError, ValueError):
+                    pass
 
 
 class LocalTransport:

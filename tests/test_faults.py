@@ -338,3 +338,93 @@ def test_a_push_does_not_wait_on_a_watch_agent_whose_robot_is_offline(env, fault
         watch.communicate(timeout=20)
         import shutil
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def marked(mark: str) -> list[int]:
+    """The robot-side processes of a call started with ``-X fsmark=MARK`` (the robot is here)."""
+    out = subprocess.run(["pgrep", "-f", f"fsmark={mark}"], check=False, capture_output=True)
+    return [int(p) for p in out.stdout.split() if int(p) != os.getpid()]
+
+
+def signal_all(pids: list[int], sig: int) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.fixture
+def marked_env(env, tmp_path):
+    """``env`` whose robot endpoint is recognisable (``-X fsmark=...``), with a 3 s deadline."""
+    import uuid
+
+    mark = uuid.uuid4().hex[:12]
+    yield dict(env, FETCHSYNC_DEADLINE="3", FETCHSYNC_REMOTE_PYTHON=f"python3 -X fsmark={mark}"), mark
+    signal_all(marked(mark), signal.SIGCONT)
+    signal_all(marked(mark), signal.SIGKILL)
+
+
+@pytest.mark.parametrize("via", ["direct", "master", "local"])
+def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(via, marked_env, fault_proxy,
+                                                                     remote_dir, tmp_path):
+    """Issue 22 item 17: the robot's endpoint stops (SIGSTOP) mid-push with the link up; the
+    call ends after the progress deadline with one line and exit 3, and once the endpoint
+    runs again it ends: nothing is left running on the robot."""
+    import tempfile
+
+    env, mark = marked_env
+    runtime = Path(tempfile.mkdtemp(prefix="fsrun", dir="/tmp"))
+    if via == "master":
+        env = dict(env, FETCHSYNC_PERSIST="60", XDG_RUNTIME_DIR=str(runtime))
+    elif via == "local":
+        env = dict(env, FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "lr"),
+                   FETCHSYNC_REMOTE_WORKSPACE="~/ws")
+    try:
+        fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))
+        if via == "master":
+            wait_for(lambda: list((runtime / "fetchsync").glob("mux-*.sock")), 20, "a master")
+        bulky_files(local_src(env), count=60)
+        fault_proxy.throttle(bytes_per_second=300_000)
+        proc = start(["push"], env)
+        wait_for(lambda: marked(mark), 30, "the robot's endpoint")
+        if via != "local":  # no link to throttle: stopped as it starts
+            time.sleep(0.5)
+        stopped = marked(mark)
+        signal_all(stopped, signal.SIGSTOP)
+        line = assert_one_line_failure(finish(proc))
+        assert proc.returncode == 3 and "made no progress for 3 s" in line, line
+        signal_all(stopped, signal.SIGCONT)
+        wait_for(lambda: not marked(mark), 20, "the robot's endpoint to end")
+        fault_proxy.pass_through()
+        fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))  # the next call converges
+        robot = tmp_path / "lr/ws/src" if via == "local" else remote_dir / "src"
+        assert tree_of(local_src(env)) == tree_of(robot)
+    finally:
+        subprocess.run(["pkill", "-f", f"fetchsync.agent.mux.*{runtime}"], check=False)
+        import shutil
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_an_endpoint_that_never_says_hello_ends_the_call(marked_env):
+    """The robot's command never starts the endpoint (here: it waits on its input first)."""
+    env, mark = marked_env
+    env = dict(env, FETCHSYNC_REMOTE_PYTHON=f"read x; : fsmark={mark}; python3")
+    line = assert_one_line_failure(finish(start(["push"], env)))
+    assert "made no progress for 3 s" in line
+    wait_for(lambda: not marked(mark), 20, "the robot's command to end")
+
+
+def test_the_first_ctrl_c_ends_a_push_and_leaves_no_endpoint_running(marked_env, fault_proxy):
+    env, mark = marked_env
+    env = dict(env, FETCHSYNC_DEADLINE="600")
+    fetchsync("push", env=env)
+    bulky_files(local_src(env), count=60)
+    fault_proxy.throttle(bytes_per_second=100_000)
+    proc = start(["push"], env)
+    wait_for(lambda: marked(mark), 30, "the robot's endpoint")
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    code, err = finish(proc, timeout=15)
+    assert code == 130 and "interrupted" in err.decode() and "Traceback" not in err.decode(), err
+    wait_for(lambda: not marked(mark), 20, "the robot's endpoint to end")

@@ -211,6 +211,10 @@ class MuxChannel:
         return self._status
 
     def close(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)  # wakes a thread blocked reading it
+        except OSError:
+            pass
         self.sock.close()
 
 
@@ -396,7 +400,8 @@ class Master:
             conn.close()
             self._done()
             return
-        threading.Thread(target=self._upstream, args=(f, channel), daemon=True).start()
+        ended = threading.Event()  # set before conn closes: its fd number may be reused then
+        threading.Thread(target=self._upstream, args=(conn, f, channel, ended), daemon=True).start()
         send_lock = threading.Lock()
 
         def send(kind: int, data: bytes) -> None:
@@ -430,19 +435,29 @@ class Master:
             except OSError:
                 pass
         finally:
+            ended.set()
             channel.close()
             conn.close()
             self._done()
 
     @staticmethod
-    def _upstream(f: Any, channel: Any) -> None:
+    def _upstream(conn: socket.socket, f: Any, channel: Any, ended: threading.Event) -> None:
+        """The caller's bytes to the robot; the end of them is the command's EOF. A caller
+        that hangs up entirely (it gave up, or Ctrl-C) closes the command's channel, so
+        the robot's endpoint ends even when it has nothing to say (stopped, or stalled)."""
         try:
             while True:
                 data = f.read1(1 << 16)
                 if not data:
                     channel.shutdown_write()
-                    return
+                    break
                 channel.send_all(data)
+            watch = select.poll()
+            watch.register(conn.fileno(), 0)  # POLLHUP and POLLERR are always reported
+            while not ended.is_set():
+                if watch.poll(500) and not ended.is_set():
+                    channel.close()
+                    return
         except Exception:
             try:
                 channel.close()
