@@ -788,7 +788,7 @@ class _HostKeyCheck:
                 f"{_key_label(old.key)} key; refusing to connect",
                 hint=(
                     "if the robot was reinstalled, remove the old key with "
-                    f"ssh-keygen -R {shlex.quote(self.name)} -f {shlex.quote(_tilde(old.file))}"
+                    f"ssh-keygen -R {shlex.quote(self.name)} -f {shell_path(old.file)}"
                     " and check the new fingerprint"
                 ),
             )
@@ -798,7 +798,9 @@ class _HostKeyCheck:
             return
         s = self.settings
         port = f"-p {s.port} " if s.port != SSH_PORT else ""
-        how = f"ssh {port}{s.user}@{s.alias} once to accept it, or re-run with --accept-host-key {fingerprint}"
+        login = shlex.quote(f"{s.user}@{s.alias}")
+        how = (f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
+               f"{shlex.quote(fingerprint)}")
         if wanted:
             raise HostKeyError(
                 f"the host key of {s.display} is {offered}, not the {wanted} given to accept; "
@@ -921,7 +923,7 @@ class _Auth:
 
     def _denied(self) -> ConnectError:
         who = f"{self.s.user}@{self.s.display}"
-        copy_id = f"ssh-copy-id {self.s.user}@{self.s.alias}"
+        copy_id = f"ssh-copy-id {shlex.quote(f'{self.s.user}@{self.s.alias}')}"
         tried = ", ".join(self.tried) or "nothing: no agent, no key files, no password prompt"
         # a robot refuses an account it does not have just the same (fetchsync CLI hint, habits-b)
         account = (f"; if {self.s.user} has no account there yet, fetchsync create-account "
@@ -1148,6 +1150,17 @@ def _tilde(path: str) -> str:
     if home not in ("", "/") and (path == home or path.startswith(home + os.sep)):
         return "~" + path[len(home) :]
     return path
+
+
+def shell_path(path: str) -> str:
+    """``path`` as a user can paste it into a shell: ``~/`` kept unquoted (so the shell
+    expands it) and the rest quoted with shlex, so no character of it is run."""
+    short = _tilde(path)
+    if short == "~":
+        return short
+    if short.startswith("~/"):
+        return "~/" + shlex.quote(short[2:])
+    return shlex.quote(path)
 
 
 def _ends_with_newline(path: Path) -> bool:
