@@ -512,6 +512,7 @@ def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accoun
     proc = _create_as_user(ssh_home, env=env)
     report = _report(proc)
     assert (report["workspace"], report["workspace_record"]) == ("~/noetic", "updated")
+    assert proc.stderr.splitlines()[0] == f"create-account {name}@robot:~/noetic"
     assert report["workspace_was"] == f"{home}/catkin_ws"
     assert saved() == {"ROS_DISTRO": "noetic", "FETCH_WORKSPACE": f"{home}/noetic"}
     # ... and the account's shells see it

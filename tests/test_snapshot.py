@@ -483,6 +483,8 @@ def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
     manifest, files = _read_zip(archive)
     entries = by_name(manifest)
     assert manifest["user"] == name and manifest["ros"]["version"] == 1
+    # where the answer comes from and goes, first, on stderr
+    assert result.stderr.splitlines()[0] == f"snapshot {name}@robot \u2192 {tmp_path}"
     assert manifest["sudo"] == "password" and entries["dmesg"]["sudo"] is True
     # the five board queries, through the robot's read_board
     for entry, address in (("charger", "0x3f"), ("mainboard", "0x00"), ("wheel_left", "0x11"),

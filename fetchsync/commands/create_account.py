@@ -103,6 +103,16 @@ def _account_workspace(robot: str | None, user: str, workspace: str | None,
     return None
 
 
+def _say_where(robot: str, user: str, workspace: str | None) -> None:
+    """``create-account alice@freight0:~/noetic`` on stderr: the account and its workspace."""
+    from fetchsync.commands.common import say_where
+    from fetchsync.config import Target
+
+    place = Target(robot=robot, host=robot, user=user, workspace=Path.home(),
+                   remote_workspace=workspace or "", is_local=False)
+    say_where("create-account", place, remote=workspace)
+
+
 def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
     if report.created:
         click.echo(f"create-account: created {report.user} on {report.robot} (home {report.home})")
@@ -218,6 +228,7 @@ def command(robot: str | None, user: str | None, fullname: str | None, admin_use
     if distro:
         env["ROS_DISTRO"] = distro
     account_ws = _account_workspace(robot, name, workspace, remote_workspace)
+    _say_where(target, name, account_ws)
     if account_ws:
         env["FETCH_WORKSPACE"] = account_ws
 

@@ -118,6 +118,8 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     from fetchsync.snapshot import take_snapshot
 
     target, overlay = _target(robot, user, workspace, remote_workspace)
+    from fetchsync.commands.common import say_where
+    say_where("snapshot", target, local=Path(output).resolve(), remote=overlay, direction="from")
     progress = _Progress(total=len(collectors) + bool(bag_topics), enabled=not as_json)
     transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
     try:
