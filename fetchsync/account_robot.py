@@ -267,6 +267,9 @@ def record_workspace(entry: pwd.struct_passwd, request: Dict[str, Any]) -> Dict[
     distro = (request.get("env") or {}).get("ROS_DISTRO") or ""
     legacy = request.get("ros_snippet") == "fetch_tools"
     path = FETCH_TOOLS_FILE if legacy else WORKSPACE_FILE
+    if os.path.islink(path) or (os.path.lexists(path) and not os.path.isfile(path)):
+        # A link or a FIFO is the user's doing (and a FIFO would block the read).
+        return {"workspace_record": "yours", "workspace_file": path}
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             old: Optional[str] = f.read()
@@ -337,6 +340,8 @@ def _fetch_tools_workspace(text: str) -> str:
 def read_exports(path: str) -> Dict[str, str]:
     """``export NAME=VALUE`` lines of a shell file, unquoted; {} when unreadable."""
     out: Dict[str, str] = {}
+    if not os.path.isfile(path):
+        return out
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
             lines = f.read().splitlines()

@@ -232,7 +232,8 @@ FETCH_COLLECTORS: tuple[Collector, ...] = (
     _c("ifconfig", "ifconfig -a"),
     _c("iwconfig", "iwconfig"),
     _file("network_interfaces", "/etc/network/interfaces"),
-    _c("netplan_full", "cat /etc/netplan/*.yaml", needs="ls /etc/netplan/*.yaml",
+    # root's only (mode 600) since Ubuntu 22.04: through sudo when there is a password
+    _c("netplan_full", "cat /etc/netplan/*.yaml", sudo=True, needs="ls /etc/netplan/*.yaml",
        absent="/etc/netplan/*.yaml"),
     _c("hosts", "cat /etc/hosts"),
     _c("env", "env"),

@@ -653,3 +653,29 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
     shell = subprocess.run(["su", "-", name, "-c", "bash -ic 'echo \"$LEGACY_MARK\"' 2>/dev/null"],
                            capture_output=True, text=True, timeout=30, check=False)
     assert shell.stdout.strip().splitlines()[-1] == "sourced-by-40-ros-setup"
+
+
+def test_a_workspace_file_that_is_a_link_or_fifo_is_left_to_the_user(tmp_path, monkeypatch) -> None:
+    from fetchsync import account_robot
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / ".bashrc.d").mkdir()
+    entry = pwd.getpwuid(os.getuid())
+    request = {"workspace": "~/noetic", "env": {"ROS_DISTRO": "noetic"}}
+    os.mkfifo(tmp_path / ".bashrc.d" / "30-workspace.sh")  # a read would block forever
+    import signal
+    signal.alarm(20)  # so that a regression fails instead of hanging the suite
+    try:
+        assert account_robot.record_workspace(entry, request)["workspace_record"] == "yours"
+    finally:
+        signal.alarm(0)
+    (tmp_path / ".bashrc.d" / "30-workspace.sh").unlink()
+    (tmp_path / "elsewhere").write_text("# Written by fetchsync create-account\n")
+    (tmp_path / ".bashrc.d" / "30-workspace.sh").symlink_to(tmp_path / "elsewhere")
+    assert account_robot.record_workspace(entry, request)["workspace_record"] == "yours"
+    assert (tmp_path / "elsewhere").read_text() == "# Written by fetchsync create-account\n"
+    (tmp_path / ".bashrc.d" / "30-workspace.sh").unlink()
+    result = account_robot.record_workspace(entry, request)
+    assert (result["workspace_record"], result["workspace"]) == ("written", "~/noetic")
+    assert account_robot.read_exports(".bashrc.d/30-workspace.sh") == {
+        "ROS_DISTRO": "noetic", "FETCH_WORKSPACE": f"{entry.pw_dir}/noetic"}
