@@ -388,3 +388,12 @@ def test_a_refused_login_suggests_create_account_and_ssh_copy_id(ssh_home, remot
     assert proc.returncode == 3 and "permission denied for nosuchuser@" in line
     assert "ssh-copy-id nosuchuser@robot" in line
     assert "fetchsync create-account --robot robot --user nosuchuser" in line
+
+
+@pytest.mark.ssh
+def test_a_snapshot_says_whom_it_asks(ssh_home, remote_dir, tmp_path: Path) -> None:
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path)
+    env.update(USER="not-the-ssh-configs-user")
+    proc = fetchsync("snapshot", "--only", "date", "--no-sudo", "--output", str(tmp_path), env=env)
+    assert proc.stderr.decode().splitlines()[0] == (
+        f"snapshot {ssh_home.sshd.user}@robot:{remote_dir} {ARROW} {tmp_path}")
