@@ -315,7 +315,7 @@ def workspace_with_source(
     source, value = _first(given, "--workspace", environ, WORKSPACE_VARS)
     if value is None:
         here = cwd if cwd is not None else current_directory(environ)
-        around = workspace_around(here) if here is not None else None
+        around = workspace_around(here, home=_home(environ)) if here is not None else None
         if around is not None:
             return around, "the current directory, inside that workspace"
         distro = _get(environ, "ROS_DISTRO")
@@ -337,16 +337,22 @@ marks (``src/CMakeLists.txt`` is catkin_init_workspace's link), the result space
 catkin (``devel/``) and colcon (``build/``, ``install/``), and colcon's log directory."""
 
 
-def workspace_around(directory: str | os.PathLike[str]) -> Path | None:
+def workspace_around(directory: str | os.PathLike[str], *,
+                     home: str | os.PathLike[str] | None = None) -> Path | None:
     """The nearest directory at or above ``directory`` that is a workspace, or None.
 
     A directory holding a ``package.xml`` is a package (which may have ``src/``
-    and ``build/`` of its own), never a workspace; ``/`` is never one either.
+    and ``build/`` of its own), never a workspace; nor are ``/`` and ``home``
+    (a home with ``~/src`` and ``~/build`` is common, and could never be pushed:
+    the robot's workspace would be its whole home).
     """
     path = Path(os.path.abspath(directory))
+    skip = {Path(os.path.abspath(home))} if home is not None else set()
     for candidate in (path, *path.parents):
         if candidate.parent == candidate:
             break
+        if candidate in skip:
+            continue
         if (candidate / "src").is_dir() and not os.path.lexists(candidate / "package.xml") \
                 and any(os.path.lexists(candidate / mark) for mark in WORKSPACE_MARKERS):
             return candidate

@@ -397,3 +397,12 @@ def test_a_snapshot_says_whom_it_asks(ssh_home, remote_dir, tmp_path: Path) -> N
     proc = fetchsync("snapshot", "--only", "date", "--no-sudo", "--output", str(tmp_path), env=env)
     assert proc.stderr.decode().splitlines()[0] == (
         f"snapshot {ssh_home.sshd.user}@robot:{remote_dir} {ARROW} {tmp_path}")
+
+
+def test_home_is_never_the_workspace_around(tmp_path: Path) -> None:
+    home = catkin_ws(tmp_path / "home", "build")  # ~/src and ~/build: any developer's home
+    (home / "src" / "my_pkg" / "package.xml").unlink()
+    e = {"HOME": str(home), "ROS_DISTRO": "noetic"}
+    assert resolve_workspace(None, environ=e, cwd=str(home / "src" / "my_pkg")) == home / "noetic"
+    ws = catkin_ws(home / "noetic", "devel")
+    assert resolve_workspace(None, environ=e, cwd=str(ws / "src")) == ws
