@@ -142,13 +142,15 @@ def _connection_kind(conn: Any) -> str:
 
 
 def _print_report(report: Any, as_json: bool) -> None:
+    from fetchsync.console import printable as p_
+
     if as_json:
         click.echo(json.dumps(report.to_json(), indent=None, sort_keys=True))
         return
     verb = "would change" if report.dry_run else ("pushed" if report.verb == "push" else "pulled")
     if report.dry_run:
         for p in report.planned:
-            click.echo(f"  {p['op']:<7} {p['path']}" + (f"  ({p['how']})" if p.get("how") else ""))
+            click.echo(f"  {p['op']:<7} {p_(p['path'])}" + (f"  ({p_(p['how'])})" if p.get("how") else ""))
     parts = [f"{report.files} files", f"{report.dirs} dirs"]
     if report.links:
         parts.append(f"{report.links} links")
@@ -163,15 +165,15 @@ def _print_report(report: Any, as_json: bool) -> None:
     click.echo(line)
     for c in report.conflicts:
         if c.get("refused"):
-            click.echo(f"  conflict: {c['path']} changed on the robot; left as it is", err=True)
+            click.echo(f"  conflict: {p_(c['path'])} changed on the robot; left as it is", err=True)
         else:
             side = "on the robot" if report.verb == "push" else "locally"
-            click.echo(f"  conflict: {c['path']} was changed {side} since the last sync; "
-                       f"that version is kept in {c['kept']}", err=True)
+            click.echo(f"  conflict: {p_(c['path'])} was changed {side} since the last sync; "
+                       f"that version is kept in {p_(c['kept'])}", err=True)
     for s in report.skipped:
-        click.echo(f"  skipped: {s['path']}: {s['reason']}", err=True)
+        click.echo(f"  skipped: {p_(s['path'])}: {p_(s['reason'])}", err=True)
     for e in report.errors:
-        click.echo(f"  error: {e['path']}: {e['error']}", err=True)
+        click.echo(f"  error: {p_(e['path'])}: {p_(e['error'])}", err=True)
 
 
 # another name for a command, kept for fetch_tools' users: named on its command's
@@ -283,7 +285,9 @@ class _Group(click.Group):
         except (FetchsyncError, ProtocolError) as exc:
             # ProtocolError also comes from the robot-side tree, which cannot
             # depend on fetchsync.errors: a malformed answer is one line too
-            click.echo(f"fetchsync: error: {exc}", err=True)
+            from fetchsync.console import printable
+
+            click.echo(f"fetchsync: error: {printable(exc)}", err=True)
             sys.exit(exc.exit_code)
         except KeyboardInterrupt:
             click.echo("fetchsync: interrupted", err=True)

@@ -21,6 +21,7 @@ import contextlib
 import errno
 import logging
 import os
+import re
 import select
 import shutil
 import signal
@@ -32,6 +33,27 @@ from fetchsync.errors import LinkLostError
 from fetchsync.transport import Channel
 
 log = logging.getLogger(__name__)
+
+# C0 and C1 controls, DEL, the bidirectional overrides and isolates (they reorder
+# what a line shows), and undecodable bytes (surrogate escapes of os.fsdecode)
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069"
+                          "\udc80-\udcff]")
+
+
+def _escape(match: re.Match[str]) -> str:
+    code = ord(match.group())
+    if 0xDC80 <= code <= 0xDCFF:
+        return f"\\x{code - 0xDC00:02x}"  # the byte that did not decode
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def printable(text: object) -> str:
+    """``text`` safe to print on a terminal: every control character, escape sequence
+    introducer, bidirectional override and undecodable byte shown as ``\\xNN`` /
+    ``\\uNNNN``. For anything a robot (or any file name) controls: a name holding
+    ``ESC ]52;...`` would otherwise write the clipboard, retitle or clear the terminal."""
+    return _UNPRINTABLE.sub(_escape, str(text))
+
 
 NO_STATUS = -1
 """What :func:`attach` returns when the command ended without an exit status."""

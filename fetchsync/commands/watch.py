@@ -115,7 +115,9 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
         raise SyncError(f"{src} does not exist; nothing to watch", hint="check --workspace")
 
     def say(line: str) -> None:
-        click.echo(f"{_stamp()} {line}",
+        from fetchsync.console import printable
+
+        click.echo(f"{_stamp()} {printable(line)}",
                    err=line.startswith(("error", "conflict", "offline", "build: error")))
 
     build_options = ({"tool": build_tool, "build_type": build_type, "args": build_args}
@@ -182,7 +184,9 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
             line += f", last {last['result']} ({pk})"
     click.echo(line)
     if st.get("last_error"):
-        click.echo(f"last error: {st['last_error']}")
+        from fetchsync.console import printable
+
+        click.echo(f"last error: {printable(st['last_error'])}")
 
 
 @click.command()

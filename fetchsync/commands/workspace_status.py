@@ -40,10 +40,12 @@ def command(robot: str | None, user: str | None, workspace: str | None,
                   remote=target.remote_workspace + "/src", direction="both")
     status = workspace_status(ws / "src", target=target, excludes=excludes,
                               accept_fingerprint=accept_host_key, timeout=timeout)
+    from fetchsync.console import printable
+
     for note in status.notes:
-        click.echo(f"fetchsync: {note}", err=True)
+        click.echo(f"fetchsync: {printable(note)}", err=True)
     if as_json:
         click.echo(json.dumps(status.to_json(), sort_keys=True))
     else:
         for line in status.lines():
-            click.echo(line)
+            click.echo(printable(line))
