@@ -419,12 +419,16 @@ def test_the_first_ctrl_c_ends_a_push_and_leaves_no_endpoint_running(marked_env,
     env, mark = marked_env
     env = dict(env, FETCHSYNC_DEADLINE="600")
     fetchsync("push", env=env)
-    bulky_files(local_src(env), count=60)
-    fault_proxy.throttle(bytes_per_second=100_000)
+    bulky_files(local_src(env), count=100)  # more than the SSH window and the pipes hold
+    fault_proxy.throttle(bytes_per_second=1_000_000)
     proc = start(["push"], env)
     wait_for(lambda: marked(mark), 30, "the robot's endpoint")
-    time.sleep(1.0)
+    time.sleep(0.5)
+    stopped = marked(mark)
+    signal_all(stopped, signal.SIGSTOP)  # the robot stalls: blocked in I/O, or stopped
+    time.sleep(4.0)  # the push fills the SSH window and blocks sending
     proc.send_signal(signal.SIGINT)
     code, err = finish(proc, timeout=15)
     assert code == 130 and "interrupted" in err.decode() and "Traceback" not in err.decode(), err
+    signal_all(stopped, signal.SIGCONT)
     wait_for(lambda: not marked(mark), 20, "the robot's endpoint to end")
