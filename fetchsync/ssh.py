@@ -927,7 +927,7 @@ class _Auth:
         tried = ", ".join(self.tried) or "nothing: no agent, no key files, no password prompt"
         # a robot refuses an account it does not have just the same (fetchsync CLI hint, habits-b)
         account = (f"; if {self.s.user} has no account there yet, fetchsync create-account "
-                   f"--robot {self.s.alias} --user {self.s.user} makes one")
+                   f"--robot {shlex.quote(self.s.alias)} --user {shlex.quote(self.s.user)} makes one")
         if self.wrong_passwords:
             tries = "try" if self.wrong_passwords == 1 else "tries"
             return ConnectError(

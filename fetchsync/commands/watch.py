@@ -192,14 +192,15 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
 @click.command()
 @target_options
 @click.argument("paths", nargs=-1, type=click.Path())
-@click.option("--timeout", default=30.0, show_default=True, help="Seconds to wait.")
+@click.option("--timeout", default=30.0, show_default=True, metavar="SECONDS",
+              help="How long to wait for the agent.")
 def flush(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
           accept_host_key: str | None, paths: tuple[str, ...], timeout: float) -> None:
     """Return once the files saved before this call are on the robot.
 
     The save hook for editors: give the saved file(s) and it returns as soon
     as they are there (non-zero if they cannot be). With no agent running it
-    does a one-shot push instead.
+    does a one-shot push instead (for which --accept-host-key is).
     """
     from fetchsync.agent.control import call
 
