@@ -39,7 +39,7 @@ def test_several_distributions_pick_the_one_the_workspace_was_built_on(tmp_path)
     (ws / "install").mkdir(parents=True)
     (ws / "install/setup.bash").write_text(
         f'COLCON_CURRENT_PREFIX="{ros}/jazzy"\n_colcon_prefix_chain_bash_source_script\n')
-    assert sourced(ws, ros, spaces=()).stdout == f"/opt/ros/jazzy|0"
+    assert sourced(ws, ros, spaces=()).stdout == "/opt/ros/jazzy|0"
     # catkin's devel/_setup_util.py holds the CMAKE_PREFIX_PATH it was built with
     (ws / "install/setup.bash").unlink()
     (ws / "devel").mkdir()

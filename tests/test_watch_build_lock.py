@@ -8,11 +8,12 @@ import hashlib
 import os
 import secrets
 import shutil
+import signal
 import stat
 import subprocess
 import time
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
 
 import pytest
 
@@ -32,7 +33,6 @@ def other_user() -> Iterator[str]:
     try:
         yield name
     finally:
-        subprocess.run(["pkill", "-KILL", "-u", name], check=False, capture_output=True)
         subprocess.run(["userdel", "-r", "-f", name], check=False, capture_output=True)
 
 
@@ -46,7 +46,7 @@ def build(env: dict[str, str], timeout: float = 20) -> subprocess.CompletedProce
 def squat(user: str, path: Path) -> subprocess.Popen:
     """``user`` creates ``path`` for everyone to open and holds its lock until killed."""
     proc = subprocess.Popen(["runuser", "-u", user, "--", "sh", "-c",
-                             f"umask 000; exec flock {path} sleep 300"])
+                             f"umask 000; exec flock {path} sleep 300"], start_new_session=True)
     end = time.monotonic() + 10
     while not path.exists() and time.monotonic() < end:
         time.sleep(0.02)
@@ -78,7 +78,7 @@ def test_another_robot_user_cannot_block_builds(tmp_path, other_user):
         assert out.stdout == "built\n" and out.stderr == ""
         assert stat.S_IMODE((home / ".cache/fetchsync").stat().st_mode) == 0o700
     finally:
-        squatter.kill()
+        os.killpg(squatter.pid, signal.SIGKILL)  # runuser and the flock under it
         squatter.wait()
         old.unlink(missing_ok=True)
 
