@@ -19,26 +19,24 @@ def test_good_paths_pass(good):
     assert paths.validate(good) == good
 
 
-def test_resolver_refuses_writing_through_a_symlinked_parent(tmp_path):
+def test_root_refuses_walking_through_a_symlinked_directory(tmp_path):
     root = tmp_path / "root"
-    (root / "real").mkdir(parents=True)
+    (root / "real" / "sub").mkdir(parents=True)
     (root / "link").symlink_to(tmp_path)
-    r = paths.Resolver(str(root))
-    r.check_parents("real/file")
-    with pytest.raises(PathError):
-        r.check_parents("link/file")
-    with pytest.raises(PathError):
-        r.check_parents("missing/file")
-
-
-def test_resolver_full_validates_every_path_it_has_not_seen_and_stays_bounded(tmp_path):
-    from fetchsync.protocol import paths as paths_mod
-    r = paths_mod.Resolver(str(tmp_path))
-    for i in range(paths_mod.FULL_CACHE + 10):
-        assert r.full(f"d/f{i}") == os.path.join(str(tmp_path), f"d/f{i}")
-    assert len(r._full) <= paths_mod.FULL_CACHE
-    for bad in ("../x", "a//b", "/abs", "a/./b", "", None, 3):
-        with pytest.raises(PathError):
-            r.full(bad)  # type: ignore[arg-type]
-        with pytest.raises(PathError):
-            r.check_parents(bad)  # type: ignore[arg-type]
+    (root / "real" / "file").write_text("x")
+    r = paths.Root(os.open(root, os.O_RDONLY | os.O_DIRECTORY), str(root))
+    try:
+        with r.parent("real/sub/f") as (fd, name):
+            assert name == "f" and os.path.samestat(os.fstat(fd), os.stat(root / "real" / "sub"))
+        with r.parent("top") as (fd, name):
+            assert fd == r.fd and name == "top"
+        for bad in ("link/file", "link/sub/file", "missing/file", "real/file/x"):
+            with pytest.raises(PathError):
+                with r.parent(bad):
+                    pass
+        for bad in ("../x", "a//b", "/abs", "a/./b", "", None, 3):
+            with pytest.raises(PathError):
+                with r.parent(bad):  # type: ignore[arg-type]
+                    pass
+    finally:
+        os.close(r.fd)

@@ -7,15 +7,16 @@ travel as ``os.fsdecode`` strings (surrogate escapes), which JSON carries.
 
 from __future__ import annotations
 
+import errno
 import os
-import stat as stat_mod
+from contextlib import contextmanager
+from typing import Iterator, Optional, Tuple
 
 from fetchsync.protocol.errors import PathError
 
 MAX_PATH = 4096
 MAX_NAME = 255
 _NOT_NAMES = frozenset(("", ".", ".."))
-FULL_CACHE = 4096
 
 
 def validate(path: str) -> str:
@@ -53,56 +54,88 @@ def is_within(path: str, top: str) -> bool:
     return path == top or path.startswith(top + "/")
 
 
-class Resolver:
-    """Maps wire paths to filesystem paths under ``root`` without following symlinks.
+# a directory of the tree, opened without following a symlink in its last component
+O_DIR = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+# a file of the tree, read: not through a symlink, and a FIFO planted there does not block
+O_FILE = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
+# the errors of opening a symlink (ELOOP) or a file (ENOTDIR) as a directory under O_NOFOLLOW
+NOT_A_DIR = (errno.ELOOP, errno.ENOTDIR, errno.EMLINK)
 
-    A write must never go through a symlink out of the root: every ancestor
-    directory of a target is checked with ``lstat`` to be a real directory
-    (cached per instance, so a batch pays once per directory).
-    """
 
-    def __init__(self, root: str) -> None:
-        self.root = root
-        self._dirs_ok = {"": True}  # type: dict[str, bool]
-        # the paths validated lately, with their full paths: an operation asks for
-        # its path's three or four times (check, write, rename, record)
-        self._full = {}  # type: dict[str, str]
+def open_dir(name: str, dir_fd: int) -> int:
+    """A descriptor of the directory ``name`` (one component) in ``dir_fd``; an OSError if it
+    is absent, or a symlink or anything else (ELOOP, ENOTDIR)."""
+    return os.open(name, O_DIR, dir_fd=dir_fd)
 
-    def full(self, path: str) -> str:
-        try:
-            return self._full[path]
-        except (KeyError, TypeError):  # TypeError: not a string, which validate() says
-            pass
-        if len(self._full) >= FULL_CACHE:
-            self._full.clear()
-        out = self._full[path] = os.path.join(self.root, validate(path))
-        return out
 
-    def check_parents(self, path: str) -> None:
-        """Raise PathError unless every ancestor of ``path`` is a real directory."""
-        self.full(path)  # valid
-        i = path.rfind("/")
-        if i < 0 or self._dirs_ok.get(path[:i]):
-            # a directory is known good only once its ancestors were, and forget()
-            # drops what lies below a directory with it: the parent vouches for them
-            return
-        for anc in ancestors(path):
-            if self._dirs_ok.get(anc):
-                continue
+def mkdir_open(name: str, dir_fd: int, mode: int = 0o700) -> int:
+    """:func:`open_dir`, the directory made first where it is missing."""
+    try:
+        return os.open(name, O_DIR, dir_fd=dir_fd)
+    except FileNotFoundError:
+        pass
+    try:
+        os.mkdir(name, mode, dir_fd=dir_fd)
+    except FileExistsError:
+        pass
+    return os.open(name, O_DIR, dir_fd=dir_fd)
+
+
+class Root:
+    """A tree held by the descriptor of its top directory: the only way the endpoint
+    reaches a path in it.
+
+    Each operation walks its wire path's directories one component at a time from
+    that descriptor, each opened with ``O_NOFOLLOW | O_DIRECTORY``, and acts on the
+    last component through the ``dir_fd`` forms of the system calls: a directory
+    swapped for a symlink at any moment makes the walk fail, and cannot redirect
+    the operation out of the tree. Nothing found on one walk is trusted on the next
+    (mutagen's ``pkg/filesystem`` does the same)."""
+
+    def __init__(self, fd: int, shown: str) -> None:
+        self.fd = fd
+        self.shown = shown  # for messages only
+
+    def open_dir(self, path: str) -> int:
+        """A new descriptor of the directory at wire path ``path`` (``""``: the top)."""
+        if not path:
+            return os.dup(self.fd)
+        fd = self.fd
+        parts = validate(path).split("/")
+        for k, part in enumerate(parts):
             try:
-                st = os.lstat(os.path.join(self.root, anc))
-            except FileNotFoundError:
-                raise PathError("parent directory missing: %r" % anc)
-            if not stat_mod.S_ISDIR(st.st_mode):
-                raise PathError("parent is not a directory (a symlink?): %r" % anc)
-            self._dirs_ok[anc] = True
+                sub = os.open(part, O_DIR, dir_fd=fd)
+            except OSError as exc:
+                where = "/".join(parts[:k + 1])
+                if fd != self.fd:
+                    os.close(fd)
+                if exc.errno == errno.ENOENT:
+                    raise PathError("directory missing: %r" % where) from None
+                if exc.errno in NOT_A_DIR:
+                    raise PathError("not a directory (a symlink?): %r" % where) from None
+                raise
+            if fd != self.fd:
+                os.close(fd)
+            fd = sub
+        return fd
 
-    def known_dir(self, path: str) -> None:
-        """Record ``path`` as a real directory (one just made and checked), whose
-        ancestors ``check_parents`` found real before it was made."""
-        self._dirs_ok[path] = True
+    @contextmanager
+    def parent(self, path: str) -> Iterator[Tuple[int, str]]:
+        """``(descriptor of path's directory, path's last component)``, for one operation."""
+        i = validate(path).rfind("/")
+        if i < 0:
+            yield self.fd, path
+            return
+        fd = self.open_dir(path[:i])
+        try:
+            yield fd, path[i + 1:]
+        finally:
+            os.close(fd)
 
-    def forget(self, path: str) -> None:
-        """Drop cached knowledge about ``path`` and below (it was removed or replaced)."""
-        for key in [k for k in self._dirs_ok if k and is_within(k, path)]:
-            del self._dirs_ok[key]
+
+def lstat_at(name: str, dir_fd: int) -> Optional[os.stat_result]:
+    """``name``'s lstat in ``dir_fd``, or None if there is nothing there."""
+    try:
+        return os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except (FileNotFoundError, NotADirectoryError):
+        return None

@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import collections
 import gc
-import json
 import os
 import queue
-import select
 import sys
 import threading
 from typing import Any, BinaryIO, Deque, Dict, List, Optional, Tuple
@@ -23,68 +21,9 @@ from typing import Any, BinaryIO, Deque, Dict, List, Optional, Tuple
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
-from fetchsync.protocol.loader import cache_dir, write_cache_file
 from fetchsync.protocol.store import Store, StoreError, unpack_zpart
 
 MAX_WORKSPACE = 4096
-# A client that has not spoken this long after our hello is probably not there:
-# we are a connection master's spare endpoint, with time to prepare. If one was
-# only slow and opens the same workspace, its open takes what was prepared.
-PREWARM_AFTER = 0.05
-PREWARM_POLL = 0.5  # then how often a waiting spare looks whether another workspace was opened
-LAST_OPEN = "last-open.json"
-
-
-def _open_key(h: Dict[str, Any], algorithm: str) -> str:
-    return json.dumps([h.get("workspace"), h.get("rules"), bool(h.get("create", True)), algorithm],
-                      sort_keys=True)
-
-
-class _Prewarm:
-    """The store of the workspace opened last, opened and watched ahead of the next client.
-
-    Only the scan is done ahead; what the client is told is computed when it
-    asks, from the scan as inotify kept it current since.
-    """
-
-    def __init__(self, spec: Dict[str, Any]) -> None:
-        self.key = spec["key"]
-        self.spec = spec
-        self.store = None  # type: Optional[Store]
-        self.thread = threading.Thread(target=self._run, name="prewarm", daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        from fetchsync.protocol.ignore import IgnoreRules
-        try:
-            rules = self.spec["rules"]
-            store = Store(self.spec["workspace"], algorithm=self.spec["algorithm"],
-                          rules=IgnoreRules.from_wire(rules) if rules is not None else None,
-                          create=False)
-            if store.watch():
-                self.store = store
-        except Exception:  # an optimisation only: the client's open starts afresh
-            self.store = None
-
-    def keep_current(self) -> bool:
-        """Apply the events queued so far (so a busy tree, such as another client's initial
-        push, cannot overflow the queue while we wait); False if events were lost."""
-        if self.thread.is_alive() or self.store is None or self.store.watched is None:
-            return True
-        if self.store.watched.refresh():
-            return True
-        self.store.watched.close()
-        self.store = None
-        return False
-
-    def take(self, key: str) -> Optional[Store]:
-        self.thread.join()
-        store, self.store = self.store, None
-        if store is not None and key != self.key:
-            if store.watched is not None:
-                store.watched.close()
-            return None
-        return store
 
 
 def expand_workspace(spec: str) -> str:
@@ -109,14 +48,7 @@ class Server:
         self.store = None  # type: Optional[Store]
         self.compress = False
         self.algorithm = ""
-        self.prewarm = None  # type: Optional[_Prewarm]
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
-        # the sync request whose files are written and being synced while the next
-        # one's are written: (its id, its batch, the syncfs under way), see _pipeline
-        self.held = None  # type: Optional[Tuple[int, Any, Any]]
-        # answers to requests whose renames are done, sent once a syncfs begun after
-        # them completes: nothing is reported written before it is durable
-        self.unsent = []  # type: List[wire.Frame]
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
@@ -142,12 +74,11 @@ class Server:
         finally:
             if self.store is not None:
                 self.store.discard_uploads()
+                self.store.close()
 
     def _serve(self) -> None:
         self.out.write(wire.encode_hello(self.hello()))
         self.out.flush()
-        _tune_malloc()  # while the hello travels: the frames come after the client's
-        self._maybe_prewarm()
         client = self.reader.read_hello()
         self.algorithm = client.get("algorithm", "")
         if self.algorithm not in hashing.available():
@@ -160,94 +91,17 @@ class Server:
         threading.Thread(target=self._read_ahead, args=(frames,), name="fetchsync-read",
                          daemon=True).start()
         while True:
-            if self.held is not None and frames.empty():
-                self._settle()  # nothing follows yet: the held request is answered now
-            try:
-                item = frames.get(timeout=IDLE_TRIM_AFTER)
-            except queue.Empty:
-                _trim_heap()  # idle: give back what the last requests used
-                item = frames.get()
+            item = frames.get()
             if isinstance(item, BaseException):
                 raise item
             frame, self.unpacked = item
             if frame is None:
-                self._settle(quiet=True)
                 return
             if frame.type != wire.T_REQUEST:
                 raise ProtocolError("expected a request frame")
-            if self._pipeline(frame, frames):
-                continue
-            self._settle()
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
-
-    def _pipeline(self, frame: wire.Frame, frames: "_ReadAhead") -> bool:
-        """Serve a sync request that another follows closely, overlapping disk flushes
-        with writing: its files are written while the request before is synced, and
-        its own syncfs runs while the next one's are written. Answers keep their order
-        and go out only once what they report is durable. False: serve it as usual.
-
-        The first syncfs of a batch (its temporaries, before the renames) took ~9%
-        of a 150 MB initial push's time on the robot, its critical path.
-        """
-        h = frame.header
-        if h.get("op") != "sync" or h.get("verify") or self.store is None \
-                or (self.held is None and frames.empty()):
-            return False
-        try:
-            parsed = self._sync_request(h)
-        except Exception:  # served as usual, which answers what is wrong
-            return False
-        if parsed is None:
-            return False  # stale: answered as usual, after what is held
-        store, ops, policy = parsed
-        if self.held is not None and self.held[1].blocks(ops):
-            self._settle(unlock=False)
-        unpacked, self.unpacked = self.unpacked, None
-        try:
-            batch = store.begin(ops, frame.blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked,
-                                join=False)
-        except (ProtocolError, OSError) as exc:
-            self._settle()
-            self._send(_error_frame(frame.req_id, exc))
-            return True
-        if self.held is not None:
-            req_id, prev, syncing = self.held
-            syncing.wait()  # prev's temporaries, and the renames before, are durable
-            self._send_unsent()
-            store.finish(prev, synced=True, durable=False)
-            store.save_index()
-            self.unsent.append(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, prev)))
-        self.held = (frame.req_id, batch, store.sync_in_background(batch))
-        return True
-
-    def _settle(self, *, unlock: bool = True, quiet: bool = False) -> None:
-        """Finish the held request and send every answer still owed, in order."""
-        store = self.store
-        try:
-            if self.held is not None and store is not None:
-                req_id, batch, syncing = self.held
-                self.held = None
-                syncing.wait()
-                self._send_unsent()
-                store.finish(batch, synced=True)
-                store.save_index()
-                self._send(wire.Frame(wire.T_RESPONSE, req_id, _sync_answer(store, batch)))
-            elif self.unsent and store is not None:
-                store.sync()
-                self._send_unsent()
-        except (OSError, ValueError):
-            if not quiet:  # the client is gone (end of input): what was done is done
-                raise
-        finally:
-            if unlock and store is not None:
-                store.unlock()
-
-    def _send_unsent(self) -> None:
-        unsent, self.unsent = self.unsent, []
-        for frame in unsent:
-            self._send(frame)
 
     def _read_ahead(self, frames: "_ReadAhead") -> None:
         try:
@@ -260,58 +114,6 @@ class Server:
                     return
         except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
             frames.put(exc)
-
-    def _maybe_prewarm(self) -> None:
-        """While no client talks to us, open and watch the workspace opened last, and follow
-        the record when another endpoint opens a different one meanwhile (a spare started
-        before the first push to a new workspace would otherwise prepare the old one)."""
-        path = os.path.join(cache_dir(), LAST_OPEN)
-        seen = None  # type: Any
-        timeout = PREWARM_AFTER
-        while True:
-            try:
-                ready, _, _ = select.select([self.inp.fileno()], [], [], timeout)
-            except (OSError, ValueError, AttributeError):
-                return
-            if ready:
-                return
-            timeout = PREWARM_POLL
-            if self.prewarm is not None and not self.prewarm.keep_current():
-                self.prewarm = _Prewarm(self.prewarm.spec)  # events were lost: scan again
-            try:
-                st = os.stat(path)
-            except OSError:
-                continue
-            if (st.st_mtime_ns, st.st_size, st.st_ino) == seen:
-                continue
-            seen = (st.st_mtime_ns, st.st_size, st.st_ino)
-            try:
-                with open(path, "r", encoding="utf-8") as fh:
-                    spec = json.load(fh)
-            except (OSError, ValueError):
-                continue
-            if not (isinstance(spec, dict) and isinstance(spec.get("workspace"), str)
-                    and isinstance(spec.get("key"), str)
-                    and spec.get("algorithm") in hashing.available()):
-                continue
-            if self.prewarm is not None:
-                if self.prewarm.key == spec["key"]:
-                    continue
-                self.prewarm.take("")  # let the old one finish, and close it
-            self.prewarm = _Prewarm(spec)
-
-    def _remember_open(self, key: str, workspace: str, h: Dict[str, Any]) -> None:
-        path = os.path.join(cache_dir(), LAST_OPEN)
-        spec = {"key": key, "workspace": workspace, "rules": h.get("rules"),
-                "algorithm": self.algorithm}
-        text = json.dumps(spec, sort_keys=True)
-        try:
-            with open(path, "r", encoding="utf-8") as fh:
-                if fh.read() == text:
-                    return
-        except (OSError, ValueError):
-            pass
-        write_cache_file(path, text)  # an optimisation only
 
     def dispatch(self, frame: wire.Frame) -> wire.Frame:
         op = frame.header.get("op")
@@ -335,24 +137,28 @@ class Server:
         self.store.lock()
         return self.store
 
+    def _writable(self) -> Store:
+        store = self._store()
+        if store.readonly:
+            raise StoreError("the workspace was opened read-only: nothing is written")
+        return store
+
     def do_open(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        """Open a workspace; ``readonly``: create nothing, lock nothing, write nothing
+        (``push --dry-run``, ``pull``, status reads), and refuse every change."""
         from fetchsync.protocol.ignore import IgnoreRules
         workspace = expand_workspace(h.get("workspace", ""))
-        key = _open_key(h, self.algorithm)
-        warm = self.prewarm.take(key) if self.prewarm is not None else None
-        self.prewarm = None
-        if self.store is not None and self.store.watched is not None:
-            self.store.watched.close()
-        if warm is not None and warm.workspace == workspace:
-            self.store = warm
-        else:
-            rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
-            self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
-                               create=bool(h.get("create", True)))
+        readonly = h.get("readonly", False) is True
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+        rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
+        self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
+                           create=bool(h.get("create", True)), readonly=readonly)
         store = self._store()
-        self._remember_open(key, workspace, h)
         store.save_index()
-        return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen}, b""
+        return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen,
+                "readonly": readonly}, b""
 
     def _fresh(self, store: Store, h: Dict[str, Any]) -> bool:
         return h.get("epoch") == store.epoch and h.get("gen") == store.gen
@@ -371,7 +177,7 @@ class Server:
 
     def _sync_request(self, h: Dict[str, Any]) -> Optional[Tuple[Store, List[M.Op], str]]:
         """A sync request's store (locked), operations and policy; None if it is stale."""
-        store = self._store()
+        store = self._writable()
         if h.get("require_fresh") and not self._fresh(store, h):
             return None
         raw = h.get("ops")
@@ -390,9 +196,9 @@ class Server:
             return {"stale": True, "epoch": store.epoch, "gen": store.gen}, b""
         store, ops, policy = parsed
         unpacked, self.unpacked = self.unpacked, None
-        batch = store.begin(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
-        store.finish(batch)
-        out = _sync_answer(store, batch)
+        results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
+        out = {"results": [r.to_wire(op) for r, op in zip(results, ops)],
+               "epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
         if h.get("verify"):
             changed, gone = store.drift()
             out.update(drift=[e.to_wire() for e in changed], gone=gone)
@@ -456,7 +262,7 @@ class Server:
         return {"items": answers}, data
 
     def do_adopt(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
-        store = self._store()
+        store = self._writable()
         items = [M.Listed.from_wire(e) for e in h.get("entries", [])]
         n = store.adopt(items)
         store.save_index()
@@ -467,11 +273,6 @@ class Server:
 
     def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         return {}, b""
-
-
-def _sync_answer(store: Store, batch: Any) -> Dict[str, Any]:
-    return {"results": [r.to_wire(op) for r, op in zip(batch.results, batch.ops)],
-            "epoch": store.epoch, "gen": batch.gen}
 
 
 def _error_frame(req_id: int, exc: Exception) -> wire.Frame:
@@ -542,40 +343,6 @@ def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, Any]]:
 # frames (of up to 8 MiB of a push each) measured 2-5% slower on an initial push
 READ_AHEAD = 4
 READ_AHEAD_BYTES = 48 * 1024 * 1024
-IDLE_TRIM_AFTER = 2.0  # seconds without a request before the heap is trimmed
-_libc = None  # type: Any
-
-
-def _tune_malloc() -> None:
-    """Let glibc reuse the heap for frame-sized buffers instead of mmap'ing each afresh.
-
-    Every 8 MiB frame, its inflated part and their slices would otherwise be
-    new mappings, page-faulted in and zeroed by the kernel: ~70,000 faults and
-    ~0.15 s of CPU on a 150 MB push. The heap is trimmed when idle instead.
-
-    One arena for every thread: the reading thread allocates the frames and the
-    serving thread frees them, and a thread's own arena unmaps a heap that
-    empties whatever the trim threshold says (that thread had 30,000 of the
-    endpoint's 34,000 faults in a 150 MB push; 21,000 with this). Must run
-    before the first thread starts.
-    """
-    global _libc
-    try:
-        import ctypes  # here, once the hello is out: ~4 ms of every start
-        _libc = ctypes.CDLL(None)
-        _libc.mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD
-        _libc.mallopt(-1, 64 * 1024 * 1024)  # M_TRIM_THRESHOLD
-        _libc.mallopt(-8, 1)  # M_ARENA_MAX
-    except (OSError, AttributeError):
-        _libc = None  # not glibc: its own allocator's defaults
-
-
-def _trim_heap() -> None:
-    if _libc is not None:
-        try:
-            _libc.malloc_trim(0)
-        except AttributeError:
-            pass
 
 
 def main() -> None:

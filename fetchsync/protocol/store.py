@@ -6,41 +6,57 @@ wire server, and on the laptop for ``pull``: one implementation, both ends.
 
 Rules it keeps:
 
+- One trust boundary: every operation reaches its path through directory
+  descriptors, walked one component at a time from ``src``'s descriptor with
+  ``O_NOFOLLOW | O_DIRECTORY`` (:class:`paths.Root`), and acts through the
+  ``dir_fd`` forms of the system calls; ``.fetchsync`` and its ``trash``,
+  ``conflicts`` and ``tmp`` the same. A directory swapped for a symlink at any
+  moment fails the operation; it never redirects a write out of the tree. The
+  descriptors of ``src`` and ``.fetchsync`` are opened afresh for each request,
+  and nothing one operation found is trusted by the next. A symlinked ``src``
+  or ``.fetchsync`` is refused.
 - Writes go to a temporary beside the target; every temporary of a batch is
   made durable with one ``syncfs`` before any is renamed into place, and the
   renames are made durable with another: a reader never sees a torn file, and
   what was reported written survives a power cut.
-- Before a path is replaced or deleted, what stands there is compared with the
-  operation's expectation (what the sender last synced). A mismatch means
-  someone edited it here: that version is moved to ``.fetchsync/conflicts/``
-  (policy ``preserve``) or the operation is refused (policy ``refuse``).
-  Deleted paths go to a bounded ``.fetchsync/trash/``. Nothing is lost.
-- Nothing is written outside the root, nor through a symlink.
+- Every operation (write, symlink, mkdir, chmod, delete) compares what stands
+  at its path with its expectation (what the sender last synced), right before
+  it acts. A mismatch means someone edited it here: that version is kept in
+  ``.fetchsync/conflicts/`` (policy ``preserve``; the result says where) or the
+  operation is refused (policy ``refuse``). A version replaced by a write is
+  kept there by a hard link made only once the new content is durable, and the
+  replacement is one rename: a failure at any step (a full disk) leaves the
+  robot's version in place. Deleted paths go to a bounded ``.fetchsync/trash/``.
+  Nothing is lost.
 - The index (``.fetchsync/index``, a :mod:`marshal` snapshot, plus
   ``index.log``, the changes made since, appended after every request and
   folded into a new snapshot when it grows) records what was last synced at each
   path, a stat cache for content hashes, an epoch and a generation, so the
   sender can learn in one round trip what changed here since its last sync.
+- Opened ``readonly``, a store creates nothing, takes no lock, writes no index
+  and refuses every change.
+- Memory stays bounded whatever the file size: content is hashed, patched,
+  copied and signed in pieces; runs of zeros are left as holes when written.
 """
 
 from __future__ import annotations
 
 import errno
 import fcntl
+import io
 import itertools
 import marshal
-import mmap
 import os
 import stat as stat_mod
 import struct
-import threading
 import time
 from typing import Any, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import hashing, paths, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
-from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, scan, stat_path
+from fetchsync.protocol.paths import O_FILE, lstat_at, mkdir_open, open_dir
+from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, entry_from_stat, scan_fd
 
 META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
@@ -54,16 +70,14 @@ _LEN = struct.Struct(">I")
 OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists in full)
 _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list),
                 ("serial", str))
-READ_BLOCK = 1 << 20
-WRITE_APART = 512 * 1024  # files this large are written by a second thread (_Writes)
-# ... around the page cache (O_DIRECT), in pieces of this size copied to an aligned buffer
-DIRECT_PIECE = 2 * 1024 * 1024
-DIRECT_ALIGN = 4096  # a multiple of any disk's logical block; the buffer is page-aligned
-_O_DIRECT = getattr(os, "O_DIRECT", 0)
+PIECE = 1 << 20  # content is read, hashed, patched and written in pieces of this size
+HOLE = 64 * 1024  # a piece of zeros this long (aligned in the file) is left a hole when written
+_ZEROS = bytes(HOLE)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
-# how long a directory this endpoint made counts as holding only what it wrote there
-# since (see _Batch._check): the next batches of one push, not the next push
-MADE_FOR = 10.0
+TMP = "tmp"
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+O_NEW = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | _CLOEXEC
+NAME_MAX = 255
 
 
 class StoreError(ProtocolError):
@@ -79,8 +93,17 @@ _TEMP_SALT = os.urandom(6).hex()
 
 
 def _temp_name(final_name: str) -> str:
-    # unique per process (a random salt, then a counter): no random bytes per file
-    return ".%s%s%s%06x" % (final_name[:100], TEMP_MARK, _TEMP_SALT, next(_TEMP_IDS) & 0xFFFFFF)
+    """A temporary's name beside ``final_name``: unique per process (a random salt, then a
+    counter), and within NAME_MAX bytes however many bytes the name's characters take."""
+    tail = "%s%s%06x" % (TEMP_MARK, _TEMP_SALT, next(_TEMP_IDS) & 0xFFFFFF)
+    room = min(100, NAME_MAX - 1 - len(tail))
+    head = os.fsencode(final_name)[:room]
+    head = os.fsdecode(head.decode("utf-8", "ignore").encode("utf-8")) if head else ""
+    name = "." + head + tail
+    while len(os.fsencode(name)) > NAME_MAX:  # pragma: no cover - surrogate escapes only
+        head = head[:-1]
+        name = "." + head + tail
+    return name
 
 
 _libc = None
@@ -116,18 +139,6 @@ def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, Any]:
     return packed, view[zpart[0]:]
 
 
-def _rmtree(path: str, ignore_errors: bool = False) -> None:
-    """``shutil.rmtree``, imported only for a directory that is not empty (shutil and
-    the archive modules it imports cost every endpoint start ~5 ms)."""
-    try:
-        os.rmdir(path)
-        return
-    except OSError:
-        pass
-    import shutil
-    shutil.rmtree(path, ignore_errors=ignore_errors)
-
-
 def syncfs(fd: int) -> None:
     """Flush the filesystem holding ``fd`` (one call per batch, not one per file)."""
     global _libc
@@ -142,80 +153,287 @@ def syncfs(fd: int) -> None:
     os.sync()
 
 
-def _fsize(path: str) -> int:
-    total = 0
-    for dirpath, _dirs, files in os.walk(path):
-        for name in files:
-            try:
-                total += os.lstat(os.path.join(dirpath, name)).st_size
-            except OSError:
-                pass
-    return total
+def rmtree_at(name: str, dir_fd: int) -> None:
+    """Remove ``name`` in ``dir_fd`` and everything below it, never through a symlink."""
+    try:
+        os.unlink(name, dir_fd=dir_fd)
+        return
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.EISDIR, errno.EPERM):
+            raise
+    fd = open_dir(name, dir_fd)
+    try:
+        with os.scandir(fd) as it:
+            items = [(de.name, de.is_dir(follow_symlinks=False)) for de in it]
+        for sub, is_dir in items:
+            if is_dir:
+                rmtree_at(sub, fd)
+            else:
+                try:
+                    os.unlink(sub, dir_fd=fd)
+                except FileNotFoundError:
+                    pass
+    finally:
+        os.close(fd)
+    os.rmdir(name, dir_fd=dir_fd)
+
+
+def _size_at(name: str, dir_fd: int) -> int:
+    """Bytes of the file, or of every file below the directory, ``name`` in ``dir_fd``."""
+    st = lstat_at(name, dir_fd)
+    if st is None or not stat_mod.S_ISDIR(st.st_mode):
+        return st.st_size if st is not None else 0
+    try:
+        fd = open_dir(name, dir_fd)
+    except OSError:
+        return 0
+    try:
+        return sum(e.size for e in scan_fd(fd).entries.values())
+    finally:
+        os.close(fd)
+
+
+def _write_all(fd: int, data: Any) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+class _Out:
+    """A new file's content, written in order to ``fd`` and hashed as it goes; aligned
+    pieces of zeros are skipped (left holes), and :meth:`close` sets the final size."""
+
+    def __init__(self, fd: int, algorithm: str, sparse: bool = True) -> None:
+        self.fd = fd
+        self.hasher = hashing.new(algorithm)
+        self.size = 0
+        self.sparse = sparse
+        self.pending_hole = False
+
+    def write(self, data: Any) -> int:
+        view = memoryview(data).cast("B") if not isinstance(data, memoryview) else data
+        n = len(view)
+        self.hasher.update(view)
+        pos = 0
+        while pos < n:
+            # up to the next HOLE boundary of the file, so holes are aligned
+            step = min(n - pos, HOLE - (self.size + pos) % HOLE)
+            piece = view[pos:pos + step]
+            if self.sparse and step == HOLE and piece == _ZEROS:
+                os.lseek(self.fd, step, os.SEEK_CUR)
+                self.pending_hole = True
+            else:
+                _write_all(self.fd, piece)
+                self.pending_hole = False
+            pos += step
+        self.size += n
+        return n
+
+    def close(self) -> str:
+        """The hex digest of everything written; the file's size set (a hole at its end)."""
+        if self.pending_hole:
+            os.ftruncate(self.fd, self.size)
+        return self.hasher.digest().hex()
+
+
+def _copy_fd(src: int, out: _Out, length: int = -1) -> None:
+    """Copy ``length`` bytes (-1: to the end) from ``src``'s position to ``out``."""
+    while length != 0:
+        block = os.read(src, PIECE if length < 0 else min(PIECE, length))
+        if not block:
+            if length > 0:
+                raise DeltaError("the source ended early")
+            return
+        out.write(block)
+        if length > 0:
+            length -= len(block)
+
+
+class _Tee:
+    """A file object that hashes what is read through it (for one pass over a file)."""
+
+    def __init__(self, fh: Any, algorithm: str) -> None:
+        self.fh = fh
+        self.hasher = hashing.new(algorithm)
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.fh.read(n)
+        self.hasher.update(data)
+        return data
 
 
 class Store:
     def __init__(self, workspace: str, *, algorithm: str, rules: Any = None, create: bool = True,
-                 meta_dir: Optional[str] = None) -> None:
+                 readonly: bool = False) -> None:
         self.workspace = workspace
         self.root = os.path.join(workspace, "src")
-        self.meta = meta_dir or os.path.join(workspace, META)
+        self.meta = os.path.join(workspace, META)
         self.algorithm = algorithm
         self.rules = rules
-        self._resolver = paths.Resolver(self.root)
-        try:
-            if create:
-                os.makedirs(self.root, exist_ok=True)
-            elif not os.path.isdir(self.root):
-                raise StoreError("%s does not exist" % self.root)
-            st = os.lstat(self.root)
-            if not stat_mod.S_ISDIR(st.st_mode):
-                raise StoreError("%s is not a directory (a symlink?)" % self.root)
-            os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
-        except OSError as exc:
-            if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-                where = exc.filename or self.root
-                raise StoreError("the remote workspace is not writable: cannot create %s: %s; "
-                                 "check the permissions of %s on the robot, or pass another "
-                                 "--remote-workspace"
-                                 % (where, exc.strerror, os.path.dirname(where))) from None
-            raise StoreError("cannot use %s: %s" % (self.root, exc.strerror or exc)) from None
+        self.readonly = readonly
+        self.create = create and not readonly
+        self.src = None  # type: Optional[paths.Root]  # while open: see _open
+        self._meta_fd = -1  # -1 while closed, or read-only without a .fetchsync
         self._lock_fd = -1
-        self._open_batches = 0  # begun and not finished: the lock is kept meanwhile
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: set
-        self.watched = None  # type: Any  # a WatchedTree, see watch()
+        self._open()
         self._load_index()
+
+    # ------------------------------------------------------------------ descriptors
+    def _unusable(self, exc: OSError, where: str) -> StoreError:
+        if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            return StoreError("the remote workspace is not writable: cannot create %s: %s; "
+                              "check the permissions of %s on the robot, or pass another "
+                              "--remote-workspace" % (where, exc.strerror, os.path.dirname(where)))
+        return StoreError("cannot use %s: %s" % (where, exc.strerror or exc))
+
+    def _open_top(self, ws_fd: int, name: str, shown: str, create: bool, mode: int) -> int:
+        """``src`` or ``.fetchsync`` of the workspace, never through a symlink; -1 if absent
+        and not to be made."""
+        try:
+            return open_dir(name, ws_fd)
+        except FileNotFoundError:
+            if not create:
+                return -1
+        except OSError as exc:
+            if exc.errno in paths.NOT_A_DIR:
+                raise StoreError("%s is a symlink or not a directory: fetchsync does not write "
+                                 "through it; make it a directory" % shown) from None
+            raise self._unusable(exc, shown) from None
+        try:
+            os.mkdir(name, mode, dir_fd=ws_fd)
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise self._unusable(exc, shown) from None
+        return self._open_top(ws_fd, name, shown, False, mode)
+
+    def _open(self) -> None:
+        """Open the descriptors of ``src`` and ``.fetchsync`` (afresh for each request:
+        a workspace deleted or replaced meanwhile is the new one)."""
+        if self.src is not None:
+            return
+        try:
+            if self.create:
+                os.makedirs(self.workspace, exist_ok=True)
+            ws_fd = os.open(self.workspace, os.O_RDONLY | os.O_DIRECTORY | _CLOEXEC)
+        except FileNotFoundError:
+            raise StoreError("%s does not exist" % self.workspace) from None
+        except OSError as exc:
+            raise self._unusable(exc, self.workspace) from None
+        try:
+            src_fd = self._open_top(ws_fd, "src", self.root, self.create, 0o777)
+            if src_fd < 0:
+                raise StoreError("%s does not exist" % self.root)
+            try:
+                meta_fd = self._open_top(ws_fd, META, self.meta, not self.readonly, 0o700)
+            except BaseException:
+                os.close(src_fd)
+                raise
+        finally:
+            os.close(ws_fd)
+        self.src = paths.Root(src_fd, self.root)
+        self._meta_fd = meta_fd
+
+    def close(self) -> None:
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)
+            self._lock_fd = -1
+        if self.src is not None:
+            os.close(self.src.fd)
+            self.src = None
+        if self._meta_fd >= 0:
+            os.close(self._meta_fd)
+            self._meta_fd = -1
+
+    def _root(self) -> paths.Root:
+        self._open()
+        assert self.src is not None
+        return self.src
+
+    def _meta(self) -> int:
+        self._open()
+        if self._meta_fd < 0:
+            raise StoreError("%s does not exist" % self.meta)
+        return self._meta_fd
+
+    def _meta_dir(self, name: str) -> int:
+        """A new descriptor of ``.fetchsync/<name>`` (made if missing), not through a symlink."""
+        try:
+            return mkdir_open(name, self._meta(), 0o700)
+        except OSError as exc:
+            if exc.errno in paths.NOT_A_DIR:
+                raise StoreError("%s is a symlink or not a directory: fetchsync does not write "
+                                 "through it" % os.path.join(self.meta, name)) from None
+            raise
+
+    def _read_meta(self, name: str) -> Optional[bytes]:
+        """A file of ``.fetchsync`` (None if absent; never through a symlink)."""
+        if self._meta_fd < 0:
+            return None
+        try:
+            fd = os.open(name, O_FILE, dir_fd=self._meta_fd)
+        except FileNotFoundError:
+            return None
+        try:
+            if not stat_mod.S_ISREG(os.fstat(fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file")
+            parts = []
+            while True:
+                block = os.read(fd, PIECE)
+                if not block:
+                    return b"".join(parts)
+                parts.append(block)
+        finally:
+            os.close(fd)
+
+    def _write_meta(self, name: str, data: bytes) -> None:
+        """Replace ``.fetchsync/<name>`` with ``data`` at once."""
+        meta = self._meta()
+        tmp = name + ".tmp"
+        try:
+            os.unlink(tmp, dir_fd=meta)
+        except FileNotFoundError:
+            pass
+        fd = os.open(tmp, O_NEW, 0o600, dir_fd=meta)
+        try:
+            _write_all(fd, data)
+        finally:
+            os.close(fd)
+        os.replace(tmp, name, src_dir_fd=meta, dst_dir_fd=meta)
 
     # ------------------------------------------------------------------ index
     def _index_stamp(self) -> Any:
         stamp = []  # type: List[Optional[Tuple[int, int, int]]]
         for name in (INDEX, JOURNAL):
             try:
-                st = os.stat(os.path.join(self.meta, name))
-            except OSError:
+                st = os.stat(name, dir_fd=self._meta_fd, follow_symlinks=False)
+            except (OSError, ValueError):  # ValueError: no .fetchsync (read-only)
                 stamp.append(None)
             else:
                 stamp.append((st.st_ino, st.st_size, st.st_mtime_ns))
         return tuple(stamp)
 
     def _load_index(self) -> None:
-        path = os.path.join(self.meta, INDEX)
-        # another writer may have put files in the directories we made
-        self.made = {}  # type: Dict[str, float]  # see _Batch._check
         self._loaded_stamp = self._index_stamp()
         self._touched_synced = set()  # type: set  # paths changed since the last save
         self._touched_cache = set()  # type: set
         data = None  # type: Any
         try:
-            with open(path, "rb") as fh:
-                data = marshal.loads(fh.read())
-        except FileNotFoundError:
-            for old in OLD_INDEXES:
-                try:
-                    os.unlink(os.path.join(self.meta, old))
-                except OSError:
-                    pass
+            raw = self._read_meta(INDEX)
+            if raw is not None:
+                data = marshal.loads(raw)
+            elif not self.readonly:
+                for old in OLD_INDEXES:
+                    try:
+                        os.unlink(old, dir_fd=self._meta_fd)
+                    except OSError:
+                        pass
         except (OSError, ValueError, EOFError, TypeError):
             data = None  # a damaged index only costs a full listing
         if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
@@ -241,12 +459,11 @@ class Store:
         """Apply the journal's records written since our snapshot; the length of its valid part
         (-1 if the file holds anything else: the next save writes a new snapshot)."""
         try:
-            with open(os.path.join(self.meta, JOURNAL), "rb") as fh:
-                buf = fh.read()
-        except FileNotFoundError:
-            return 0
+            buf = self._read_meta(JOURNAL)
         except OSError:
             return -1
+        if buf is None:
+            return 0
         pos = 0
         while pos + _LEN.size <= len(buf):
             (n,) = _LEN.unpack_from(buf, pos)
@@ -276,11 +493,20 @@ class Store:
 
     def discard_uploads(self) -> None:
         """Remove the upload parts this session started and never used (its client left)."""
-        for part in list(self._uploads):
-            try:
-                os.unlink(part)
-            except OSError:
-                pass
+        if not self._uploads:
+            return
+        try:
+            tmp = self._meta_dir(TMP)
+        except (OSError, ProtocolError):
+            return
+        try:
+            for part in list(self._uploads):
+                try:
+                    os.unlink(part, dir_fd=tmp)
+                except OSError:
+                    pass
+        finally:
+            os.close(tmp)
         self._uploads.clear()
 
     def save_index(self) -> None:
@@ -290,7 +516,7 @@ class Store:
         Rewriting the whole index after every request cost a one-file save ~0.3 s
         of the robot's time on 100,000 files; a record costs what it holds.
         """
-        if not self._dirty:
+        if not self._dirty or self.readonly:
             return
         if self._journal_size < 0 or self._journal_size > max(JOURNAL_MIN, self._snapshot_size // 2):
             self._write_snapshot()
@@ -299,7 +525,8 @@ class Store:
                 "serial": self._serial, "epoch": self.epoch, "gen": self.gen, "trash": self.trash_log,
                 "s": {p: self.synced.get(p) for p in self._touched_synced},
                 "c": {p: self.cache.get(p) for p in self._touched_cache}})
-            fd = os.open(os.path.join(self.meta, JOURNAL), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+            fd = os.open(JOURNAL, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | _CLOEXEC,
+                         0o600, dir_fd=self._meta())
             try:
                 _write_all(fd, _LEN.pack(len(rec)) + rec)
             finally:
@@ -315,15 +542,10 @@ class Store:
         blob = marshal.dumps({"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen,
                               "algorithm": self.algorithm, "serial": self._serial,
                               "synced": self.synced, "cache": self.cache, "trash": self.trash_log})
-        path = os.path.join(self.meta, INDEX)
-        with open(path + ".tmp", "wb") as fh:
-            fh.write(blob)
-        os.replace(path + ".tmp", path)
+        self._write_meta(INDEX, blob)
         # the old journal's records name the old snapshot: a crash before this
         # line leaves them ignored, never applied to the new one
-        with open(os.path.join(self.meta, JOURNAL + ".tmp"), "wb"):
-            pass
-        os.replace(os.path.join(self.meta, JOURNAL + ".tmp"), os.path.join(self.meta, JOURNAL))
+        self._write_meta(JOURNAL, b"")
         self._snapshot_size = len(blob)
         self._journal_size = 0
 
@@ -345,29 +567,46 @@ class Store:
         self._dirty = True
 
     def _clean_temps(self) -> None:
-        for dirpath, dirs, files in os.walk(self.root):
-            for name in files + dirs:
-                if is_temp(name):
-                    full = os.path.join(dirpath, name)
+        """Remove the temporaries a writer that died mid-batch left in the tree."""
+        root = self._root()
+        stack = [os.dup(root.fd)]
+        while stack:
+            fd = stack.pop()
+            try:
+                with os.scandir(fd) as it:
+                    items = [(de.name, de.is_dir(follow_symlinks=False)) for de in it]
+                for name, is_dir in items:
                     try:
-                        if os.path.isdir(full) and not os.path.islink(full):
-                            _rmtree(full)
-                        else:
-                            os.unlink(full)
+                        if is_temp(name):
+                            rmtree_at(name, fd)
+                        elif is_dir:
+                            stack.append(open_dir(name, fd))
                     except OSError:
                         pass
-        _rmtree(os.path.join(self.meta, "tmp"), ignore_errors=True)
-        os.makedirs(os.path.join(self.meta, "tmp"), exist_ok=True)
+            finally:
+                os.close(fd)
         try:
-            os.unlink(os.path.join(self.meta, BATCH_MARK))
+            rmtree_at(TMP, self._meta())
+        except OSError:
+            pass
+        try:
+            os.unlink(BATCH_MARK, dir_fd=self._meta())
         except FileNotFoundError:
             pass
 
     # ------------------------------------------------------------------ locking
     def lock(self, timeout: float = 30.0) -> None:
+        """Open the store for one request: its descriptors afresh and, unless read-only,
+        the writers' lock; the index is read again if another writer saved meanwhile."""
+        self._open()
+        if self.readonly:
+            if self._index_stamp() != self._loaded_stamp:
+                self._load_index()
+            return
         if self._lock_fd >= 0:
             return
-        fd = os.open(os.path.join(self.meta, "lock"), os.O_RDWR | os.O_CREAT, 0o600)
+        fd = os.open("lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600,
+                     dir_fd=self._meta())
         deadline = time.monotonic() + timeout
         while True:
             try:
@@ -382,7 +621,7 @@ class Store:
                     raise StoreError("another fetchsync is writing to %s" % self.workspace)
                 time.sleep(0.05)
         self._lock_fd = fd
-        if os.path.exists(os.path.join(self.meta, BATCH_MARK)):
+        if lstat_at(BATCH_MARK, self._meta()) is not None:
             # left by a writer that died mid-batch (a live one would hold the
             # lock): its temporaries are garbage now, and only now
             self._clean_temps()
@@ -390,28 +629,52 @@ class Store:
             self._load_index()  # someone else wrote since we loaded
 
     def unlock(self) -> None:
-        if self._lock_fd >= 0 and not self._open_batches:
-            os.close(self._lock_fd)
-            self._lock_fd = -1
+        """The end of a request: the lock and the descriptors go."""
+        self.close()
 
     # ------------------------------------------------------------------ reading
-    def hash_file(self, path: str, entry: Entry) -> str:
-        """Content hash of the file at ``path`` (stat-cached)."""
+    def _hash_fd(self, path: str, fd: int, st: os.stat_result) -> str:
+        """Content hash of the open regular file ``fd`` (``st``: its fstat), stat-cached."""
         cached = self.cache.get(path)
-        if (cached is not None and cached[0] == entry.size and cached[1] == entry.mtime_ns
-                and cached[2] == entry.ctime_ns and cached[3] == entry.ino
-                and not self._racy(entry)):
+        if (cached is not None and cached[0] == st.st_size and cached[1] == st.st_mtime_ns
+                and cached[2] == st.st_ctime_ns and cached[3] == st.st_ino
+                and not self._racy(st.st_mtime_ns)):
             return cached[4]
-        with open(self._resolver.full(path), "rb") as fh:
-            digest = hashing.file_digest(self.algorithm, fh).hex()
-        self._set_cache(path, [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest])
+        os.lseek(fd, 0, os.SEEK_SET)
+        digest = hashing.file_digest(self.algorithm, fd, PIECE).hex()
+        self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
         return digest
 
+    def _cached(self, path: str, entry: Entry) -> Optional[str]:
+        c = self.cache.get(path)
+        if (c is not None and c[0] == entry.size and c[1] == entry.mtime_ns and c[2] == entry.ctime_ns
+                and c[3] == entry.ino and not self._racy(entry.mtime_ns)):
+            return c[4]
+        return None
+
+    def _hash_at(self, path: str, dir_fd: int, name: str) -> str:
+        fd = os.open(name, O_FILE, dir_fd=dir_fd)
+        try:
+            st = os.fstat(fd)
+            if not stat_mod.S_ISREG(st.st_mode):
+                raise PathError("%r is not a regular file" % path)
+            return self._hash_fd(path, fd, st)
+        finally:
+            os.close(fd)
+
+    def hash_file(self, path: str, entry: Entry) -> str:
+        """Content hash of the file at ``path`` (stat-cached)."""
+        digest = self._cached(path, entry)
+        if digest is not None:
+            return digest
+        with self._root().parent(path) as (dir_fd, name):
+            return self._hash_at(path, dir_fd, name)
+
     @staticmethod
-    def _racy(entry: Entry) -> bool:
+    def _racy(mtime_ns: int) -> bool:
         # a file modified within the last 2 s may change again without its
         # mtime moving on coarse-timestamp filesystems: do not trust the cache
-        return time.time_ns() - entry.mtime_ns < 2_000_000_000
+        return time.time_ns() - mtime_ns < 2_000_000_000
 
     def listed(self, path: str, entry: Optional[Entry]) -> Optional[M.Listed]:
         if entry is None:
@@ -422,31 +685,60 @@ class Store:
             return M.Listed(path, LINK, target=entry.target)
         return M.Listed(path, DIR, entry.mode)
 
+    def _at(self, path: str, dir_fd: int, name: str) -> Optional[M.Listed]:
+        """What stands at ``path`` (``name`` in ``dir_fd``), with its content hash."""
+        st = lstat_at(name, dir_fd)
+        if st is None:
+            return None
+        if stat_mod.S_ISLNK(st.st_mode):
+            try:
+                target = os.fsdecode(os.readlink(name, dir_fd=dir_fd))
+            except OSError:
+                return None
+            return M.Listed(path, LINK, target=target)
+        entry = entry_from_stat(st)
+        if entry is None:
+            raise PathError("%r is not a regular file, directory or symlink" % path)
+        if entry.kind == FILE:
+            digest = self._cached(path, entry)
+            if digest is None:
+                try:
+                    digest = self._hash_at(path, dir_fd, name)
+                except FileNotFoundError:
+                    return None
+            return M.Listed(path, FILE, entry.mode, entry.size, hash=digest)
+        return M.Listed(path, DIR, entry.mode)
+
     def written(self, path: str, digest: str) -> Optional[M.Listed]:
         """What stands at ``path`` right after we wrote content with hash ``digest`` there.
 
         The content was verified against its hash before the rename, so it is
         not read again: the stat cache learns the hash directly.
         """
-        entry = stat_path(self._resolver.full(path))
-        if entry is None or entry.kind != FILE or not digest:
-            return self.listed(path, entry)
-        self._set_cache(path, [entry.size, entry.mtime_ns, entry.ctime_ns, entry.ino, digest])
-        return M.Listed(path, FILE, entry.mode, entry.size, hash=digest)
+        with self._root().parent(path) as (dir_fd, name):
+            st = lstat_at(name, dir_fd)
+            if st is None or not stat_mod.S_ISREG(st.st_mode) or not digest:
+                return self._at(path, dir_fd, name)
+        self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
+        return M.Listed(path, FILE, stat_mod.S_IMODE(st.st_mode), st.st_size, hash=digest)
 
     def current(self, path: str) -> Optional[M.Listed]:
-        return self.listed(path, stat_path(self._resolver.full(path)))
+        with self._root().parent(path) as (dir_fd, name):
+            return self._at(path, dir_fd, name)
+
+    def _scan(self) -> Any:
+        return scan_fd(self._root().fd, self.rules, is_temp=is_temp)
 
     def listing(self) -> Tuple[List[M.Listed], List[Tuple[str, str]]]:
         """Everything under the root, with content hashes."""
-        result = scan(self.root, self.rules, is_temp=is_temp)
+        result = self._scan()
         out = []
         live = set()
         for path, entry in result.entries.items():
             try:
                 item = self.listed(path, entry)
-            except OSError:
-                continue  # vanished or unreadable: it is reported as skipped
+            except (OSError, PathError):
+                continue  # vanished, swapped or unreadable: it is reported as skipped
             if item is not None:
                 out.append(item)
                 live.add(path)
@@ -461,22 +753,16 @@ class Store:
         This runs on every push, so unchanged entries cost a stat comparison
         against the cache and nothing more.
         """
-        entries = self._current_entries()
-        racy_before = time.time_ns() - 2_000_000_000
-        synced, cache = self.synced, self.cache
+        entries = self._scan().entries
+        synced = self.synced
         changed = []
         for path, e in entries.items():
             rec = synced.get(path)
             if e.kind == FILE:
-                c = cache.get(path)
-                if (c is not None and c[0] == e.size and c[1] == e.mtime_ns and c[2] == e.ctime_ns
-                        and c[3] == e.ino and e.mtime_ns < racy_before):
-                    digest = c[4]
-                else:
-                    try:
-                        digest = self.hash_file(path, e)
-                    except OSError:
-                        continue  # vanished or unreadable while we looked
+                try:
+                    digest = self.hash_file(path, e)
+                except (OSError, PathError):
+                    continue  # vanished or unreadable while we looked
                 if rec is not None and rec[0] == FILE and rec[2] == digest and rec[1] == e.mode:
                     continue
                 changed.append(M.Listed(path, FILE, e.mode, e.size, hash=digest))
@@ -490,28 +776,6 @@ class Store:
                 changed.append(M.Listed(path, DIR, e.mode))
         gone = [p for p in synced if p not in entries]
         return changed, gone
-
-    def watch(self) -> bool:
-        """Scan now and keep the scan current with inotify, for a later :meth:`drift`."""
-        from fetchsync.protocol.watched import Unavailable, WatchedTree
-        try:
-            tree = WatchedTree(self.root, self.rules, is_temp)
-        except (Unavailable, OSError):
-            return False
-        if tree.watch.lost:  # over the user's inotify watch limit: give them back
-            tree.close()
-            return False
-        self.watched = tree
-        return True
-
-    def _current_entries(self) -> Dict[str, Entry]:
-        tree = self.watched
-        if tree is not None:
-            if tree.refresh():
-                return tree.entries
-            tree.close()
-            self.watched = None
-        return scan(self.root, self.rules, is_temp=is_temp).entries
 
     @staticmethod
     def _matches(item: M.Listed, rec: List[Any]) -> bool:
@@ -540,6 +804,7 @@ class Store:
 
     def adopt(self, items: List[M.Listed]) -> int:
         """Record ``items`` as synced where the disk still holds exactly them."""
+        self._writable()
         n = 0
         for item in items:
             cur = self.current(item.path)
@@ -550,38 +815,57 @@ class Store:
         self._dirty = True
         return n
 
-    def signature(self, path: str) -> Tuple[bytes, str]:
-        """The delta signature of the file at ``path``, and its content hash."""
-        full = self._resolver.full(path)
-        entry = stat_path(full)
-        if entry is None or entry.kind != FILE:
+    def _open_file(self, path: str) -> Tuple[int, os.stat_result]:
+        """A regular file of the tree, opened for reading (never through a symlink)."""
+        with self._root().parent(path) as (dir_fd, name):
+            try:
+                fd = os.open(name, O_FILE, dir_fd=dir_fd)
+            except OSError as exc:
+                if exc.errno in paths.NOT_A_DIR:
+                    raise PathError("%r is not a regular file" % path) from None
+                raise
+        st = os.fstat(fd)
+        if not stat_mod.S_ISREG(st.st_mode):
+            os.close(fd)
             raise PathError("%r is not a regular file" % path)
-        with open(full, "rb") as fh:
-            data = fh.read()
-        digest = hashing.digest(self.algorithm, data).hex()
-        from fetchsync.protocol import delta as delta_mod  # see _write_file
+        return fd, st
 
-        return delta_mod.signature(data, algorithm=self.algorithm).to_bytes(), digest
+    def signature(self, path: str) -> Tuple[bytes, str]:
+        """The delta signature of the file at ``path``, and its content hash: one pass over
+        the file, in pieces (memory bounded by the signature, not the file)."""
+        from fetchsync.protocol import delta as delta_mod  # see _write_temp
+
+        fd, _st = self._open_file(path)
+        with io.FileIO(fd, "rb", closefd=True) as fh:
+            tee = _Tee(fh, self.algorithm)
+            sig = delta_mod.signature_file(tee, algorithm=self.algorithm, bufsize=PIECE)  # type: ignore[arg-type]
+            return sig.to_bytes(), tee.hasher.digest().hex()
 
     def read(self, path: str, *, sig: Optional[bytes] = None, offset: int = 0,
              length: int = -1) -> Tuple[M.Listed, str, bytes]:
-        """Content of a file: (what it is, "data" or "delta", payload)."""
-        full = self._resolver.full(path)
-        entry = stat_path(full)
-        if entry is None or entry.kind != FILE:
-            raise PathError("%r is not a regular file" % path)
-        item = self.listed(path, entry)
-        assert item is not None
-        with open(full, "rb") as fh:
+        """Content of a file: (what it is, "data" or "delta", payload). A delta is made
+        reading the file in pieces; data is read from ``offset``, ``length`` bytes."""
+        fd, st = self._open_file(path)
+        with io.FileIO(fd, "rb", closefd=True) as fh:
+            digest = self._hash_fd(path, fd, st)
+            item = M.Listed(path, FILE, stat_mod.S_IMODE(st.st_mode), st.st_size, hash=digest)
             if sig is not None:
-                from fetchsync.protocol import delta as delta_mod  # see _write_file
+                from fetchsync.protocol import delta as delta_mod  # see _write_temp
 
                 base_sig = delta_mod.Signature.from_bytes(sig)
-                return item, M.SRC_DELTA, delta_mod.encode_delta(delta_mod.delta(fh.read(), base_sig))
+                fh.seek(0)
+                return item, M.SRC_DELTA, delta_mod.encode_delta(
+                    delta_mod.delta_file(fh, base_sig, bufsize=PIECE))  # type: ignore[arg-type]
+            if offset < 0:
+                raise ProtocolError("bad read offset")
             fh.seek(offset)
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
 
     # ------------------------------------------------------------------ writing
+    def _writable(self) -> None:
+        if self.readonly:
+            raise StoreError("the workspace was opened read-only: nothing is written")
+
     def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
               zpart: Optional[List[int]] = None,
               unpacked: Optional[Tuple[bytes, Any]] = None) -> List[M.Result]:
@@ -589,182 +873,187 @@ class Store:
 
         ``zpart`` = [compressed length, length] says the blob starts with one
         zlib stream, which operations flagged ``z`` address once inflated.
+        Their new contents are written to temporaries first, made durable, then
+        renamed into place, each after its path's precondition is checked again;
+        the renames are made durable before this returns.
         """
-        return self.finish(self.begin(ops, blob, policy=policy, zpart=zpart, unpacked=unpacked))
-
-    def begin(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
-              zpart: Optional[List[int]] = None,
-              unpacked: Optional[Tuple[bytes, Any]] = None, join: bool = True) -> "_Batch":
-        """The first half of :meth:`apply`: run ``ops``, their content written to
-        temporaries; nothing is renamed into place until :meth:`finish`.
-
-        A batch begun while another awaits its ``finish`` must not touch the
-        paths that one will rename (see :meth:`_Batch.blocks`). ``join=False``
-        returns while its large files may still be written by a second thread:
-        the caller calls the batch's ``join_writes`` before anything else of it.
-        """
+        self._writable()
         if unpacked is not None:  # the blob's compressed part, inflated while it waited
             packed, blob = unpacked
         elif zpart is not None:
             packed, blob = unpack_zpart(blob, zpart)
         else:
             packed = b""
-        batch = _Batch(self, blob, policy)
-        batch.zpart = packed
-        if not self._open_batches:
-            with open(os.path.join(self.meta, BATCH_MARK), "wb"):
-                pass
-        self._open_batches += 1
-        batch.ops = ops
+        batch = _Batch(self, blob, packed, policy)
+        meta = self._meta()
+        fd = os.open(BATCH_MARK, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=meta)
+        os.close(fd)
         try:
-            batch.results = [batch.run(op) for op in ops]
-        except BaseException:
-            batch.join_writes()
-            self._close(batch)
-            raise
-        if join:
-            batch.join_writes()
+            batch.results = [batch.run(op, i) for i, op in enumerate(ops)]
+            batch.ops = ops
+            batch.commit()
+        finally:
+            batch.cleanup()
+            try:
+                os.unlink(BATCH_MARK, dir_fd=meta)
+            except FileNotFoundError:
+                pass
         self.gen += 1
         batch.gen = self.gen
         self._dirty = True
-        return batch
-
-    def finish(self, batch: "_Batch", *, synced: bool = False, durable: bool = True) -> List[M.Result]:
-        """Rename a begun batch's temporaries into place; its results, completed.
-
-        ``synced``: a syncfs begun after :meth:`begin` returned has completed
-        (:meth:`sync_in_background`), so the temporaries are durable already.
-        ``durable=False`` leaves the renames to the next syncfs: the caller
-        must not report them before one completes.
-        """
-        try:
-            batch.commit(batch.results, synced=synced, durable=durable)
-        finally:
-            self._close(batch)
-        self._dirty = True
         self._prune_trash()
+        self.last_batch = batch
         return batch.results
-
-    def _close(self, batch: "_Batch") -> None:
-        batch.cleanup()
-        self._open_batches -= 1
-        if not self._open_batches:
-            try:
-                os.unlink(os.path.join(self.meta, BATCH_MARK))
-            except FileNotFoundError:
-                pass
 
     def sync(self) -> None:
         """Make everything written so far durable."""
-        rootfd = os.open(self.root, os.O_RDONLY)
-        try:
-            syncfs(rootfd)
-        finally:
-            os.close(rootfd)
-
-    def sync_in_background(self, batch: "Optional[_Batch]" = None) -> "_BackgroundSync":
-        """:meth:`sync` in a thread, so the next batch's files are written meanwhile;
-        after ``batch``'s large files are written, when it was begun without joining them."""
-        if batch is None:
-            return _BackgroundSync(self.sync)
-
-        def run() -> None:
-            batch.join_writes()
-            self.sync()
-        return _BackgroundSync(run)
+        syncfs(self._root().fd)
 
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
 
-    def _aside(self, path: str, where: str) -> Tuple[str, str]:
-        """Where ``path`` goes in ``.fetchsync/<where>/<stamp>/``: (full path, path to show)."""
-        rel = os.path.join(where, self.stamp(), path)
-        dest = os.path.join(self.meta, rel)
-        os.makedirs(os.path.dirname(dest), exist_ok=True)
-        shown = os.path.join(META, rel) if self.meta == os.path.join(self.workspace, META) else dest
-        return dest, shown
-
-    def _set_aside(self, path: str, where: str) -> str:
-        """Move what stands at ``path`` to ``.fetchsync/<where>/<stamp>/path``."""
-        dest, shown = self._aside(path, where)
-        src = self._resolver.full(path)
+    def _aside_dir(self, path: str, where: str) -> Tuple[int, str, str]:
+        """``(descriptor, name, path to show)`` of where ``path`` goes in
+        ``.fetchsync/<where>/<stamp>/``, its directories made (none through a symlink)."""
+        parts = [self.stamp()] + path.split("/")
+        fd = self._meta_dir(where)
         try:
-            os.rename(src, dest)
+            for part in parts[:-1]:
+                sub = mkdir_open(part, fd, 0o700)
+                os.close(fd)
+                fd = sub
         except OSError as exc:
-            if exc.errno != errno.EXDEV:
-                raise
-            import shutil
-            if os.path.isdir(src) and not os.path.islink(src):
-                shutil.copytree(src, dest, symlinks=True)
-                shutil.rmtree(src)
-            else:
-                shutil.copy2(src, dest, follow_symlinks=False)
-                os.unlink(src)
-        self._resolver.forget(path)
+            os.close(fd)
+            if exc.errno in paths.NOT_A_DIR:
+                raise OSError(errno.ENOTDIR, "%s/%s holds a symlink or a file where fetchsync keeps "
+                              "a directory" % (META, where)) from None
+            raise
+        return fd, parts[-1], os.path.join(META, where, *parts)
+
+    def _set_aside(self, dir_fd: int, name: str, path: str, where: str) -> str:
+        """Move what stands at ``path`` (``name`` in ``dir_fd``) to
+        ``.fetchsync/<where>/<stamp>/path``; the path to show."""
+        size = _size_at(name, dir_fd) if where == "trash" else 0
+        dest_fd, dest, shown = self._aside_dir(path, where)
+        try:
+            os.rename(name, dest, src_dir_fd=dir_fd, dst_dir_fd=dest_fd)
+        finally:
+            os.close(dest_fd)
         if where == "trash":
             top = os.path.join(where, self.stamp())
             if not self.trash_log or self.trash_log[-1][0] != top:
                 self.trash_log.append([top, 0])
-            self.trash_log[-1][1] += _fsize(dest) if os.path.isdir(dest) else os.lstat(dest).st_size
+            self.trash_log[-1][1] += size
         return shown
 
-    def _keep_copy(self, path: str, where: str) -> str:
-        """Like _set_aside, but the file stays where it is too (a hard link, else a copy)."""
-        dest, shown = self._aside(path, where)
-        src = self._resolver.full(path)
+    def _put_back(self, dir_fd: int, name: str, path: str, where: str) -> None:
+        """Undo :meth:`_set_aside` (an operation that failed after it)."""
+        dest_fd, dest, _shown = self._aside_dir(path, where)
         try:
-            os.link(src, dest)
+            os.rename(dest, name, src_dir_fd=dest_fd, dst_dir_fd=dir_fd)
+        finally:
+            os.close(dest_fd)
+
+    def _keep_copy(self, dir_fd: int, name: str, path: str, where: str) -> str:
+        """Like _set_aside, but the file stays where it is too (a hard link, else a copy)."""
+        dest_fd, dest, shown = self._aside_dir(path, where)
+        try:
+            try:
+                os.link(name, dest, src_dir_fd=dir_fd, dst_dir_fd=dest_fd, follow_symlinks=False)
+                return shown
+            except OSError as exc:
+                if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP):
+                    raise
+            st = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+            if stat_mod.S_ISLNK(st.st_mode):
+                os.symlink(os.readlink(name, dir_fd=dir_fd), dest, dir_fd=dest_fd)
+                return shown
+            src = os.open(name, O_FILE, dir_fd=dir_fd)
+            try:
+                out_fd = os.open(dest, O_NEW, 0o600, dir_fd=dest_fd)
+                try:
+                    _copy_fd(src, _Out(out_fd, self.algorithm))
+                    os.fchmod(out_fd, stat_mod.S_IMODE(st.st_mode))
+                except BaseException:
+                    os.close(out_fd)
+                    os.unlink(dest, dir_fd=dest_fd)
+                    raise
+                os.close(out_fd)
+            finally:
+                os.close(src)
+            return shown
+        finally:
+            os.close(dest_fd)
+
+    def _drop_copy(self, path: str, where: str) -> None:
+        """Remove a copy :meth:`_keep_copy` made (the operation it was for failed)."""
+        try:
+            dest_fd, dest, _shown = self._aside_dir(path, where)
         except OSError:
-            import shutil
-            shutil.copy2(src, dest, follow_symlinks=False)
-        return shown
+            return
+        try:
+            os.unlink(dest, dir_fd=dest_fd)
+        except OSError:
+            pass
+        finally:
+            os.close(dest_fd)
 
     def _prune_trash(self) -> None:
         total = sum(n for _d, n in self.trash_log)
         while self.trash_log and (len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES):
             top, n = self.trash_log.pop(0)
-            _rmtree(os.path.join(self.meta, top), ignore_errors=True)
+            try:
+                trash = self._meta_dir("trash")
+                try:
+                    rmtree_at(os.path.basename(top), trash)
+                finally:
+                    os.close(trash)
+            except (OSError, ProtocolError):
+                pass
             total -= n
             self._dirty = True
 
-    def unsynced_below(self, path: str) -> List[str]:
-        """Files under directory ``path`` that differ from what was last synced."""
+    def unsynced_below(self, path: str, dir_fd: int, name: str) -> List[str]:
+        """Files and links under directory ``path`` (``name`` in ``dir_fd``) that differ from
+        what was last synced."""
+        try:
+            fd = open_dir(name, dir_fd)
+        except OSError:
+            return []
         out = []
-        top = self._resolver.full(path)
-        for dirpath, dirs, files in os.walk(top):
-            for name in files + [d for d in dirs if os.path.islink(os.path.join(dirpath, d))]:
-                full = os.path.join(dirpath, name)
-                rel = os.path.relpath(full, self.root).replace(os.sep, "/")
-                try:
-                    cur = self.current(rel)
-                except OSError:
+        try:
+            for rel, entry in scan_fd(fd, prefix=path).entries.items():
+                if entry.kind == DIR:
                     continue
                 rec = self.synced.get(rel)
+                try:
+                    cur = self.listed(rel, entry)
+                except (OSError, PathError):
+                    continue
                 if cur is not None and (rec is None or not self._matches(cur, rec)):
                     out.append(rel)
-        return out
+        finally:
+            os.close(fd)
+        return sorted(out)
+
+
+class _Refused(Exception):
+    pass
 
 
 class _Batch:
-    """One apply() call: temporaries first, one syncfs, renames, one syncfs."""
+    """One apply() call: operations without content at once, new contents to temporaries;
+    then one syncfs, the replacements (each checked again), one syncfs."""
 
-    def __init__(self, store: Store, blob: bytes, policy: str) -> None:
+    def __init__(self, store: Store, blob: Any, packed: Any, policy: str) -> None:
         self.s = store
         self.blob = blob
+        self.zpart = packed
         self.policy = policy
-        self.renames = []  # type: List[Tuple[str, str, str, int, str]]  # (tmp, final, path, result index, hash)
-        self.zpart = b""
-        self.n = 0
-        self.changed = False  # an operation other than an upload part may have changed the tree
+        self.pending = []  # type: List[Tuple[M.Op, int, str]]  # (op, result index, temporary)
         self.ops = []  # type: List[M.Op]
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
-        # directories made lately and the files written into them: the store's, see _check
-        self.made = store.made
-        self.writes = None  # type: Optional[_Writes]
-
-    def _blob(self, op: M.Op) -> bytes:
-        return bytes(self._view(op))
 
     def _view(self, op: M.Op) -> memoryview:
         """The operation's data, not copied (hashed and written as it lies in the request)."""
@@ -774,13 +1063,11 @@ class _Batch:
             raise ProtocolError("operation on %r points past the request's data" % op.path)
         return memoryview(data)[off:off + length]
 
-    def run(self, op: M.Op) -> M.Result:
-        idx = self.n
-        self.n += 1
-        if op.kind != M.UPLOAD:
-            self.changed = True
+    def run(self, op: M.Op, idx: int) -> M.Result:
         try:
             return self._run(op, idx)
+        except _Refused as exc:
+            return M.Result(M.CONFLICT, str(exc))
         except PathError as exc:
             return M.Result(M.PATH_ERROR, str(exc))
         except DeltaError as exc:
@@ -788,387 +1075,315 @@ class _Batch:
         except OSError as exc:
             return _os_error(op, exc)
 
-    def _move_aside(self, path: str, where: str) -> str:
-        self.made.clear()
-        return self.s._set_aside(path, where)
-
-    def _check(self, op: M.Op) -> Tuple[Optional[M.Listed], str]:
-        """Compare what stands at op.path with op.expect; preserve or refuse on mismatch.
-
-        Returns what now stands there and where a conflicting version went.
-        """
-        i = op.path.rfind("/")
-        if i > 0 and op.path not in self.made:
-            made = self.made.get(op.path[:i])
-            if made is not None and time.monotonic() - made < MADE_FOR:
-                # in a directory this endpoint made empty moments ago, at a path
-                # it has not written since: what the lstat below would find is
-                # what a concurrent writer could add between it and the rename
-                # as well, so it is not asked for (an initial push's files, in
-                # the directories its first batch made). The map is emptied when
-                # anything is moved aside, which may take one of them with it,
-                # and when another writer was here (Store._load_index).
-                return None, ""
-        cur = self.s.current(op.path)
-        if cur is None:
-            return None, ""  # nothing here: nothing to lose
-        if cur.kind == DIR:
-            if op.kind in (M.MKDIR, M.CHMOD):
-                return cur, ""  # the directory stays
-            # it will be replaced or deleted: its files edited here are kept
-            # apart from the bounded trash, one by one
-            unsynced = self.s.unsynced_below(op.path)
-            if not unsynced:
-                return cur, ""
-            if self.policy == "refuse":
-                raise _Refused("%s was changed here since the last sync" % unsynced[0])
-            where = ""
-            for path in unsynced:
-                where = self._move_aside(path, "conflicts")
-            return cur, where[: len(where) - len(unsynced[-1])] + op.path
-        if op.kind == M.CHMOD or cur.expectation() == op.expect:
-            return cur, ""
-        if self.policy == "refuse":
-            raise _Refused("%s was changed here since the last sync" % op.path)
-        if cur.kind == FILE and op.kind == M.WRITE and op.source == M.SRC_DELTA and op.base == cur.hash:
-            # the delta was made against exactly this version: keep it by a
-            # link (the rename below replaces only the directory entry) and
-            # patch from it
-            return cur, self.s._keep_copy(op.path, "conflicts")
-        where = self._move_aside(op.path, "conflicts")
-        self.s._forget_below(op.path)
-        return None, where
-
     def _run(self, op: M.Op, idx: int) -> M.Result:
         s = self.s
         if op.kind == M.UPLOAD:
-            part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
-            s._uploads.add(part)
-            fd = os.open(part, os.O_WRONLY | os.O_CREAT, 0o600)
-            try:
-                os.lseek(fd, op.size, os.SEEK_SET)
-                _write_large(fd, self._view(op))
-            finally:
-                os.close(fd)
+            self._upload(op)
             return M.Result()
         if TEMP_MARK in op.path and any(is_temp(part) for part in op.path.split("/")):
             # our temporaries' names: never synced, and removed by the cleanup
             raise PathError("%r uses a name reserved for fetchsync's temporaries" % op.path)
-        s._resolver.check_parents(op.path)
-        try:
-            cur, preserved = self._check(op)
-        except _Refused as exc:
-            return M.Result(M.CONFLICT, str(exc))
-        full = s._resolver.full(op.path)
-        if op.kind == M.DELETE:
-            if cur is not None:
-                self._move_aside(op.path, "trash")
-                s._forget_below(op.path)
-            s._record(op.path, None)
-            return M.Result(preserved=preserved)
-        if op.kind == M.MKDIR:
-            if cur is not None and cur.kind != DIR:
-                self._move_aside(op.path, "trash")
-                cur = None
-            if cur is None:
-                os.mkdir(full, op.mode or 0o755)
-                self.made[op.path] = time.monotonic()
-                item = s.current(op.path)  # made with the mode asked, unless umask or setgid say otherwise
-                if item is not None and item.kind == DIR:
-                    s._resolver.known_dir(op.path)  # its files' parent needs no lstat of its own
-            if cur is not None or item is None or item.mode != (op.mode or 0o755):
-                os.chmod(full, op.mode or 0o755)
-                item = s.current(op.path)
-            s._record(op.path, item)
-            return M.Result(preserved=preserved, written=item.to_wire() if item else None)
-        if op.kind == M.CHMOD:
-            if cur is None or cur.kind == LINK:
-                return M.Result(M.IO_ERROR, "%s: nothing to chmod" % op.path)
-            os.chmod(full, op.mode)
-            item = s.current(op.path)
-            s._record(op.path, item)
-            return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+        with s._root().parent(op.path) as (dir_fd, name):
+            if op.kind == M.DELETE:
+                return self._delete(op, dir_fd, name)
+            if op.kind == M.MKDIR:
+                return self._mkdir(op, dir_fd, name)
+            if op.kind == M.CHMOD:
+                return self._chmod(op, dir_fd, name)
+            # the new content goes to a temporary beside the target, renamed at commit
+            tmp = _temp_name(name)
+            if op.kind == M.SYMLINK:
+                os.symlink(op.target, tmp, dir_fd=dir_fd)
+            else:
+                try:
+                    self._write_temp(op, dir_fd, name, tmp)
+                except (DeltaError, OSError, ProtocolError):
+                    raise
+                except Exception as exc:  # say, a malformed delta: this operation's failure only
+                    return M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
+        self.pending.append((op, idx, tmp))
+        return M.Result()
+
+    # -- operations without content: checked and done at once
+    def _conflict(self, op: M.Op, cur: M.Listed) -> bool:
+        """Whether ``cur`` is not what the sender last saw at op.path; raises _Refused when
+        the policy refuses."""
+        if cur.expectation() == op.expect:
+            return False
+        if self.policy == "refuse":
+            raise _Refused("%s was changed here since the last sync" % op.path)
+        return True
+
+    def _dir_aside(self, op: M.Op, dir_fd: int, name: str) -> str:
+        """The directory at op.path goes to the trash, its files edited here (unsynced) to
+        the conflicts first; where the first of those went ("" if none)."""
+        s = self.s
+        unsynced = s.unsynced_below(op.path, dir_fd, name)
+        if unsynced and self.policy == "refuse":
+            raise _Refused("%s was changed here since the last sync" % unsynced[0])
+        kept = ""
+        for path in unsynced:
+            with s._root().parent(path) as (sub_fd, sub_name):
+                kept = kept or s._set_aside(sub_fd, sub_name, path, "conflicts")
+        s._set_aside(dir_fd, name, op.path, "trash")
+        s._forget_below(op.path)
+        return kept[: len(kept) - len(unsynced[0])] + op.path if kept else ""
+
+    def _delete(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
+        s = self.s
+        cur = s._at(op.path, dir_fd, name)
+        preserved = ""
         if cur is not None and cur.kind == DIR:
-            # a directory becomes a file or link: the old tree goes to the trash
-            self._move_aside(op.path, "trash")
+            preserved = self._dir_aside(op, dir_fd, name)
+        elif cur is not None:
+            if self._conflict(op, cur):
+                preserved = s._set_aside(dir_fd, name, op.path, "conflicts")
+            else:
+                s._set_aside(dir_fd, name, op.path, "trash")
             s._forget_below(op.path)
-            cur = None
-        parent_dir = os.path.dirname(full)
-        tmp = os.path.join(parent_dir, _temp_name(os.path.basename(full)))
-        if op.kind == M.SYMLINK:
-            os.symlink(op.target, tmp)
-        else:
-            # written here, in this thread: a pool of writers made threads
-            # creating files in one directory spin on its lock in the kernel,
-            # and cost more CPU than it saved (measured on a 7,000-file push)
-            try:
-                self._write_file(op, cur, tmp, idx)
-            except (DeltaError, OSError):
-                raise  # the operation's result, made by run()
-            except Exception as exc:  # say, a malformed delta: this operation's failure only
-                return M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
-        self.renames.append((tmp, full, op.path, idx, op.hash if op.kind == M.WRITE else ""))
+        s._record(op.path, None)
         return M.Result(preserved=preserved)
 
-    def _write_file(self, op: M.Op, cur: Optional[M.Listed], tmp: str, idx: int) -> None:
+    def _mkdir(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
         s = self.s
-        if op.source == M.SRC_UPLOAD:
-            part = os.path.join(s.meta, "tmp", "upload-" + op.upload)
-            os.chmod(part, op.mode or 0o644)
-            with open(part, "rb") as fh:
-                got = hashing.file_digest(s.algorithm, fh).hex()
-            if got != op.hash:
-                os.unlink(part)
-                raise OSError(errno.EIO, "uploaded content does not match its hash")
-            os.rename(part, tmp)
-            s._uploads.discard(part)
-            return
-        if op.source == M.SRC_DATA:
-            data = self._view(op)  # type: Any
-        elif op.source == M.SRC_DELTA:
-            if cur is None or cur.kind != FILE or cur.hash != op.base:
-                raise DeltaError("the file here is not the delta's base")
-            with open(s._resolver.full(op.path), "rb") as fh:
-                base = fh.read()
-            # imported when first needed: ~4 ms of every endpoint start, on the critical
-            # path of an initial push, which sends no delta
-            from fetchsync.protocol import delta as delta_mod
+        mode = op.mode or 0o755
+        cur = s._at(op.path, dir_fd, name)
+        preserved, moved = "", ""
+        if cur is not None and cur.kind != DIR:
+            # a file or link stands where the directory goes
+            moved = "conflicts" if self._conflict(op, cur) else "trash"
+            kept = s._set_aside(dir_fd, name, op.path, moved)
+            preserved = kept if moved == "conflicts" else ""
+            s._forget_below(op.path)
+            cur = None
+        if cur is None:
+            try:
+                os.mkdir(name, mode, dir_fd=dir_fd)
+            except BaseException:
+                if moved:
+                    s._put_back(dir_fd, name, op.path, moved)
+                raise
+        item = s._at(op.path, dir_fd, name)  # made with the mode asked, unless umask or setgid say otherwise
+        if item is None or item.kind != DIR:
+            raise OSError(errno.EEXIST, "something else was put there meanwhile")
+        if item.mode != mode:
+            _chmod_at(dir_fd, name, mode)
+            item = s._at(op.path, dir_fd, name)
+        s._record(op.path, item)
+        return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
-            data = delta_mod.patch(base, delta_mod.decode_delta(self._blob(op), max_size=op.size))
-        else:  # copy
-            src = s.current(op.from_path)
-            if src is None or src.kind != FILE or src.hash != op.base:
-                raise DeltaError("the copy's source %r is not what was expected" % op.from_path)
-            with open(s._resolver.full(op.from_path), "rb") as fh:
-                data = fh.read()
-        if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
-            raise DeltaError("reconstructed content does not match its hash")
+    def _chmod(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
+        s = self.s
+        cur = s._at(op.path, dir_fd, name)
+        if cur is None or cur.kind == LINK:
+            return M.Result(M.IO_ERROR, "%s: nothing to chmod" % op.path)
+        if self._conflict(op, cur):
+            # its content was changed here: a mode alone cannot make it the sender's;
+            # the robot's version is kept now, whatever the sender does next
+            kept = s._keep_copy(dir_fd, name, op.path, "conflicts") if cur.kind == FILE else ""
+            return M.Result(M.BASE_MISMATCH, "%s was changed here since the last sync%s" % (
+                op.path, "; kept at " + kept if kept else ""), preserved=kept)
+        _chmod_at(dir_fd, name, op.mode)
+        item = s._at(op.path, dir_fd, name)
+        s._record(op.path, item)
+        return M.Result(written=item.to_wire() if item else None)
+
+    # -- content: to a temporary now, renamed at commit
+    def _upload(self, op: M.Op) -> None:
+        """A piece of a large file's content, at its offset in an upload part."""
+        s = self.s
+        view = self._view(op)
+        part = "upload-" + op.upload
+        tmp_dir = s._meta_dir(TMP)
+        try:
+            s._uploads.add(part)
+            fd = os.open(part, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=tmp_dir)
+        finally:
+            os.close(tmp_dir)
+        try:
+            # past the part's end, zeros may stay holes; before it, they overwrite
+            out = _Out(fd, s.algorithm, sparse=os.fstat(fd).st_size <= op.size)
+            os.lseek(fd, op.size, os.SEEK_SET)
+            out.write(view)
+            out.close()
+        finally:
+            os.close(fd)
+
+    def _write_temp(self, op: M.Op, dir_fd: int, name: str, tmp: str) -> None:
+        s = self.s
         mode = op.mode or 0o644
         fix = mode if mode & _umask() or mode & ~0o777 else None  # else open() makes it so
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
-        if len(data) >= WRITE_APART:
-            if self.writes is None:
-                self.writes = _Writes()
-            self.writes.put(fd, data, fix, tmp, idx)
+        if op.source == M.SRC_UPLOAD:
+            self._from_upload(op, dir_fd, tmp, mode)
             return
+        if op.source == M.SRC_DATA:
+            data = self._view(op)
+            # checked before anything is written: most writes are whole data
+            if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
+                raise DeltaError("reconstructed content does not match its hash")
+        fd = os.open(tmp, O_NEW, mode, dir_fd=dir_fd)
         try:
-            _write_all(fd, data)
+            out = _Out(fd, s.algorithm)
+            if op.source == M.SRC_DATA:
+                out.write(data)
+            elif op.source == M.SRC_DELTA:
+                # imported when first needed: ~4 ms of every endpoint start, on the critical
+                # path of an initial push, which sends no delta
+                from fetchsync.protocol import delta as delta_mod
+
+                d = delta_mod.decode_delta(bytes(self._view(op)), max_size=op.size)
+                base = os.open(name, O_FILE, dir_fd=dir_fd)
+                try:
+                    if not stat_mod.S_ISREG(os.fstat(base).st_mode):
+                        raise DeltaError("the file here is not the delta's base")
+                    with io.FileIO(base, "rb", closefd=False) as fh:
+                        delta_mod.patch_to_file(fh, d, out, bufsize=PIECE)  # type: ignore[arg-type]
+                finally:
+                    os.close(base)
+            else:  # copy
+                try:
+                    src, _st = s._open_file(op.from_path)
+                except (OSError, PathError):
+                    raise DeltaError("the copy's source %r is not here" % op.from_path) from None
+                try:
+                    _copy_fd(src, out)
+                finally:
+                    os.close(src)
+            if out.size != op.size or out.close() != op.hash:
+                raise DeltaError("reconstructed content does not match its hash")
             if fix is not None:
                 os.fchmod(fd, fix)
         except BaseException:
             os.close(fd)
-            os.unlink(tmp)
+            os.unlink(tmp, dir_fd=dir_fd)
             raise
         os.close(fd)
 
-    def join_writes(self) -> None:
-        """Wait for the large files' content; a write that failed fails its operation."""
-        writes, self.writes = self.writes, None
-        self.blob = self.zpart = b""  # written: the request's data may go
-        if writes is None:
-            return
-        failed = writes.join()
-        if failed:
-            self.renames = [r for r in self.renames if r[3] not in failed]
-            for idx, exc in failed.items():
-                if idx < len(self.results):  # else the batch failed as a whole
-                    self.results[idx] = _os_error(self.ops[idx], exc)
-
-    def commit(self, results: List[M.Result], *, synced: bool = False, durable: bool = True) -> None:
-        if not self.changed:
-            return  # upload parts only: nothing is reported written yet
-        rootfd = os.open(self.s.root, os.O_RDONLY)
-        made = self.made
+    def _from_upload(self, op: M.Op, dir_fd: int, tmp: str, mode: int) -> None:
+        """The upload part, verified, becomes the temporary."""
+        s = self.s
+        part = "upload-" + op.upload
+        tmp_dir = s._meta_dir(TMP)
         try:
-            if self.renames and not synced:
-                syncfs(rootfd)  # the temporaries' content, before any is renamed into place
-            for tmp, full, path, idx, digest in self.renames:
-                try:
-                    os.rename(tmp, full)
-                except OSError as exc:
-                    # say, a directory made at that path later in the batch: the
-                    # temporary must not stay behind
-                    results[idx] = M.Result(M.IO_ERROR, "%s: %s" % (path, exc.strerror))
-                    try:
-                        os.unlink(tmp)
-                    except OSError:
-                        pass
-                    continue
-                if made and path.rpartition("/")[0] in made:
-                    made[path] = 0.0  # ours now: a later operation on it looks at it
-                item = self.s.written(path, digest)
-                self.s._record(path, item)
-                results[idx] = M.Result(results[idx].code, results[idx].message, results[idx].preserved,
-                                        item.to_wire() if item else None)
-            self.renames = []
-            if durable:
-                syncfs(rootfd)
+            fd = os.open(part, os.O_RDWR | os.O_NOFOLLOW | _CLOEXEC, dir_fd=tmp_dir)
+            try:
+                if not stat_mod.S_ISREG(os.fstat(fd).st_mode):
+                    raise OSError(errno.EIO, "the upload is not a regular file")
+                if os.fstat(fd).st_size < op.size:
+                    os.ftruncate(fd, op.size)  # a hole at its end
+                got = hashing.file_digest(s.algorithm, fd, PIECE).hex()
+                if got != op.hash or os.fstat(fd).st_size != op.size:
+                    os.unlink(part, dir_fd=tmp_dir)
+                    s._uploads.discard(part)
+                    raise OSError(errno.EIO, "uploaded content does not match its hash")
+                os.fchmod(fd, mode)
+            finally:
+                os.close(fd)
+            os.rename(part, tmp, src_dir_fd=tmp_dir, dst_dir_fd=dir_fd)
+            s._uploads.discard(part)
         finally:
-            os.close(rootfd)
+            os.close(tmp_dir)
 
-    def blocks(self, ops: List[M.Op]) -> bool:
-        """Whether ``ops``, begun before this batch's renames, could see or change
-        what they will rename: the same path, a path under one (a file that becomes
-        a directory), a directory above one that is replaced or deleted, a copy's
-        source. Uploads write only to the upload area."""
-        pending = set(r[2] for r in self.renames)
-        if not pending:
-            return False
-        above = set()  # type: set
-        for path in pending:
-            above.update(paths.ancestors(path))
-        for op in ops:
-            if op.kind == M.UPLOAD:
+    # -- commit
+    def commit(self) -> None:
+        """Make the temporaries durable, rename each into place (checking its path again),
+        and make the renames, and the batch's other changes, durable."""
+        if not self.pending and not any(op.kind != M.UPLOAD for op in self.ops):
+            return  # upload parts only: nothing is reported written yet
+        root = self.s._root()
+        if self.pending:
+            syncfs(root.fd)  # the temporaries' content, before any is renamed into place
+        self.pending.reverse()  # taken from the end, in order
+        while self.pending:
+            op, idx, tmp = self.pending[-1]
+            try:
+                self.results[idx] = self._replace(op, tmp)
+            except _Refused as exc:
+                self.results[idx] = M.Result(M.CONFLICT, str(exc))
+            except PathError as exc:
+                self.results[idx] = M.Result(M.PATH_ERROR, str(exc))
+            except OSError as exc:
+                self.results[idx] = _os_error(op, exc)
+            else:
+                self.pending.pop()
                 continue
-            if op.path in pending or (op.path in above and op.kind not in (M.MKDIR, M.CHMOD)) \
-                    or (op.from_path and op.from_path in pending) \
-                    or any(a in pending for a in paths.ancestors(op.path)):
-                return True
-        return False
+            self.pending.pop()
+            self._unlink(op.path, tmp)
+        syncfs(root.fd)
+
+    def _replace(self, op: M.Op, tmp: str) -> M.Result:
+        """Rename the temporary over op.path, once what stands there is what the sender
+        last saw, or is kept: a version edited here is linked into the conflicts before
+        the rename replaces it, and the rename is the only change to op.path."""
+        s = self.s
+        with s._root().parent(op.path) as (dir_fd, name):
+            cur = s._at(op.path, dir_fd, name)
+            preserved, aside = "", ""
+            if cur is not None and cur.kind == DIR and op.expect == M.IS_DIR:
+                # a directory becomes a file or link: the old tree goes to the trash
+                preserved = self._dir_aside(op, dir_fd, name)
+                aside = "trash"
+            elif cur is not None and cur.kind == DIR:
+                self._conflict(op, cur)  # refused, or made here since the sender looked: kept whole
+                preserved = s._set_aside(dir_fd, name, op.path, "conflicts")
+                s._forget_below(op.path)
+                aside = "conflicts"
+            elif cur is not None and not _same(op, cur) and self._conflict(op, cur):
+                preserved = s._keep_copy(dir_fd, name, op.path, "conflicts")
+            try:
+                os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+            except BaseException:
+                if aside:
+                    s._put_back(dir_fd, name, op.path, aside)
+                elif preserved:
+                    s._drop_copy(op.path, "conflicts")
+                raise
+        item = s.written(op.path, op.hash if op.kind == M.WRITE else "")
+        s._record(op.path, item)
+        return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+
+    def _unlink(self, path: str, tmp: str) -> None:
+        try:
+            with self.s._root().parent(path) as (dir_fd, _name):
+                os.unlink(tmp, dir_fd=dir_fd)
+        except (OSError, ProtocolError):
+            pass
 
     def cleanup(self) -> None:
-        for tmp, _full, _path, _idx, _digest in self.renames:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
+        for op, _idx, tmp in self.pending:
+            self._unlink(op.path, tmp)
+        self.pending = []
 
 
-class _Refused(Exception):
-    pass
+def _same(op: M.Op, cur: M.Listed) -> bool:
+    """Whether ``cur`` is already exactly what ``op`` writes (nothing of the robot's to keep)."""
+    if op.kind == M.WRITE:
+        return cur.kind == FILE and cur.hash == op.hash
+    return op.kind == M.SYMLINK and cur.kind == LINK and cur.target == op.target
 
 
-class _BackgroundSync:
-    """``sync()`` run in a thread (the syncfs call lets go of the GIL meanwhile)."""
-
-    def __init__(self, sync: Any) -> None:
-        self._sync = sync
-        self._done = threading.Event()
-        self._error = None  # type: Optional[BaseException]
-        threading.Thread(target=self._run, name="fetchsync-syncfs", daemon=True).start()
-
-    def _run(self) -> None:
+def _chmod_at(dir_fd: int, name: str, mode: int) -> None:
+    """chmod of ``name`` in ``dir_fd``, never through a symlink: through a descriptor of
+    the file itself (an O_PATH one, by /proc, where it cannot be opened for reading)."""
+    try:
+        fd = os.open(name, O_FILE, dir_fd=dir_fd)
+    except OSError as exc:
+        if exc.errno != errno.EACCES or not hasattr(os, "O_PATH"):
+            raise
+        fd = os.open(name, os.O_PATH | os.O_NOFOLLOW | _CLOEXEC, dir_fd=dir_fd)
         try:
-            self._sync()
-        except BaseException as exc:  # raised by wait(): nothing is reported unsynced
-            self._error = exc
+            if stat_mod.S_ISLNK(os.fstat(fd).st_mode):
+                raise OSError(errno.ELOOP, "a symlink has no mode")
+            os.chmod("/proc/self/fd/%d" % fd, mode)
         finally:
-            self._done.set()
-
-    def wait(self) -> None:
-        self._done.wait()
-        if self._error is not None:
-            raise self._error
+            os.close(fd)
+        return
+    try:
+        os.fchmod(fd, mode)
+    finally:
+        os.close(fd)
 
 
 def _os_error(op: M.Op, exc: OSError) -> M.Result:
     code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
     return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))
-
-
-class _Writes:
-    """A batch's large files, written to their temporaries by a second thread while the
-    serving thread goes on with the batch's other operations (``os.write`` lets go of
-    the GIL). The robot's serving thread is a push's critical path, and copying the
-    content into the page cache was a third of its time; small files stay on it (a
-    pool of writers creating files in one directory cost more than it saved)."""
-
-    def __init__(self) -> None:
-        self._jobs = []  # type: List[Any]
-        self._cond = threading.Condition()
-        self._failed = {}  # type: Dict[int, OSError]
-        self._thread = threading.Thread(target=self._run, name="fetchsync-write", daemon=True)
-        self._thread.start()
-
-    def put(self, fd: int, data: Any, fix: Optional[int], tmp: str, idx: int) -> None:
-        with self._cond:
-            self._jobs.append((fd, data, fix, tmp, idx))
-            self._cond.notify()
-
-    def join(self) -> Dict[int, OSError]:
-        """Wait for every write; the failed ones by operation index (their temporaries removed)."""
-        self.put(-1, b"", None, "", -1)
-        self._thread.join()
-        return self._failed
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._jobs:
-                    self._cond.wait()
-                fd, data, fix, tmp, idx = self._jobs.pop(0)
-            if fd < 0:
-                return
-            try:
-                _write_large(fd, data)
-                if fix is not None:
-                    os.fchmod(fd, fix)
-            except OSError as exc:
-                self._failed[idx] = exc
-            except BaseException as exc:  # noqa: BLE001  (this thread must not die with fds open)
-                self._failed[idx] = OSError(errno.EIO, str(exc))
-            finally:
-                os.close(fd)
-            if idx in self._failed:
-                try:
-                    os.unlink(tmp)
-                except OSError:
-                    pass
-
-
-_direct_buffers = []  # type: List[Any]  # aligned buffers not in use (see _write_large)
-_direct_lock = threading.Lock()
-
-
-def _write_large(fd: int, data: Any) -> None:
-    """Write a large file's content (or a piece of it) to ``fd``, at its offset, around the
-    page cache.
-
-    Copying a file's content into the page cache and writing it back costs the
-    robot's CPUs about as much as everything else a push of large files does
-    (100 MB here: 0.25 CPU-s buffered and flushed, 0.02 CPU-s direct; the disk's
-    own DMA does the rest). Its content must reach the disk before the rename
-    anyway (the batch's syncfs, which then only flushes the metadata and the
-    disk's cache). The part of whole blocks goes with O_DIRECT from an aligned
-    buffer; the tail, and everything on a file system that refuses O_DIRECT
-    (tmpfs, ...) or at an unaligned offset, through the page cache."""
-    view = memoryview(data)
-    whole = len(view) - len(view) % DIRECT_ALIGN
-    done = 0
-    if _O_DIRECT and whole:
-        flags = fcntl.fcntl(fd, fcntl.F_GETFL)
-        try:
-            fcntl.fcntl(fd, fcntl.F_SETFL, flags | _O_DIRECT)
-        except OSError:
-            whole = 0  # not on this file system
-        if whole:
-            with _direct_lock:
-                buf = _direct_buffers.pop() if _direct_buffers else None
-            try:
-                if buf is None:
-                    buf = mmap.mmap(-1, DIRECT_PIECE)
-                while done < whole:
-                    n = min(DIRECT_PIECE, whole - done)
-                    buf[:n] = view[done:done + n]
-                    try:
-                        wrote = os.write(fd, memoryview(buf)[:n])
-                    except OSError as exc:
-                        if exc.errno != errno.EINVAL:
-                            raise
-                        break  # the file system took the flag but not the write: the page cache
-                    done += wrote
-                    if wrote != n:
-                        break  # a short write (a full disk): the rest says why, through the page cache
-            finally:
-                fcntl.fcntl(fd, fcntl.F_SETFL, flags)
-                if buf is not None:
-                    with _direct_lock:
-                        _direct_buffers.append(buf)
-    _write_all(fd, view[done:])
-
-
-def _write_all(fd: int, data: Any) -> None:
-    view = memoryview(data)
-    while view:
-        n = os.write(fd, view)
-        view = view[n:]

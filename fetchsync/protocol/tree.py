@@ -8,6 +8,7 @@ robot's index), so a scan itself only stats.
 
 from __future__ import annotations
 
+import errno
 import os
 import stat as stat_mod
 from stat import S_ISDIR, S_ISLNK, S_ISREG
@@ -150,4 +151,115 @@ def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = No
                 entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
             else:
                 skipped.append((path, "not a regular file, directory or symlink"))
+    return ScanResult(entries, skipped)
+
+
+def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> Optional[bytes]:
+    """The content of regular file ``name`` in ``dir_fd`` (not through a symlink), or None."""
+    from fetchsync.protocol.paths import O_FILE
+    try:
+        fd = os.open(name, O_FILE, dir_fd=dir_fd)
+    except OSError:
+        return None
+    try:
+        if not S_ISREG(os.fstat(fd).st_mode):
+            return None
+        parts = []
+        while limit > 0:
+            block = os.read(fd, min(limit, 1 << 16))
+            if not block:
+                break
+            parts.append(block)
+            limit -= len(block)
+        return b"".join(parts)
+    finally:
+        os.close(fd)
+
+
+def scan_fd(root_fd: int, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
+            prefix: str = "") -> ScanResult:
+    """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
+    parent's descriptor without following symlinks (a directory swapped for a symlink
+    while we look is skipped, never followed). ``prefix``: the wire path of ``root_fd``'s
+    directory, which the paths returned start with. At most one descriptor per level
+    is open at a time; ``root_fd`` stays open."""
+    from fetchsync.protocol.paths import NOT_A_DIR, open_dir
+    entries = {}  # type: Dict[str, Entry]
+    skipped = []  # type: List[Tuple[str, str]]
+
+    def listing(fd: int, rel: str, dir_rules):  # type: ignore[no-untyped-def]
+        """The subdirectories' names of the directory at ``fd`` (its entries recorded)."""
+        with os.scandir(fd) as it:
+            items = list(it)
+        if dir_rules is not None:
+            for de in items:
+                if de.name == IGNORE_FILE:
+                    text = _read_at(IGNORE_FILE, fd)
+                    if text is not None:
+                        dir_rules = dir_rules.with_file(rel, text.decode("utf-8", "surrogateescape"))
+                    break
+        subdirs = []
+        for de in items:
+            name = de.name
+            if is_temp is not None and is_temp(name):
+                continue
+            path = rel + "/" + name if rel else name
+            try:
+                is_dir = de.is_dir(follow_symlinks=False)
+            except OSError:
+                continue
+            if dir_rules is not None and dir_rules.ignored(path, is_dir):
+                continue
+            try:
+                st = de.stat(follow_symlinks=False)
+            except OSError:
+                continue  # vanished while we looked
+            mode = st.st_mode
+            if S_ISREG(mode):
+                entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
+                                      st.st_ino)
+            elif S_ISDIR(mode):
+                entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+                subdirs.append(name)
+            elif S_ISLNK(mode):
+                try:
+                    target = os.fsdecode(os.readlink(name, dir_fd=fd))
+                except OSError:
+                    continue
+                entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
+            else:
+                skipped.append((path, "not a regular file, directory or symlink"))
+        return subdirs, dir_rules
+
+    names, top_rules = listing(root_fd, prefix, rules)
+    stack = [(root_fd, prefix, top_rules, iter(names))]
+    try:
+        while stack:
+            fd, rel, dir_rules, todo = stack[-1]
+            name = next(todo, None)
+            if name is None:
+                stack.pop()
+                if fd != root_fd:
+                    os.close(fd)
+                continue
+            path = rel + "/" + name if rel else name
+            try:
+                sub = open_dir(name, fd)
+            except OSError as exc:
+                if exc.errno in NOT_A_DIR or exc.errno == errno.ENOENT:
+                    entries.pop(path, None)  # swapped for something else, or gone, meanwhile
+                    continue
+                skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
+                continue
+            try:
+                names, sub_rules = listing(sub, path, dir_rules)
+            except OSError as exc:
+                os.close(sub)
+                skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
+                continue
+            stack.append((sub, path, sub_rules, iter(names)))
+    finally:
+        for fd, _rel, _rules, _todo in stack:
+            if fd != root_fd:
+                os.close(fd)
     return ScanResult(entries, skipped)
