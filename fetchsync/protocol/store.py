@@ -367,9 +367,9 @@ class Store:
         try:
             return mkdir_open(name, self._meta(), 0o700)
         except OSError as exc:
-            if exc.errno in paths.NOT_A_DIR:
-                raise StoreError("%s is a symlink or not a directory: fetchsync does not write "
-                                 "through it" % os.path.join(self.meta, name)) from None
+            if exc.errno in paths.NOT_A_DIR:  # this operation's failure
+                raise OSError(exc.errno, "%s is a symlink or not a directory: fetchsync does not "
+                              "write through it" % os.path.join(META, name)) from None
             raise
 
     def _read_meta(self, name: str) -> Optional[bytes]:
