@@ -38,7 +38,9 @@ class Endpoint:
     def close(self) -> tuple[int, bytes]:
         assert self.proc.stdin is not None
         self.proc.stdin.close()
-        self.proc.wait(30)
+        # wait4: the endpoint's own resource use (its peak memory: ru_maxrss, KiB)
+        _pid, status, self.rusage = os.wait4(self.proc.pid, 0)
+        self.proc.returncode = os.waitstatus_to_exitcode(status)
         assert self.proc.stderr is not None
         return self.proc.returncode, self.proc.stderr.read()
 
