@@ -92,3 +92,80 @@ def test_the_endpoint_imports_nothing_it_needs_only_later():
                            "traceback", "zipfile", "subprocess"]))
     out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def _run_loader(home: Path, *, umask: int = 0o022) -> "subprocess.CompletedProcess[bytes]":
+    """The real loader command, as the robot's shell runs it: the archive sent on NEED,
+    then end of input (the endpoint says hello and ends)."""
+    import subprocess
+    import sys
+
+    from fetchsync.protocol import wire
+
+    cmd, archive = loader.loader_command(sys.executable)
+    env = {"HOME": str(home), "PATH": "/usr/bin:/bin", "PYTHONPATH": str(Path(loader.__file__).parents[2])}
+    proc = subprocess.Popen(["sh", "-c", f"umask {umask:03o}; exec {cmd}"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    first = proc.stdout.read(len(loader.NEED))
+    if first == loader.NEED:
+        proc.stdin.write(archive)
+        proc.stdin.flush()
+    out, err = proc.communicate(b"", timeout=60)
+    assert proc.returncode is not None
+    return subprocess.CompletedProcess(proc.args, proc.returncode, first + out, err), wire.MAGIC
+
+
+def test_the_endpoint_cache_is_private_whatever_the_umask(tmp_path):
+    home = tmp_path / "home"
+    home.mkdir()
+    (got, magic) = _run_loader(home, umask=0o000)
+    assert got.returncode == 0 and got.stdout.startswith(loader.NEED) and magic in got.stdout, got.stderr
+    d = home / ".cache" / "fetchsync"
+    assert d.stat().st_mode & 0o777 == 0o700
+    found = list(d.rglob("*"))
+    assert any(p.name.endswith(".pyz") for p in found) and any(p.is_dir() for p in found)
+    for p in found:
+        assert p.stat().st_mode & 0o077 == 0, f"{p} is open to others"
+    (again, _magic) = _run_loader(home, umask=0o000)
+    assert again.returncode == 0 and not again.stdout.startswith(loader.NEED)  # the cache is used
+
+
+def test_a_cache_changed_by_another_user_is_not_run(tmp_path):
+    """The zip is checked by its hash (a same-size substitute is refused), and an
+    extracted tree holding another user's file, or open to others, is extracted again."""
+    import os
+
+    home = tmp_path / "home"
+    home.mkdir()
+    assert _run_loader(home)[0].returncode == 0
+    d = home / ".cache" / "fetchsync"
+    [zip_path] = d.glob("endpoint-*.pyz")
+    [tree] = [p for p in d.iterdir() if p.is_dir()]
+    server = next(tree.rglob("server.py"))
+    # another user planted code in the tree, and a same-size zip
+    data = zip_path.read_bytes()
+    zip_path.write_bytes(data[:-20] + b"\0" * 20)
+    for pyc in tree.rglob("server.*.pyc"):
+        pyc.unlink()
+    server.write_text("import sys\nsys.stderr.write('INJECTED')\nsys.exit(9)\n")
+    os.chown(server, 4242, 4242)
+    got = _run_loader(home)[0]
+    assert got.returncode == 0 and b"INJECTED" not in got.stderr, got.stderr
+    assert got.stdout.startswith(loader.NEED)  # the damaged zip was sent again
+    assert zip_path.read_bytes() == data
+    assert next(tree.rglob("server.py")).stat().st_uid == os.getuid()
+
+
+def test_another_users_cache_directory_is_refused_with_one_line(tmp_path):
+    import os
+
+    home = tmp_path / "home"
+    (home / ".cache" / "fetchsync").mkdir(parents=True)
+    os.chown(home / ".cache" / "fetchsync", 4242, 4242)
+    got = _run_loader(home)[0]
+    assert got.returncode != 0 and b"another user" in got.stderr and b"Traceback" not in got.stderr
+    os.chown(home / ".cache" / "fetchsync", os.getuid(), os.getgid())
+    (home / ".cache" / "fetchsync").rmdir()
+    (home / ".cache" / "fetchsync").symlink_to(tmp_path)
+    got = _run_loader(home)[0]
+    assert got.returncode != 0 and b"symlink" in got.stderr and b"Traceback" not in got.stderr

@@ -9,6 +9,15 @@ reads exactly that many bytes from stdin, checks their hash and caches them.
 It runs the endpoint from a directory beside the zip, extracted and compiled
 once per Python version (a zip's modules are compiled again at every start:
 ~50 ms of each connection), synced before it is renamed into place.
+
+The cache is the robot user's alone: its directory is made ``0700``, opened
+without following a symlink and checked to be owned by the user (another
+user's directory is refused with one line; one that was open to others has its
+endpoints removed before it is closed to them), its files are written ``0600``
+(the extracted tree under umask ``077``) whatever the login's umask, the zip is
+checked against its SHA-256 at every start (not its size), and the extracted
+tree is used only while everything in it is the user's and writable by no one
+else; it is extracted from the verified bytes, not from the file again.
 Nothing is installed with root and nothing is downloaded by the robot.
 """
 
@@ -31,30 +40,85 @@ if sys.flags.no_site:
     v = [os.path.join(v, "lib", "python%d.%d" % sys.version_info[:2], "site-packages")] if os.path.isfile(os.path.join(v, "pyvenv.cfg")) else []
     sys.path.extend(d for d in ([site.getusersitepackages()] if not sys.flags.no_user_site and not v else []) + v + site.getsitepackages() if d not in sys.path and os.path.isdir(d))
 h, n = sys.argv[1], int(sys.argv[2])
-d = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "fetchsync")
+import stat, hashlib
+u = os.getuid()
+def bad(s):
+    sys.exit("fetchsync: %s: refusing to use the endpoint cache; remove it (fetchsync recreates it)" % s)
+def mine(p, dirs):
+    s = os.lstat(p)
+    return s.st_uid == u and not s.st_mode & 0o022 and (stat.S_ISDIR(s.st_mode) if dirs else stat.S_ISREG(s.st_mode))
+c = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+d = os.path.join(c, "fetchsync")
+try:
+    os.makedirs(c, exist_ok=True)
+    os.mkdir(d, 0o700)
+except FileExistsError:
+    pass
+try:
+    fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+except OSError as e:
+    bad("%s is a symlink or not a directory (%s)" % (d, e.strerror))
+s = os.fstat(fd)
+if s.st_uid != u:
+    bad("%s belongs to another user" % d)
+if s.st_mode & 0o077:
+    # once open to others (a cache made under umask 000): what it holds may be theirs
+    for e in os.listdir(fd):
+        if e.startswith("endpoint-") and not e.endswith(".note"):
+            t = os.path.join(d, ".stale-%d-%s" % (os.getpid(), e))
+            os.rename(os.path.join(d, e), t)
+            import shutil
+            shutil.rmtree(t, ignore_errors=True)
+            if os.path.lexists(t):
+                os.unlink(t)
+    os.fchmod(fd, 0o700)
+if os.path.isdir("/proc/self/fd/%d" % fd):
+    d = "/proc/self/fd/%d" % fd  # this very directory, whatever is renamed meanwhile
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
-if not os.path.isfile(p) or os.path.getsize(p) != n:
+b = None
+try:
+    if mine(p, False):
+        with open(p, "rb") as f:
+            b = f.read(n + 1)
+        if hashlib.sha256(b).hexdigest() != h:
+            b = None
+except OSError:
+    b = None
+if b is None:
     o = sys.stdout.buffer
     o.write(b"FSYNC-NEED\n")
     o.flush()
     b = sys.stdin.buffer.read(n)
-    import hashlib
     if hashlib.sha256(b).hexdigest() != h:
         sys.exit("fetchsync: the endpoint was damaged in transit")
-    os.makedirs(d, exist_ok=True)
     t = p + ".%d.tmp" % os.getpid()
-    with open(t, "wb") as f:
+    f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+    os.fchmod(f, 0o600)
+    with open(f, "wb") as f:
         f.write(b)
         f.flush()
         os.fsync(f.fileno())
     os.replace(t, p)
 x = p[:-4] + "-" + str(sys.implementation.cache_tag)
-if not os.path.isdir(x):
+def whole(x):
+    if not os.path.isdir(x) or not mine(x, True):
+        return False
+    for r, ds, fs in os.walk(x):
+        for e in ds + fs:
+            if not mine(os.path.join(r, e), e in ds):
+                return False
+    return True
+if not whole(x):
     import shutil
+    if os.path.lexists(x):
+        t = x + ".%d.old" % os.getpid()
+        os.rename(x, t)
+        shutil.rmtree(t, ignore_errors=True)
     t = x + ".%d.tmp" % os.getpid()
+    m = os.umask(0o077)
     try:
-        import zipfile, py_compile
-        with zipfile.ZipFile(p) as z:
+        import zipfile, py_compile, io
+        with zipfile.ZipFile(io.BytesIO(b)) as z:
             z.extractall(t)
         for r, _, fs in os.walk(t):
             for f in fs:
@@ -62,21 +126,20 @@ if not os.path.isdir(x):
                     py_compile.compile(os.path.join(r, f), doraise=True, invalidation_mode=py_compile.PycInvalidationMode.UNCHECKED_HASH)
         for r, _, fs in os.walk(t, topdown=False):
             for f in fs + ["."]:
-                fd = os.open(os.path.join(r, f), os.O_RDONLY)
-                os.fsync(fd)
-                os.close(fd)
+                fd2 = os.open(os.path.join(r, f), os.O_RDONLY)
+                os.fsync(fd2)
+                os.close(fd2)
         try:
             os.rename(t, x)
         except OSError:
             shutil.rmtree(t, ignore_errors=True)
-        fd = os.open(d, os.O_RDONLY)
         os.fsync(fd)
-        os.close(fd)
     except Exception:
         shutil.rmtree(t, ignore_errors=True)
-        x = p
+    finally:
+        os.umask(m)
 sys.dont_write_bytecode = True
-sys.path.insert(0, x if os.path.isdir(x) else p)
+sys.path.insert(0, x if whole(x) else p)
 from fetchsync.protocol.server import main
 main()
 """.strip()
@@ -121,9 +184,10 @@ def write_cache_file(path: str, text: str) -> None:
     """Replace the small cache file ``path`` with ``text`` at once (a reader sees the old
     or the new one); only a cache, so a failure passes."""
     try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
+        os.makedirs(os.path.dirname(path), mode=0o700, exist_ok=True)
         tmp = "%s.%d.tmp" % (path, os.getpid())
-        with open(tmp, "w", encoding="utf-8") as fh:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+        with open(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
         os.replace(tmp, path)
     except OSError:
