@@ -786,3 +786,16 @@ def test_python38_runs_the_engine_and_agrees(tmp_path: Path) -> None:
     assert ours.returncode == 0, ours.stderr.decode(errors="replace")
     mine = json.loads(ours.stdout)
     assert (theirs["signature"], theirs["delta"]) == (mine["signature"], mine["delta"])
+
+
+def test_signature_file_bytes_is_the_signatures_wire_form():
+    """The endpoint's compact signer makes exactly what Signature.to_bytes makes."""
+    import io as _io
+    import os as _os
+
+    from fetchsync.protocol import delta as _d
+
+    for size in (0, 1, 255, 5000, 300_000):
+        data = _os.urandom(size // 2) + b"ab" * (size // 4)
+        want = _d.signature(data, algorithm="blake2b-128").to_bytes()
+        assert _d.signature_file_bytes(_io.BytesIO(data), algorithm="blake2b-128", bufsize=4096) == want

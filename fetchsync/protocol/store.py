@@ -838,8 +838,9 @@ class Store:
         fd, _st = self._open_file(path)
         with io.FileIO(fd, "rb", closefd=True) as fh:
             tee = _Tee(fh, self.algorithm)
-            sig = delta_mod.signature_file(tee, algorithm=self.algorithm, bufsize=PIECE)  # type: ignore[arg-type]
-            return sig.to_bytes(), tee.hasher.digest().hex()
+            sig = delta_mod.signature_file_bytes(tee, algorithm=self.algorithm,  # type: ignore[arg-type]
+                                                 bufsize=PIECE)
+            return sig, tee.hasher.digest().hex()
 
     def read(self, path: str, *, sig: Optional[bytes] = None, offset: int = 0,
              length: int = -1) -> Tuple[M.Listed, str, bytes]:
