@@ -35,12 +35,19 @@ class Endpoint:
         assert frame is not None and frame.req_id == req_id
         return frame
 
+    def peak_rss(self) -> int:
+        """The endpoint's peak resident memory so far, in bytes (VmHWM: its own, unlike
+        ru_maxrss, which keeps the forking parent's peak across exec)."""
+        with open(f"/proc/{self.proc.pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+        raise AssertionError("no VmHWM")
+
     def close(self) -> tuple[int, bytes]:
         assert self.proc.stdin is not None
         self.proc.stdin.close()
-        # wait4: the endpoint's own resource use (its peak memory: ru_maxrss, KiB)
-        _pid, status, self.rusage = os.wait4(self.proc.pid, 0)
-        self.proc.returncode = os.waitstatus_to_exitcode(status)
+        self.proc.wait(30)
         assert self.proc.stderr is not None
         return self.proc.returncode, self.proc.stderr.read()
 
