@@ -489,6 +489,7 @@ class Bench:
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
         self.samples: list[Sample] = []
         self.failures: list[dict[str, Any]] = []
+        self.startup: dict[str, float] = {}  # see measure_startup
         self.allocator: dict[str, float] | None = None  # see settle_allocator
         self.verified: dict[str, dict[str, list[str]]] = {}
         self.repairs: dict[str, dict[str, dict[str, Any]]] = {}
@@ -659,6 +660,26 @@ class Bench:
         self.run_scenario("edit", p.reps_small, before=self.edits.one_edit)
         self.run_scenario("insert", p.reps_small, before=self.edits.insert_top)
         self.run_scenario("rename", p.reps_small, before=self.edits.rename)
+        self.measure_startup(p.reps_small)
+
+    def measure_startup(self, reps: int) -> None:
+        """The wall time of ``fetchsync --version`` per fetchsync tool (median of ``reps``):
+        the interpreter's start and the CLI's import, what a one-shot push pays besides its
+        own work. A no-op push's wall time minus its in-process seconds minus this is time
+        spent neither starting nor working (waiting at exit, say)."""
+        for tool in self.tools:
+            if not isinstance(tool, FetchsyncPush):
+                continue
+            argv, env = tool.command()
+            times = []
+            for _ in range(reps):
+                t0 = time.perf_counter()
+                subprocess.run([argv[0], "-m", "fetchsync", "--version"], env=env,
+                               cwd=self.workdir, stdin=subprocess.DEVNULL,
+                               capture_output=True, check=False)
+                times.append(time.perf_counter() - t0)
+            self.startup[tool.name] = statistics.median(times)
+            self.log(f"  startup {tool.name}: fetchsync --version {self.startup[tool.name]:.3f} s")
 
     # ---------------------------------------------------------------------- results
     def median(self, tool: str, scenario: str, key: Callable[[Sample], float]) -> float:
@@ -912,6 +933,24 @@ def _tables(
     return out
 
 
+def _startup_lines(bench: Bench) -> list[str]:
+    """Per fetchsync: the no-op push's wall time against its own reported seconds and the
+    interpreter's start (``fetchsync --version``): issue 24 asks that nothing else wait."""
+    out = []
+    for name, start in bench.startup.items():
+        sel = [s for s in bench.samples if s.tool == name and s.scenario == "noop" and s.report]
+        if not sel:
+            continue
+        wall = statistics.median(s.seconds for s in sel)
+        inner = statistics.median(float(s.report["seconds"]) for s in sel if s.report)
+        out.append(
+            f"No-op push of {name}: {wall:.3f} s wall, {inner:.3f} s of it reported by the push "
+            f"itself, {start:.3f} s to start the interpreter and the CLI (`fetchsync --version`): "
+            f"{wall - inner - start:+.3f} s unaccounted (waiting at start or exit)."
+        )
+    return out
+
+
 def _allocator_line(probe: dict[str, float] | None) -> str:
     if not probe:
         return "File creation on the robot's disk was not probed."
@@ -952,6 +991,7 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
         (sc, tool) for sc, res in bench.verified.items() for tool, diffs in res.items() if diffs
     }
     out += _tables(bench.summary("fetchsync", "rsync"), "fetchsync", "rsync", failed)
+    out += ["", *_startup_lines(bench)]
     if any(t.name == "fetchsync-cold" for t in bench.tools):
         out += [
             "",
@@ -1252,6 +1292,7 @@ def main(argv: list[str] | None = None) -> int:
                         "verification": bench.verified,
                         "repairs": bench.repairs,
                         "failures": bench.failures,
+                        "startup": bench.startup,
                         "allocator": bench.allocator,
                         "verified": bench.verified_ok(),
                     },

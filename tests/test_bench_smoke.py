@@ -163,6 +163,8 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert initial["round_ratio"] > 0
     # both went through the counting proxy
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
+    # the no-op push's wall time is set against the interpreter's start
+    assert raw["startup"]["fetchsync"] > 0 and "No-op push of fetchsync: " in stdout
 
 
 @pytest.mark.ssh
