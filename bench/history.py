@@ -50,7 +50,6 @@ if str(BENCH) not in sys.path:
 
 from countproxy import LINKS
 from run import (
-    REPO,
     Bench,
     FetchsyncPush,
     Params,
@@ -306,7 +305,7 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
     ]
     out += _tables(hist.summary("fetchsync", "rsync"), "fetchsync", "rsync")
     for base in bench.tools:
-        if isinstance(base, FetchsyncPush) and base.checkout != REPO:
+        if isinstance(base, FetchsyncPush) and base.name.startswith("fetchsync@"):
             out += ["", f"A/B: this checkout against {base.name}", ""]
             out += _tables(hist.summary("fetchsync", base.name, targets=False), "fetchsync", base.name)
             out += ["", f"{base.name} against rsync", ""]

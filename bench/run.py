@@ -313,7 +313,7 @@ class FetchsyncPush(Tool):
             PYTHONPATH=str(self.checkout),
             FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot" / f"{self.name}-cache"),
         )
-        if self.checkout != REPO:
+        if self.name != "fetchsync":
             env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / "b")
         if not self.persist:
             env["FETCHSYNC_PERSIST"] = "0"
@@ -442,9 +442,11 @@ class Bench:
         params: Params,
         log: Callable[[str], None],
         baseline: tuple[str, Path] | None = None,
+        measured: tuple[str, Path] | None = None,
     ) -> None:
         """``baseline``: (a short name of its revision, its source tree): a second
-        fetchsync pushed side by side with this one (an A/B run)."""
+        fetchsync pushed side by side with this one (an A/B run). ``measured``: the
+        same for the fetchsync measured, when it is not this checkout (``--rev``)."""
         self.workdir = workdir
         self.ws = ws
         self.sshd = sshd
@@ -474,7 +476,14 @@ class Bench:
                 f"    ProxyCommand {proxy}\n"
             )
         robot = workdir / "robot"
-        self.tools: list[Tool] = [FetchsyncPush(bench=self, remote=robot / "fetchsync-ws")]
+        self.measured_rev = measured[0] if measured else None
+        self.tools: list[Tool] = [
+            FetchsyncPush(
+                bench=self,
+                remote=robot / "fetchsync-ws",
+                checkout=measured[1] if measured else REPO,
+            )
+        ]
         if params.cold:
             self.tools.append(
                 FetchsyncPush(bench=self, remote=robot / "fetchsync-cold-ws", persist=False)
@@ -1003,11 +1012,12 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
         ]
         out += _tables(bench.summary("fetchsync-cold", "rsync"), "fetchsync-cold", "rsync", failed)
     for base in bench.tools:
-        if isinstance(base, FetchsyncPush) and base.checkout != REPO:
+        if isinstance(base, FetchsyncPush) and base.name.startswith("fetchsync@"):
             out += [
                 "",
                 (
-                    f"A/B: this checkout against {base.name} (`git archive` of that revision, run "
+                    f"A/B: fetchsync ({bench.measured_rev or 'this checkout'}) against "
+                    f"{base.name} (`git archive` of that revision, run "
                     "with PYTHONPATH set to it, its own connection master, state and remote dir), "
                     "in the same rounds"
                 ),
@@ -1218,6 +1228,12 @@ def main(argv: list[str] | None = None) -> int:
         f"(default {CREATE_WAIT:.0f}; --quick 0)",
     )
     ap.add_argument(
+        "--rev",
+        metavar="REV",
+        help="measure the fetchsync of git revision REV instead of this checkout's (the bench "
+        "is still this checkout's)",
+    )
+    ap.add_argument(
         "--baseline-rev",
         metavar="REV",
         help="also push with the fetchsync of git revision REV, side by side (an A/B run)",
@@ -1257,8 +1273,17 @@ def main(argv: list[str] | None = None) -> int:
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB in {ws.seconds:.1f} s")
         with running_sshd(workdir / "sshd") as sshd:
             baseline = baseline_checkout(a.baseline_rev, workdir) if a.baseline_rev else None
+            measured = baseline_checkout(a.rev, workdir) if a.rev else None
+            if measured:
+                machine["fetchsync"] += f"; measured: the fetchsync of {measured[0]}"
             bench = Bench(
-                workdir=workdir, ws=ws, sshd=sshd, params=params, log=log, baseline=baseline
+                workdir=workdir,
+                ws=ws,
+                sshd=sshd,
+                params=params,
+                log=log,
+                baseline=baseline,
+                measured=measured,
             )
             try:
                 bench.run()
@@ -1287,7 +1312,7 @@ def main(argv: list[str] | None = None) -> int:
                         "ab": {
                             t.name: bench.summary("fetchsync", t.name, targets=False)
                             for t in bench.tools
-                            if isinstance(t, FetchsyncPush) and t.checkout != REPO
+                            if isinstance(t, FetchsyncPush) and t.name.startswith("fetchsync@")
                         },
                         "verification": bench.verified,
                         "repairs": bench.repairs,
