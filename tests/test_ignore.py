@@ -592,10 +592,68 @@ def test_defaults_are_normalized_lines_with_a_reason_each() -> None:
     assert block.count("#") >= 10  # documented, not a bare list
 
 
-def test_without_defaults_nothing_is_excluded() -> None:
+def test_without_defaults_nothing_is_excluded_but_version_control() -> None:
     r = IgnoreRules.build(defaults=False)
-    assert not r.ignored_any(".git", True)
+    assert r.ignored_any(".git", True)  # see the test below
     assert not r.ignored_any("a.pyc", False)
+
+
+HOSTILE = "!.git\n!.git/**\n!.hg/\n!**/.svn\n!.bzr\n!*\n"
+
+
+@pytest.mark.parametrize("where", ["root", "nested", "extra"])
+def test_no_rule_re_includes_version_control_directories(where: str) -> None:
+    """Issue 22 item 10: a hostile robot's ``.fetchsyncignore`` (or anyone's rules) holding
+    ``!.git`` and ``!.git/**`` must never bring ``.git/config`` (its ``core.fsmonitor``
+    runs on the laptop at the next git prompt)."""
+    base = IgnoreRules.build()
+    if where == "root":
+        r = base.with_file("", HOSTILE)
+    elif where == "nested":
+        r = base.with_file("pkg", HOSTILE)
+    else:
+        r = IgnoreRules.build(extra=HOSTILE.splitlines())
+    r = IgnoreRules.from_wire(r.to_wire())  # as the rules travel between the ends
+    for vcs in (".git", ".hg", ".svn", ".bzr"):
+        for top in ("", "pkg/"):
+            assert r.ignored(f"{top}{vcs}", True) and r.ignored(f"{top}{vcs}", False)
+            assert r.ignored(f"{top}{vcs}/config", False)
+            assert r.ignored_any(f"{top}{vcs}/hooks/pre-commit", False)
+    assert not r.ignored("pkg/.gitignore", False) and not r.ignored("pkg/my.git", True)
+    assert not r.ignored("pkg/.github", True) and not r.ignored(".git-blame-ignore-revs", False)
+
+
+def test_pull_never_brings_a_robots_git_directory(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER"):
+        env.pop(k, None)
+    env.update(FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+               FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+               XDG_STATE_HOME=str(tmp_path / "state"))
+    (tmp_path / "ws/src/pkg").mkdir(parents=True)
+    (tmp_path / "ws/src/pkg/package.xml").write_text("<package/>\n")
+    robot = tmp_path / "robot/ws/src"
+    for top in (robot, robot / "pkg"):
+        (top / ".git/hooks").mkdir(parents=True)
+        (top / ".git/config").write_text("[core]\n\tfsmonitor = touch /tmp/pwned\n")
+        (top / ".git/hooks/post-checkout").write_text("#!/bin/sh\nid\n")
+        (top / ".hg").mkdir()
+        (top / ".hg/hgrc").write_text("[hooks]\n")
+    (robot / ".fetchsyncignore").write_text(HOSTILE.replace("!*\n", ""))
+    (robot / "pkg/.fetchsyncignore").write_text(HOSTILE.replace("!*\n", ""))
+    (robot / "pkg/robot_only.txt").write_text("from the robot\n")
+    proc = subprocess.run([sys.executable, "-m", "fetchsync", "pull", "--yes"], env=env,
+                          capture_output=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr.decode()
+    local = tmp_path / "ws/src"
+    assert (local / "pkg/robot_only.txt").exists()  # the pull did happen
+    found = [str(p.relative_to(local)) for p in local.rglob("*")
+             if {".git", ".hg", ".svn", ".bzr"} & set(p.relative_to(local).parts)]
+    assert found == []
 
 
 # --------------------------------------------------------------------------

@@ -74,6 +74,7 @@ from typing import Any, Callable, Iterable, Optional, Sequence, Tuple
 __all__ = [
     "DEFAULT_PATTERNS",
     "IGNORE_FILENAME",
+    "VCS_NAMES",
     "MAX_IGNORE_FILE_SIZE",
     "IgnoreMatch",
     "IgnoreRules",
@@ -131,6 +132,19 @@ DEFAULT_PATTERNS: tuple[str, ...] = (
     # Deliberately absent: build/, devel/, install/ (they live beside src/, not
     # in it), and CATKIN_IGNORE / COLCON_IGNORE, markers the robot's build needs.
 )
+
+
+# Version control directories are excluded whatever the patterns say: a `!.git`
+# (from a robot's `.fetchsyncignore`, or anyone's) must never bring a
+# `.git/config` whose `core.fsmonitor` or hooks git would run on the laptop.
+VCS_NAMES = frozenset((b".git", b".hg", b".svn", b".bzr"))
+_VCS_INSIDE = re.compile(rb"(?:^|/)\.(?:git|hg|svn|bzr)(?:/|$)")
+
+
+def _in_vcs_dir(dirpart: bytes) -> bool:
+    """Whether a directory path (``a/b``) is or lies inside a VCS directory."""
+    return (b".git" in dirpart or b".hg" in dirpart or b".svn" in dirpart or b".bzr" in dirpart) \
+        and _VCS_INSIDE.search(dirpart) is not None
 
 
 # --------------------------------------------------------------------------
@@ -648,6 +662,8 @@ class IgnoreRules:
         bpath = path.encode("utf-8", "surrogateescape")
         slash = bpath.rfind(b"/")
         name = bpath[slash + 1 :] if slash >= 0 else bpath
+        if name in VCS_NAMES or (slash > 0 and _in_vcs_dir(bpath[:slash])):
+            return True  # whatever a pattern says: see VCS_NAMES
         d = 1 if is_dir else 0
         nested = self._nested
         if nested and slash > 0:
