@@ -154,3 +154,68 @@ def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(c
     ssh_home.known_hosts.write_text(trusted)
     r = report(fetchsync("push", "--json", env=env))
     assert r["connection"] == "ssh" and (remote_dir / "src/my_pkg/after.txt").exists()
+
+
+def robot_endpoints(mark: str) -> list[int]:
+    out = subprocess.run(["pgrep", "-f", f"fsmark={mark}"], check=False, capture_output=True)
+    return [int(p) for p in out.stdout.split()]
+
+
+def test_each_next_push_through_a_master_works_in_the_same_call(env, remote_dir):
+    """Issue 22 item 21: no spare endpoint is kept to die under the next push (an idle
+    master holds no endpoint on the robot); a robot workspace deleted under a warm
+    master, and pushes with other options (--exclude, --dry-run) in between, leave
+    the next push working at once."""
+    import uuid
+
+    mark = uuid.uuid4().hex[:12]
+    env = dict(env, FETCHSYNC_REMOTE_PYTHON=f"python3 -X fsmark={mark}")
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    assert report(fetchsync("push", "--json", env=env))["connection"] == "master"
+    assert wait_for(lambda: not robot_endpoints(mark))  # nothing started ahead, nothing left
+    shutil.rmtree(remote_dir)  # the robot's workspace goes while the master is warm
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "master" and tree_of(local) == tree_of(remote_dir / "src")
+    for i in range(3):
+        (local / "my_pkg" / f"round{i}.txt").write_text(f"{i}\n")
+        fetchsync("push", "--exclude", "launch", env=env)
+        (local / "my_pkg" / f"dry{i}.txt").write_text(f"{i}\n")
+        fetchsync("push", "--dry-run", env=env)
+        r = report(fetchsync("push", "--json", env=env))
+        assert r["connection"] == "master" and r["ok"]
+        assert tree_of(local) == tree_of(remote_dir / "src")
+
+
+BUNDLE = Path("/work/shared/data/rclcpp.bundle")
+RELEASES = ["29.3.0", "18.0.0", "29.3.0", "8.2.0", "23.2.0", "0.7.4", "29.3.0"]
+
+
+@pytest.mark.skipif(not BUNDLE.exists(), reason="needs the rclcpp bundle")
+def test_release_switches_through_a_master_leave_the_robot_identical(env, remote_dir):
+    """Issue 22 item 6: ``git checkout`` between releases deletes and re-creates
+    directories (an inode number may come back); every push through a persistent
+    connection master leaves the robot's tree identical to the laptop's."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    repo = local / "rclcpp"
+    subprocess.run(["git", "clone", "-q", str(BUNDLE), str(repo)], check=True)
+    commits = dict(line.split(" ", 1)[::-1] for line in subprocess.run(
+        ["git", "-C", str(repo), "log", "--format=%h %s"], check=True, capture_output=True,
+        text=True).stdout.splitlines())
+
+    def synced() -> dict:
+        return {k: v for k, v in tree_of(local).items() if k != "rclcpp/.git" and not k.startswith("rclcpp/.git/")}
+
+    via = []
+    for release in RELEASES:
+        subprocess.run(["git", "-C", str(repo), "checkout", "-q", commits[release]], check=True)
+        # --force: a switch to an old release deletes most files (the mass-deletion guard)
+        r = report(fetchsync("push", "--json", "--force", env=env))
+        via.append(r["connection"])
+        assert synced() == tree_of(remote_dir / "src"), f"after switching to {release}"
+        if len(via) == 1:
+            assert wait_for(lambda: serving(runtime))
+    assert via[1:] == ["master"] * (len(RELEASES) - 1)
