@@ -56,6 +56,41 @@ def terminal_prompt() -> Callable[[str], str | None] | None:
     return ask
 
 
+def terminal_confirm() -> Callable[[str], str | None] | None:
+    """Ask a question on the controlling terminal and read the typed line (echoed), as
+    ssh asks whether to accept an unknown host key. None unless we run at a terminal
+    (stdin one, and /dev/tty opens): an editor hook, a service or CI gets the one-line
+    refusal instead of a question nobody sees."""
+    if not os.isatty(0):
+        return None
+    try:
+        fd = os.open("/dev/tty", os.O_RDWR | os.O_NOCTTY)
+    except OSError:
+        return None
+    os.close(fd)
+
+    def ask(prompt: str) -> str | None:
+        try:
+            fd = os.open("/dev/tty", os.O_RDWR | os.O_NOCTTY)
+        except OSError:
+            return None
+        try:
+            os.write(fd, prompt.encode("utf-8", "replace"))
+            line = b""
+            while not line.endswith(b"\n"):
+                chunk = os.read(fd, 1024)  # a line at a time: the terminal is canonical
+                if not chunk:
+                    return None if not line else line.decode("utf-8", "replace")
+                line += chunk
+            return line.decode("utf-8", "replace")
+        except OSError:
+            return None
+        finally:
+            os.close(fd)
+
+    return ask
+
+
 def open_transport(target: Target, *, accept_fingerprint: str | None = None,
                    persistent: bool = True) -> Transport:
     """A transport to the target's robot.
@@ -87,7 +122,8 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
             return attached
     from fetchsync.ssh import SSHTransport  # paramiko is slow to import: only when needed
     transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint,
-                                     password_callback=terminal_prompt())
+                                     password_callback=terminal_prompt(),
+                                     confirm_callback=terminal_confirm())
     # a master authenticates on its own, without a terminal: after a password
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":

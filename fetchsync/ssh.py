@@ -270,11 +270,13 @@ class SSHTransport:
         keepalive: float = 5.0,
         accept_fingerprint: str | None = None,
         password_callback: PasswordCallback | None = None,
+        confirm_callback: PasswordCallback | None = None,
     ) -> SSHTransport:
         """Connect and authenticate to ``host`` (an ssh config alias, a name or an address).
 
         ``accept_fingerprint`` (``SHA256:...``) accepts and records an unknown
-        host key with that fingerprint. ``password_callback(prompt)`` is asked
+        host key with that fingerprint. ``confirm_callback(prompt)`` (a terminal's
+        answer, echoed) is asked, as ssh asks, whether to accept an unknown one. ``password_callback(prompt)`` is asked
         for key passphrases and, when keys fail, the login password.
         ``user`` and ``port`` win over the config's User and Port (a config
         ProxyCommand's ``%p`` still stands for the config's Port).
@@ -287,6 +289,7 @@ class SSHTransport:
             keepalive=keepalive,
             accept_fingerprint=accept_fingerprint,
             password_callback=password_callback,
+            confirm_callback=confirm_callback,
         )
         transport = opener.open(settings)
         return cls(
@@ -419,12 +422,14 @@ class _Opener:
         keepalive: float,
         accept_fingerprint: str | None,
         password_callback: PasswordCallback | None,
+        confirm_callback: PasswordCallback | None = None,
     ) -> None:
         self.config = config
         self.timeout = timeout
         self.keepalive = keepalive
         self.accept_fingerprint = accept_fingerprint
         self.password_callback = password_callback
+        self.confirm_callback = confirm_callback
         self.hops: list[paramiko.Transport] = []
 
     def open(self, settings: HostSettings, *, depth: int = 0) -> paramiko.Transport:
@@ -443,7 +448,8 @@ class _Opener:
                 f"more than {_MAX_HOPS} ProxyJump hops to reach {settings.alias}: "
                 "does the ssh config send a jump host through itself?"
             )
-        host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint)
+        host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint,
+                                  confirm=self.confirm_callback)
         sock = self._sock(settings, depth)
         try:
             transport = _Transport(sock)
@@ -744,9 +750,11 @@ class _KnownKey:
 class _HostKeyCheck:
     """The known_hosts files of one host and the verdict on the key it offers."""
 
-    def __init__(self, settings: HostSettings, *, accept_fingerprint: str | None = None) -> None:
+    def __init__(self, settings: HostSettings, *, accept_fingerprint: str | None = None,
+                 confirm: PasswordCallback | None = None) -> None:
         self.settings = settings
         self.accept_fingerprint = accept_fingerprint
+        self.confirm = confirm
         self.name = settings.known_hosts_name
         self._known: list[_KnownKey] | None = None
 
@@ -797,6 +805,9 @@ class _HostKeyCheck:
             self._record(key)
             return
         s = self.settings
+        if not wanted and self.confirm is not None and self._confirmed(key, fingerprint):
+            self._record(key)
+            return
         port = f"-p {s.port} " if s.port != SSH_PORT else ""
         login = shlex.quote(f"{s.user}@{s.alias}")
         how = (f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
@@ -809,6 +820,28 @@ class _HostKeyCheck:
         raise HostKeyError(
             f"the host key of {s.display} is not known: it offers {offered}", hint=how
         )
+
+    def _confirmed(self, key: paramiko.PKey, fingerprint: str) -> bool:
+        """Ask on the terminal, as ssh does, whether to accept an unknown host key; a
+        "no" is a HostKeyError, no answer (EOF) leaves the usual refusal."""
+        assert self.confirm is not None
+        prompt = (f"The authenticity of host '{self.settings.display}' can't be established.\n"
+                  f"{_key_label(key)} key fingerprint is {fingerprint}.\n"
+                  "Are you sure you want to continue connecting (yes/no/[fingerprint])? ")
+        while True:
+            answer = self.confirm(prompt)
+            if answer is None:
+                return False
+            answer = answer.strip()
+            if answer.lower() == "yes" or (
+                answer.startswith("SHA256:") and answer.removeprefix("SHA256:")
+                == fingerprint.removeprefix("SHA256:")
+            ):
+                return True
+            if answer.lower() == "no":
+                raise HostKeyError(f"host key verification failed: the host key of "
+                                   f"{self.settings.display} ({fingerprint}) was not accepted")
+            prompt = "Please type 'yes', 'no' or the fingerprint: "
 
     def _record(self, key: paramiko.PKey) -> None:
         if not self.settings.known_hosts_files:
