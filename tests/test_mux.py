@@ -219,3 +219,48 @@ def test_release_switches_through_a_master_leave_the_robot_identical(env, remote
         if len(via) == 1:
             assert wait_for(lambda: serving(runtime))
     assert via[1:] == ["master"] * (len(RELEASES) - 1)
+
+
+def test_garbage_on_the_masters_socket_runs_nothing_and_breaks_nothing(env, remote_dir, tmp_path):
+    """The master's socket protocol, fuzzed: malformed requests get an error frame or a
+    closed socket, never a command run, a crash or a hang; the next push still uses it."""
+    import json as _json
+    import random
+    import socket as _socket
+
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    sock_path = str(next((runtime / "fetchsync").glob("mux-*.sock")))
+    marker = tmp_path / "ran"
+    rng = random.Random(int(os.environ.get("FETCHSYNC_FUZZ_SEED", "22")))
+    shapes = [
+        lambda: rng.randbytes(rng.randrange(0, 300)),
+        lambda: rng.randbytes(rng.randrange(1, 50)) + b"\n" + rng.randbytes(20),
+        lambda: _json.dumps(rng.choice([[], 5, "x", None, {"exec": 5}, {"exec": None},
+                                        {"exec": ["touch", str(marker)]}, {"check": "yes"},
+                                        {"scan": "/etc", "v": 1}, {"Exec": f"touch {marker}"},
+                                        {}])).encode() + b"\n",
+        lambda: b"{" * rng.randrange(1, 5000) + b"\n",
+        lambda: b"x" * (1 << 17),  # a line longer than the master reads
+        lambda: _json.dumps({"exec": f"touch {marker}"}).encode()[:rng.randrange(1, 20)],
+    ]
+    for _ in range(int(os.environ.get("FETCHSYNC_FUZZ_EXAMPLES", "150"))):
+        s = _socket.socket(_socket.AF_UNIX)
+        s.settimeout(10)
+        try:
+            s.connect(sock_path)
+            s.sendall(rng.choice(shapes)())
+            s.shutdown(_socket.SHUT_WR)
+            while s.recv(1 << 16):
+                pass
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        finally:
+            s.close()
+    assert not marker.exists()
+    assert masters(runtime)
+    (Path(env["FETCHSYNC_WORKSPACE"]) / "src/my_pkg/after_fuzz.txt").write_text("still served\n")
+    r = report(fetchsync("push", "--json", env=env))
+    assert r["connection"] == "master" and tree_of(Path(env["FETCHSYNC_WORKSPACE"]) / "src") == \
+        tree_of(remote_dir / "src")
