@@ -105,6 +105,16 @@ def _push_via_agent(target: Any) -> Any:
     return report
 
 
+def _open_state(target: Any) -> Any:
+    """The target's state, saying in one line if it was damaged and set aside."""
+    from fetchsync.session import open_state
+
+    state = open_state(target)
+    if state.note:
+        click.echo(f"fetchsync: note: {state.note}", err=True)
+    return state
+
+
 def _resume_agent(target: Any) -> None:
     """Have a running agent (one paused before a mass deletion, say) push once more, now
     that a forced push made the robot match: it then finds nothing to delete."""
@@ -327,7 +337,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     """
     from fetchsync.errors import ConfigError, SyncError
     from fetchsync.protocol.ignore import build_rules
-    from fetchsync.session import connect, open_state
+    from fetchsync.session import connect
 
     _collect_less()
     target = _resolve(robot, user, workspace, remote_workspace)
@@ -350,7 +360,7 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     report = None if (dry_run or strict or excludes or force) else _push_via_agent(target)
     if report is None:
         progress = _Progress(not as_json)
-        state = open_state(target)
+        state = _open_state(target)
         scanned: list[Any] = []  # the local scan, made while the robot's endpoint starts
 
         def prepare(_answered: Callable[[], bool]) -> None:
@@ -402,7 +412,7 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
     """
     _collect_less()
     from fetchsync.errors import UsageError
-    from fetchsync.session import connect, open_state
+    from fetchsync.session import connect
     from fetchsync.sync import build_rules, raise_for
     from fetchsync.sync import pull as do_pull
 
@@ -423,7 +433,7 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
               direction="from")
     rules = build_rules(excludes)
     progress = _Progress(not as_json)
-    state = open_state(target)
+    state = _open_state(target)
     try:
         with connect(target, accept_fingerprint=accept_host_key) as conn:
             report = do_pull(conn, state, local_workspace=str(target.workspace),

@@ -18,9 +18,11 @@ import hashlib
 import os
 import re
 import sqlite3
+import time
 from pathlib import Path
 from typing import Iterable, Iterator, NamedTuple
 
+from fetchsync.errors import SyncError
 from fetchsync.protocol import messages as M
 
 SCHEMA = """
@@ -71,15 +73,57 @@ def state_path(robot_id: str, remote_workspace: str) -> Path:
 
 
 class State:
+    """One target's state. A damaged database is set aside (``<name>.damaged-<time>``)
+    and an empty one takes its place: the next push then lists the robot, adopts what
+    it holds already, and rebuilds the rows. ``note`` says so, in one line."""
+
     def __init__(self, path: Path) -> None:
         self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-        self.db = sqlite3.connect(str(path), isolation_level=None)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        # FULL: a commit is on disk when it returns, so the state never says the robot
-        # holds less than it does after a power cut (once per push: a few ms)
-        self.db.execute("PRAGMA synchronous=FULL")
-        self.db.executescript(SCHEMA)
+        self.note = ""
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        except OSError as exc:
+            raise StateError(f"cannot make the state's directory {path.parent}: "
+                             f"{exc.strerror or exc}") from None
+        try:
+            self.db = self._open()
+        except sqlite3.OperationalError as exc:  # not damage: permissions, a full disk
+            raise StateError(f"cannot open the state {path}: {exc}") from None
+        except sqlite3.DatabaseError as exc:
+            aside = self._set_aside()
+            self.note = (f"the state {path.name} was damaged ({exc}); set aside as {aside.name}, "
+                         "rebuilt from the robot's listing")
+            self.db = self._open()
+
+    def _open(self) -> sqlite3.Connection:
+        db = sqlite3.connect(str(self.path), isolation_level=None)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            # FULL: a commit is on disk when it returns, so the state never says the robot
+            # holds less than it does after a power cut (once per push: a few ms)
+            db.execute("PRAGMA synchronous=FULL")
+            db.executescript(SCHEMA)
+            # read every page of the tables: damage shows now, not in the middle of a push
+            db.execute("SELECT count(*), sum(length(path) + length(hash) + ifnull(length(sig), 0)) "
+                       "FROM entries").fetchone()
+            db.execute("SELECT count(*) FROM meta").fetchone()
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _set_aside(self) -> Path:
+        """Move the damaged database (and its log) out of the way; the new name."""
+        aside = self.path.with_name(f"{self.path.name}.damaged-{time.strftime('%Y%m%d-%H%M%S')}")
+        for suffix in ("", "-wal", "-shm"):
+            try:
+                os.rename(f"{self.path}{suffix}", f"{aside}{suffix}")
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                raise StateError(f"the state {self.path} is damaged and cannot be set aside: "
+                                 f"{exc.strerror or exc}") from None
+        return aside
 
     def close(self) -> None:
         self.db.close()
@@ -149,6 +193,10 @@ class State:
 
 
 # A NULL signature keeps the stored one only while the content hash is the same.
+class StateError(SyncError):
+    """The laptop's state cannot be opened (not damage: that is set aside and rebuilt)."""
+
+
 _UPSERT = """
 INSERT INTO entries (path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino, sig)
 VALUES (?,?,?,?,?,?,?,?,?,?)

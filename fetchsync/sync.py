@@ -226,9 +226,16 @@ def _racy(entry: Entry, now_ns: int) -> bool:
 def scan_tree(root: str, rules: IgnoreRules) -> ScanResult:
     """Stat everything under ``root`` the rules keep; a one-line error if it cannot be listed."""
     try:
-        return scan(root, rules, is_temp=is_temp)
+        return scan(root, rules, is_temp=is_temp, on_dir=_searchable)
     except OSError as exc:
         raise SyncError(f"cannot list {root}: {exc.strerror or exc}") from exc
+
+
+def _searchable(full: str, _rel: str) -> None:
+    """Raise PermissionError if the entries of directory ``full`` cannot be looked up
+    (it lost its x bit): the scan then reports it as one it cannot list, and its robot
+    copy is left alone, instead of its entries looking deleted."""
+    os.lstat(os.path.join(full, "."))
 
 
 def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str, *,
@@ -266,7 +273,11 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
     for p in list(singles):
         singles.update(ancestors(p))
     for path in sorted(singles):
-        e = stat_path(os.path.join(root, path))
+        try:
+            e = stat_path(os.path.join(root, path))
+        except OSError as exc:  # a directory above it lost its x bit, say
+            skipped.append((path, f"cannot read: {exc.strerror or exc}"))
+            continue
         if e is None or rules.ignored_any(path, e.kind == "d"):
             continue
         _add_entry(root, path, e, synced, algorithm, items, stats, skipped)
@@ -277,7 +288,11 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
         e = stats.get(top)
         if e is None or e.kind != "d":
             continue
-        result = scan(root, rules, is_temp=is_temp, start=top)
+        try:
+            result = scan(root, rules, is_temp=is_temp, start=top, on_dir=_searchable)
+        except OSError as exc:
+            skipped.append((top, f"cannot list: {exc.strerror or exc}"))
+            continue
         skipped.extend(result.skipped)
         for path, entry in result.entries.items():
             if path in stats and stats[path] == entry:

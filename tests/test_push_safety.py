@@ -6,8 +6,12 @@ agent drives it) and the CLI end to end.
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -234,3 +238,64 @@ def test_the_engine_refuses_a_mass_deletion_unless_confirmed(engine):
     assert len(list((ws / "src/my_pkg/many").iterdir())) == 40
     r = s.push_paths(set(), {"my_pkg/many"}, confirm_deletions=True)
     assert r.errors == [] and r.deleted == 40
+
+
+def state_files(env: dict) -> list[Path]:
+    return sorted((Path(env["XDG_STATE_HOME"]) / "fetchsync").glob("*.sqlite"))
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated"])
+def test_a_damaged_state_is_set_aside_and_rebuilt_with_a_note(env, damage):
+    """Issue 22 item 22: a damaged state database is set aside with a one-line note; the
+    push lists the robot, sends nothing it holds already, and later pushes are quiet."""
+    src, ws = local_src(env), robot_ws(env)
+    for i in range(200):
+        (src / f"my_pkg/f{i}.txt").write_text(f"file {i}\n" * 20)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    (path,) = state_files(env)
+    data = path.read_bytes()
+    path.write_bytes(data[:100] + os.urandom(len(data) - 100) if damage == "garbage" else data[:len(data) // 2])
+    (src / "my_pkg/package.xml").write_text("<edited after the damage/>\n")
+    proc = fetchsync("push", "--json", env=env, check=False)
+    err = proc.stderr.decode()
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    notes = [line for line in err.splitlines() if line.startswith("fetchsync: note:")]
+    assert len(notes) == 1 and "damaged" in notes[0] and "set aside" in notes[0]
+    r = json.loads(proc.stdout)
+    # without its state the laptop cannot tell its edit from one made on the robot:
+    # the robot's version is kept aside, the rest is adopted as it is
+    assert r["files"] == 1 and r["bytes_sent"] < 64 * 1024
+    assert [c["path"] for c in r["conflicts"]] == ["my_pkg/package.xml"]
+    assert tree_of(src) == tree_of(ws / "src")
+    assert list(path.parent.glob(path.name + ".damaged-*"))
+    again = fetchsync("push", "--json", env=env)
+    assert b"note:" not in again.stderr and json.loads(again.stdout)["files"] == 0
+
+
+SETPRIV = shutil.which("setpriv")
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.parametrize("how", ["full", "incremental"])
+def test_a_directory_that_lost_its_x_bit_is_one_line_and_left_alone(env, how):
+    """Issue 22 item 22: a synced directory without its x bit (its entries cannot be
+    looked up) is one error line, no traceback, and its robot copy is left as it was:
+    its files are not taken for deleted."""
+    src, ws = local_src(env), robot_ws(env)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    before = tree_of(ws / "src")
+    if how == "incremental":  # an edit in it: the push goes path by path
+        (src / "my_pkg/package.xml").write_text("<edited/>\n")
+    cmd = [sys.executable, "-m", "fetchsync", "push"]
+    if os.geteuid() == 0:  # root's power to look anywhere, taken away
+        cmd = [SETPRIV, "--bounding-set", "-dac_override,-dac_read_search", "--", *cmd]
+    (src / "my_pkg").chmod(0o644)
+    try:
+        proc = subprocess.run(cmd, env=env, capture_output=True, timeout=120, check=False)
+    finally:
+        (src / "my_pkg").chmod(0o755)
+    err = proc.stderr.decode()
+    assert proc.returncode == 5 and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1].startswith("fetchsync: error: 1 path(s) failed; first: my_pkg")
+    assert tree_of(ws / "src") == before
+    assert not (ws / ".fetchsync/trash").exists()

@@ -358,6 +358,8 @@ class Agent:
             raise
         if self._state is None:
             self._state = open_state(self.target)
+            if self._state.note:
+                self.say(f"note: {self._state.note}")
         self._transport, self._conn = transport, conn
         self._syncer = Syncer(conn, self._state, local_root=self.src,
                               remote_workspace=self.target.remote_workspace, rules=self.rules,
