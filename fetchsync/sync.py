@@ -599,9 +599,21 @@ class Syncer:
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
 
-    def _open_header(self, create: bool = True) -> dict[str, Any]:
+    def _open_header(self, *, readonly: bool = False) -> dict[str, Any]:
+        """``readonly``: the endpoint neither creates the workspace nor locks it nor
+        rewrites its index, and refuses writes (a dry run)."""
         return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
-                "create": create}
+                "create": not readonly, "readonly": readonly}
+
+    def _open_readonly(self) -> bool:
+        """Open the workspace read-only (a dry run); False if it does not exist yet."""
+        try:
+            self.opened = self.conn.request(self._open_header(readonly=True)).header
+        except RemoteError as exc:
+            if "does not exist" in str(exc):
+                return False
+            raise
+        return True
 
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:
@@ -626,16 +638,18 @@ class Syncer:
         self._synced = self._signed = None  # reread: another process may have pushed since
         synced = self._load_synced()
         fresh = bool(synced) and self.state.epoch != ""
-        open_req = self.conn.send(self._open_header()) if self.opened is None else None
+        exists = self._open_readonly() if dry_run else True
+        open_req = self.conn.send(self._open_header()) if self.opened is None and not dry_run else None
         epoch, gen = self.state.epoch, self.state.gen
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
-                                   "epoch": epoch, "gen": gen})
+                                   "epoch": epoch, "gen": gen}) if exists else None
         if scanned is None:
             scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
-        listing = self.conn.wait(list_req).header
+        listing = self.conn.wait(list_req).header if list_req is not None else \
+            {"full": True, "entries": [], "epoch": "", "gen": -1}  # a dry run's robot that holds nothing
         differing = None if dry_run else _local_changes(scanned, synced, listing, epoch, gen)
         if differing is not None:
             # the robot holds what we last synced: only the paths that changed here
@@ -751,6 +765,7 @@ class Syncer:
                 for p in planned:
                     report.count(p)
                     report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
+                report.conflicts += _conflicts_ahead(planned, remote, expect, refuse=self.policy == "refuse")
                 break
             if not planned:
                 break
@@ -1081,7 +1096,10 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     t0 = time.monotonic()
     report = Report("pull", dry_run=dry_run)
     algorithm = conn.algorithm
-    conn.request({"op": "open", "workspace": remote_workspace, "rules": rules.to_wire(), "create": False})
+    # read-only: a pull writes nothing on the robot (not even its index), so it works on
+    # a robot whose disk is read-only too
+    conn.request({"op": "open", "workspace": remote_workspace, "rules": rules.to_wire(), "create": False,
+                  "readonly": True})
     listing = conn.request({"op": "list", "mode": "full"}).header
     remote = {e.path: _no_setid(e) for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
     synced = state.entries() if state.get("algorithm") in ("", algorithm) else {}
@@ -1125,7 +1143,6 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
         store.unlock()
     now_ns = time.time_ns()
     upserts: list[tuple[str, Synced, bytes | None]] = []
-    adopted: list[list[Any]] = []
     failed: set[str] = set()
     for tag, res in zip(tags, results):
         if tag is None:
@@ -1144,15 +1161,14 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
         r = remote.get(path)
         if r is not None and r == item and path not in failed:
             upserts.append((path, _synced_from(item, final.stats.get(path), now_ns), None))
-            adopted.append(item.to_wire())
     for path, s in synced.items():
         if guarded(path) and path not in final.items:
             # untouched: what was last synced there still holds
             upserts.append((path, s, None))
-            adopted.append(s.listed(path).to_wire())
-    ad = conn.request({"op": "adopt", "entries": adopted}).header
+    # the robot's index is left as it was: the next push finds the paths pulled as
+    # changes there, identical to the laptop's, and adopts them then
     state.commit(upserts=upserts, replace_all=True,
-                 meta={"epoch": ad["epoch"], "gen": str(ad["gen"]), "algorithm": algorithm})
+                 meta={"epoch": listing["epoch"], "gen": str(listing["gen"]), "algorithm": algorithm})
     report.bytes_sent = conn.bytes_out
     report.bytes_received = conn.bytes_in
     report.seconds = time.monotonic() - t0
@@ -1274,6 +1290,35 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
     return pieces, p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
+
+
+def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect: Callable[[str], str],
+                     *, refuse: bool) -> list[dict[str, str]]:
+    """The conflicts ``planned`` would meet on the robot (a dry run's report): each
+    operation whose path there holds something else than was last synced, and each
+    directory it replaces or deletes with files edited there below it; as the endpoint
+    checks them (a chmod, or a mkdir over a directory, is not checked)."""
+    out: list[dict[str, str]] = []
+
+    def conflict(path: str) -> None:
+        out.append({"path": path, "kept": "", "refused": "changed on the robot since the last sync"}
+                   if refuse else {"path": path, "kept": ".fetchsync/conflicts/"})
+
+    for p in planned:
+        op = p.op
+        r = remote.get(op.path)
+        if op.kind == M.CHMOD or (op.kind == M.MKDIR and r is not None and r.kind == "d"):
+            continue
+        if (r.expectation() if r is not None else M.ABSENT) != op.expect:
+            conflict(op.path)
+        elif r is not None and r.kind == "d":
+            # the endpoint keeps (or, strict, refuses for) the files edited below, as one
+            # conflict at the directory
+            prefix = op.path + "/"
+            if any(k.startswith(prefix) and v.kind != "d" and v.expectation() != expect(k)
+                   for k, v in remote.items()):
+                conflict(op.path)
+    return out
 
 
 MASS_MIN = 20  # deleting more of the robot's files than this, and more than half, needs a confirmation

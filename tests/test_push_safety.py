@@ -299,3 +299,38 @@ def test_a_directory_that_lost_its_x_bit_is_one_line_and_left_alone(env, how):
     assert err.strip().splitlines()[-1].startswith("fetchsync: error: 1 path(s) failed; first: my_pkg")
     assert tree_of(ws / "src") == before
     assert not (ws / ".fetchsync/trash").exists()
+
+
+def test_a_dry_run_creates_nothing_on_the_robot(env):
+    """Issue 22 item 24: a dry run against a robot without the workspace plans the whole
+    tree and leaves the robot as it was (no workspace made)."""
+    proc = fetchsync("push", "--json", "--dry-run", env=env)
+    r = json.loads(proc.stdout)
+    assert r["dry_run"] and r["files"] == 5 and r["conflicts"] == []
+    assert not robot_ws(env).exists()
+    # the real push then finds nothing in its way
+    assert report(fetchsync("push", "--json", env=env))["conflicts"] == []
+
+
+def test_a_dry_run_reports_the_conflicts_the_real_push_meets(env):
+    """Issue 22 item 24: the conflicts a dry run reports are the real push's; with
+    --strict both exit 6, and the dry run changed nothing on the robot."""
+    src, ws = local_src(env), robot_ws(env)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    (ws / "src/my_pkg/package.xml").write_text("<edited on the robot/>\n")
+    (ws / "src/my_pkg/scripts/fix.py").write_text("# new on the robot\n")
+    shutil.rmtree(src / "my_pkg/scripts")  # deletes a directory holding a robot-side file
+    (src / "my_pkg/package.xml").write_text("<edited here/>\n")
+    (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited here only\n")
+    before = tree_of(ws / "src")
+    dry = report(fetchsync("push", "--json", "--dry-run", env=env))
+    assert tree_of(ws / "src") == before and not (ws / ".fetchsync/conflicts").exists()
+    want = ["my_pkg/package.xml", "my_pkg/scripts"]
+    assert sorted(c["path"] for c in dry["conflicts"]) == want
+    strict_dry = fetchsync("push", "--json", "--dry-run", "--strict", env=env, check=False)
+    assert strict_dry.returncode == 6 and tree_of(ws / "src") == before
+    strict = fetchsync("push", "--json", "--strict", env=env, check=False)
+    assert strict.returncode == 6
+    assert sorted(c["path"] for c in json.loads(strict.stdout)["conflicts"]) == want
+    real = report(fetchsync("push", "--json", env=env))
+    assert sorted(c["path"] for c in real["conflicts"]) == want
