@@ -598,6 +598,7 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
+        self._deleted: list[tuple[float, int]] = []  # (when, files): see _check_deletions
 
     def _open_header(self, *, readonly: bool = False) -> dict[str, Any]:
         """``readonly``: the endpoint neither creates the workspace nor locks it nor
@@ -759,8 +760,8 @@ class Syncer:
             # what the laptop could not read is left as the robot has it
             planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
                        if not guarded(p.op.path)]
-            if _round == 0 and not dry_run and not confirm_deletions:
-                refuse_mass_deletion(planned, remote, synced)
+            if _round == 0 and not dry_run:
+                self._check_deletions(planned, remote, synced, confirmed=confirm_deletions)
             if dry_run:
                 for p in planned:
                     report.count(p)
@@ -848,6 +849,20 @@ class Syncer:
         if not dry_run:
             self._commit(upserts, deletes, new_synced, epoch, gen)
         return False
+
+    def _check_deletions(self, planned: list[Planned], remote: dict[str, M.Listed],
+                         synced: dict[str, Synced], *, confirmed: bool) -> None:
+        """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files this
+        Syncer deleted in the last RECENT seconds too: the watch agent sees an
+        ``rm -rf`` as several batches, each of which may be small."""
+        now = time.monotonic()
+        self._deleted = [(t, n) for t, n in self._deleted if now - t < RECENT]
+        if confirmed:
+            self._deleted = []
+            return
+        doomed = refuse_mass_deletion(planned, remote, synced, recent=sum(n for _t, n in self._deleted))
+        if doomed:
+            self._deleted.append((now, doomed))
 
     def _commit(self, upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str],
                 new_synced: dict[str, Synced], epoch: str, gen: int) -> None:
@@ -1322,6 +1337,7 @@ def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect
 
 
 MASS_MIN = 20  # deleting more of the robot's files than this, and more than half, needs a confirmation
+RECENT = 10.0  # seconds: deletions this close together count as one
 
 
 class MassDeletionError(SyncError):
@@ -1329,9 +1345,10 @@ class MassDeletionError(SyncError):
 
 
 def refuse_mass_deletion(planned: list[Planned], remote: dict[str, M.Listed],
-                         synced: dict[str, Synced]) -> None:
+                         synced: dict[str, Synced], *, recent: int = 0) -> int:
     """Raise :class:`MassDeletionError` if ``planned`` deletes more than MASS_MIN of the
-    robot's files (and links), and more than half of them.
+    robot's files (and links), and more than half of them, counting ``recent`` files
+    deleted just before as part of the same deletion; else return how many it deletes.
 
     A ``src/`` emptied by mistake (an ``rm -rf src/*``, a checkout of the wrong branch,
     a workspace path that points elsewhere) would otherwise empty the robot's, and its
@@ -1340,18 +1357,20 @@ def refuse_mass_deletion(planned: list[Planned], remote: dict[str, M.Listed],
     """
     gone = {p.op.path for p in planned if p.op.kind == M.DELETE}
     if not gone:
-        return
+        return 0
     doomed = sum(1 for path, r in remote.items()
                  if r.kind != "d" and (path in gone or any(a in gone for a in ancestors(path))))
-    if doomed <= MASS_MIN:
-        return
+    if doomed + recent <= MASS_MIN:
+        return doomed
     total = max(sum(1 for r in remote.values() if r.kind != "d"),
-                sum(1 for s in synced.values() if s.kind != "d"))
-    if doomed * 2 > total:
-        raise MassDeletionError(f"this push would delete {doomed} of the robot's {total} files; "
-                                "nothing was changed",
+                sum(1 for s in synced.values() if s.kind != "d")) + recent
+    if (doomed + recent) * 2 > total:
+        so_far = f" ({recent} of them deleted in the last {RECENT:.0f} s)" if recent else ""
+        raise MassDeletionError(f"this push would delete {doomed + recent} of the robot's {total} "
+                                f"files{so_far}; nothing more was changed",
                                 hint="restore them here, or confirm with fetchsync push --force "
                                      "(deleted files go to the robot's .fetchsync/trash/)")
+    return doomed
 
 
 QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted

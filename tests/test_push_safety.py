@@ -334,3 +334,19 @@ def test_a_dry_run_reports_the_conflicts_the_real_push_meets(env):
     assert sorted(c["path"] for c in json.loads(strict.stdout)["conflicts"]) == want
     real = report(fetchsync("push", "--json", env=env))
     assert sorted(c["path"] for c in real["conflicts"]) == want
+
+
+def test_deletions_in_quick_succession_count_as_one(engine):
+    """The watch agent sees an rm -rf as several batches: small ones in quick succession
+    add up, so the guard still stops most of the deletion."""
+    s, src, ws = engine
+    many_files(src)
+    assert s.push().errors == []
+    for i in range(15):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    assert s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15)}).deleted == 15
+    for i in range(15, 40):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    with pytest.raises(sync.MassDeletionError, match="15 of them deleted in the last"):
+        s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15, 40)})
+    assert len(list((ws / "src/my_pkg/many").iterdir())) == 25
