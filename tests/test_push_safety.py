@@ -303,13 +303,18 @@ def test_a_directory_that_lost_its_x_bit_is_one_line_and_left_alone(env, how):
 
 def test_a_dry_run_creates_nothing_on_the_robot(env):
     """Issue 22 item 24: a dry run against a robot without the workspace plans the whole
-    tree and leaves the robot as it was (no workspace made)."""
+    tree and leaves the robot as it was (no workspace made); on one with the workspace,
+    its index is left as it was too."""
     proc = fetchsync("push", "--json", "--dry-run", env=env)
     r = json.loads(proc.stdout)
     assert r["dry_run"] and r["files"] == 5 and r["conflicts"] == []
     assert not robot_ws(env).exists()
     # the real push then finds nothing in its way
     assert report(fetchsync("push", "--json", env=env))["conflicts"] == []
+    (local_src(env) / "my_pkg/package.xml").write_text("<edited/>\n")
+    before = tree_of(robot_ws(env))
+    assert report(fetchsync("push", "--json", "--dry-run", env=env))["files"] == 1
+    assert tree_of(robot_ws(env)) == before
 
 
 def test_a_dry_run_reports_the_conflicts_the_real_push_meets(env):
@@ -322,13 +327,13 @@ def test_a_dry_run_reports_the_conflicts_the_real_push_meets(env):
     shutil.rmtree(src / "my_pkg/scripts")  # deletes a directory holding a robot-side file
     (src / "my_pkg/package.xml").write_text("<edited here/>\n")
     (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited here only\n")
-    before = tree_of(ws / "src")
+    before = tree_of(ws)  # its index in .fetchsync/ included
     dry = report(fetchsync("push", "--json", "--dry-run", env=env))
-    assert tree_of(ws / "src") == before and not (ws / ".fetchsync/conflicts").exists()
+    assert tree_of(ws) == before
     want = ["my_pkg/package.xml", "my_pkg/scripts"]
     assert sorted(c["path"] for c in dry["conflicts"]) == want
     strict_dry = fetchsync("push", "--json", "--dry-run", "--strict", env=env, check=False)
-    assert strict_dry.returncode == 6 and tree_of(ws / "src") == before
+    assert strict_dry.returncode == 6 and tree_of(ws) == before
     strict = fetchsync("push", "--json", "--strict", env=env, check=False)
     assert strict.returncode == 6
     assert sorted(c["path"] for c in json.loads(strict.stdout)["conflicts"]) == want
@@ -350,3 +355,32 @@ def test_deletions_in_quick_succession_count_as_one(engine):
     with pytest.raises(sync.MassDeletionError, match="15 of them deleted in the last"):
         s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15, 40)})
     assert len(list((ws / "src/my_pkg/many").iterdir())) == 25
+
+
+@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+def test_pull_works_on_a_read_only_robot(env):
+    """Issue 22 items 24 and 25: pull opens the robot read-only and writes nothing there
+    (no lock, no index), so a robot whose workspace cannot be written is pulled from."""
+    src, ws = local_src(env), robot_ws(env)
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    (ws / "src/my_pkg/package.xml").write_text("<fixed on the robot/>\n")
+    before = tree_of(ws)
+    cmd = [sys.executable, "-m", "fetchsync", "pull", "--yes", "--json"]
+    if os.geteuid() == 0:  # root's power to write anywhere, taken away
+        cmd = [SETPRIV, "--bounding-set", "-dac_override,-dac_read_search", "--", *cmd]
+    # the endpoint's own directory read-only (src's modes are what pull mirrors)
+    dirs = [p for p in [ws, *(ws / ".fetchsync").rglob("*")] if p.is_dir() and not p.is_symlink()]
+    dirs.append(ws / ".fetchsync")
+    modes = {d: stat.S_IMODE(d.stat().st_mode) for d in dirs}
+    for d in dirs:
+        d.chmod(0o555)
+    try:
+        proc = subprocess.run(cmd, env=env, capture_output=True, timeout=120, check=False)
+    finally:
+        for d, mode in modes.items():
+            d.chmod(mode)
+    assert proc.returncode == 0, (proc.stderr.decode(), proc.stdout.decode())
+    assert (src / "my_pkg/package.xml").read_text() == "<fixed on the robot/>\n"
+    assert tree_of(ws) == before
+    # the next push finds both ends alike
+    assert report(fetchsync("push", "--json", env=env))["files"] == 0
