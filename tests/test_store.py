@@ -429,3 +429,22 @@ def test_a_large_write_that_fails_fails_its_operation_only(tiny_store):
     assert (root / "big1.bin").read_bytes() == big1 and (root / "small.txt").read_bytes() == small
     assert not (root / "big2.bin").exists()
     assert not [p for p in root.rglob("*") if "fetchsync-tmp" in p.name]
+
+
+def test_a_workspace_deleted_between_requests_is_made_again(tmp_path):
+    """The descriptors are opened afresh for each request: a workspace deleted under a
+    long-lived endpoint (a watch, a connection master's) is made again, with a new epoch,
+    never written through a stale descriptor into the deleted directory."""
+    import shutil
+
+    s = Store(str(tmp_path / "ws"), algorithm=ALG)
+    s.lock()
+    assert s.apply([write("a", b"a")], b"a")[0].ok
+    s.save_index()
+    epoch = s.epoch
+    s.unlock()
+    shutil.rmtree(tmp_path / "ws")
+    s.lock()
+    assert s.apply([write("b", b"b")], b"b")[0].ok
+    s.unlock()
+    assert (tmp_path / "ws" / "src" / "b").read_bytes() == b"b" and s.epoch != epoch
