@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -94,7 +95,7 @@ def test_the_endpoint_imports_nothing_it_needs_only_later():
     assert out.stdout.strip() == ""
 
 
-def _run_loader(home: Path, *, umask: int = 0o022) -> "subprocess.CompletedProcess[bytes]":
+def _run_loader(home: Path, *, umask: int = 0o022) -> tuple[Any, bytes]:
     """The real loader command, as the robot's shell runs it: the archive sent on NEED,
     then end of input (the endpoint says hello and ends)."""
     import subprocess

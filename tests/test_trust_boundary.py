@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from endpoint_client import ALG, Endpoint
-from helpers import fetchsync, make_workspace, report, ssh_env
+from helpers import fetchsync, make_workspace, ssh_env
 
 from fetchsync.protocol import hashing
 from fetchsync.protocol import messages as M
