@@ -121,3 +121,20 @@ def test_a_one_line_edit_of_a_large_file_keeps_the_endpoint_small(tmp_path):
         assert fh.read(len(new_line)) == new_line
     assert big.stat().st_size == new_size
     assert peak < 64 * MiB, f"the endpoint peaked at {peak // MiB} MiB for a {size // MiB} MiB file"
+
+
+def test_reads_larger_than_a_piece_are_refused_not_loaded(store):
+    """A whole read of a file larger than MAX_READ, or a delta against a huge signature,
+    is a per-file error asking for pieces: the endpoint never loads a whole large file."""
+    from fetchsync.protocol import store as store_mod
+    from fetchsync.protocol.errors import ProtocolError
+
+    big = Path(store.root) / "big.bin"
+    with open(big, "wb") as fh:
+        fh.truncate(store_mod.MAX_READ + 1)
+    with pytest.raises(ProtocolError, match="pieces"):
+        store.read("big.bin")
+    assert len(store.read("big.bin", offset=store_mod.MAX_READ - 10)[2]) == 11
+    assert len(store.read("big.bin", offset=0, length=1000)[2]) == 1000
+    with pytest.raises(ProtocolError, match="pieces"):
+        store.read("big.bin", sig=b"\0" * (store_mod.MAX_READ_SIG + 1))

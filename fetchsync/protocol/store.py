@@ -73,6 +73,9 @@ _INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict),
 PIECE = 1 << 20  # content is read, hashed, patched and written in pieces of this size
 HOLE = 64 * 1024  # a piece of zeros this long (aligned in the file) is left a hole when written
 _ZEROS = bytes(HOLE)
+MAX_READ = 32 * 1024 * 1024  # the most one read answers: larger files are read in pieces
+MAX_SIGNED = 4 << 30  # the largest file signed: its signature (~40 MiB) fits an answer
+MAX_READ_SIG = 4 * 1024 * 1024  # the largest signature a delta is made against (400,000 chunks)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
 TMP = "tmp"
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
@@ -835,7 +838,11 @@ class Store:
         the file, in pieces (memory bounded by the signature, not the file)."""
         from fetchsync.protocol import delta as delta_mod  # see _write_temp
 
-        fd, _st = self._open_file(path)
+        fd, st = self._open_file(path)
+        if st.st_size > MAX_SIGNED:
+            os.close(fd)
+            raise ProtocolError("%s: too large for a delta (its signature would not fit in an "
+                                "answer); it is sent whole" % path)
         with io.FileIO(fd, "rb", closefd=True) as fh:
             tee = _Tee(fh, self.algorithm)
             sig = delta_mod.signature_file_bytes(tee, algorithm=self.algorithm,  # type: ignore[arg-type]
@@ -853,12 +860,18 @@ class Store:
             if sig is not None:
                 from fetchsync.protocol import delta as delta_mod  # see _write_temp
 
+                if len(sig) > MAX_READ_SIG:  # its chunks' index would outgrow the file's pieces
+                    raise ProtocolError("%s: the signature is too large for a delta here; read the "
+                                        "file in pieces" % path)
+
                 base_sig = delta_mod.Signature.from_bytes(sig)
                 fh.seek(0)
                 return item, M.SRC_DELTA, delta_mod.encode_delta(
                     delta_mod.delta_file(fh, base_sig, bufsize=PIECE))  # type: ignore[arg-type]
-            if offset < 0:
-                raise ProtocolError("bad read offset")
+            want = max(0, st.st_size - offset) if length < 0 else length
+            if offset < 0 or want > MAX_READ:
+                raise ProtocolError("%s: bad read range, or more than %d MiB at once: read it in "
+                                    "pieces" % (path, MAX_READ >> 20))
             fh.seek(offset)
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
 
