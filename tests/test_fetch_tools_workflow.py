@@ -10,8 +10,8 @@ fetch_tools' README ("Example Workflow")::
     fetch push --build "--pkg my_awesome_package"
     fetch run "roslaunch my_awesome_package do_stuff.launch"
 
-The test runs these lines in a real bash that evaluated ``fetchsync shell-init
-bash``, with what a user of this laptop would have set up beforehand: ROS
+The test runs these lines in a real bash (and zsh) that evaluated ``fetchsync
+shell-init bash`` (``zsh``), with what a user of this laptop would have set up beforehand: ROS
 "sourced" (``ROS_DISTRO=noetic``), ``FETCH_USER``, an ssh config entry for
 ``freight0`` (the test robot cannot be called that by DNS), the admin login of
 the robot (``FETCHSYNC_ADMIN_USER=root``: the test robot has no ``fetch``
@@ -49,6 +49,15 @@ pytestmark = [
                        reason="catkin (catkin_make) and g++ not installed"),
     pytest.mark.skipif(shutil.which("bash") is None, reason="bash not installed"),
 ]
+
+
+@pytest.fixture(params=["bash", "zsh"])
+def shell(request: pytest.FixtureRequest) -> str:
+    if shutil.which(request.param) is None:
+        if os.environ.get("CI"):
+            pytest.fail(f"{request.param} is not installed (.ci/run installs it)", pytrace=False)
+        pytest.skip(f"{request.param} not installed")
+    return str(request.param)
 
 PKG = "my_awesome_package"
 CMAKELISTS = f"""cmake_minimum_required(VERSION 3.0.2)
@@ -102,17 +111,22 @@ def _laptop(ssh_home, tmp_path: Path, user: str) -> dict[str, str]:
     return env
 
 
-def _step(env: dict[str, str], cwd: Path, line: str) -> subprocess.CompletedProcess[str]:
-    """One README line, typed in a bash that ran shell-init (and `ufr 0`)."""
-    program = f'eval "$(fetchsync shell-init bash)"\nufr 0 >/dev/null\n{line}\n'
-    return subprocess.run(["bash", "--norc", "--noprofile", "-c", program], env=env, cwd=cwd,
-                          capture_output=True, text=True, timeout=600, stdin=subprocess.DEVNULL,
-                          check=False)
+def _typed(env: dict[str, str], cwd: Path, line: str,
+           shell: str = "bash") -> subprocess.CompletedProcess[str]:
+    """One README line, typed in a shell that ran shell-init (and `ufr 0`)."""
+    program = f'eval "$(fetchsync shell-init {shell})"\nufr 0 >/dev/null\n{line}\n'
+    argv = [shell, "--norc", "--noprofile"] if shell == "bash" else [shell, "-f"]
+    return subprocess.run([*argv, "-c", program], env=env, cwd=cwd, capture_output=True,
+                          text=True, timeout=600, stdin=subprocess.DEVNULL, check=False)
 
 
-def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_user) -> None:
+def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_user,
+                                                   shell) -> None:
     env = _laptop(ssh_home, tmp_path, robot_user)
     cwd = ssh_home.home
+
+    def _step(env: dict[str, str], cwd: Path, line: str) -> subprocess.CompletedProcess[str]:
+        return _typed(env, cwd, line, shell)
 
     # `ufr 0` points ROS_MASTER_URI, and with it fetch, at freight0
     uri = _step(env, cwd, "ufr 0")
