@@ -384,3 +384,42 @@ def test_a_readonly_open_creates_nothing(tmp_path):
         assert f.type == 2
     assert sorted(os.listdir(ws)) == ["src"]
     assert sorted(os.listdir(ws / "src")) == ["f"]
+
+
+@pytest.mark.parametrize("edit", ["in place", "replaced", "created"])
+def test_a_robot_edit_between_the_check_and_the_rename_is_kept(store, monkeypatch, edit):
+    """The check before a replacement and the rename are two system calls: a robot-side
+    edit made between them is not lost (renameat2: the new version is exchanged in and
+    the old one kept when it is not the one checked; over nothing, no replacing)."""
+    from fetchsync.protocol import store as store_mod
+
+    assert store.apply([write("a.txt", b"v1")], b"v1")[0].ok
+    path = Path(store.root) / "a.txt"
+    if edit == "created":
+        path.unlink()
+        store.apply([], b"")
+    real = store_mod.Store._at
+    armed = [True]
+
+    def at(self, p, dir_fd, name):  # type: ignore[no-untyped-def]
+        got = real(self, p, dir_fd, name)
+        if p == "a.txt" and armed[0]:
+            armed[0] = False
+            if edit == "in place":
+                with open(path, "r+b") as fh:
+                    fh.write(b"edited on the robot, in the window\n")
+            else:
+                tmp = path.with_name("x")
+                tmp.write_bytes(b"edited on the robot, in the window\n")
+                os.rename(tmp, path)
+        return got
+
+    monkeypatch.setattr(store_mod.Store, "_at", at)
+    expect = M.ABSENT if edit == "created" else M.expect_file(h(b"v1"))
+    [r] = store.apply([write("a.txt", b"v2", expect=expect)], b"v2")
+    monkeypatch.setattr(store_mod.Store, "_at", real)
+    kept = [p.read_bytes() for p in Path(store.meta).rglob("a.txt")] + [path.read_bytes()]
+    assert b"edited on the robot, in the window\n" in kept, (r, kept)
+    assert not [p for p in Path(store.root).iterdir() if ".fetchsync-tmp-" in p.name]
+    if r.ok:
+        assert path.read_bytes() == b"v2" and r.preserved

@@ -25,8 +25,9 @@ Rules it keeps:
   ``.fetchsync/conflicts/`` (policy ``preserve``; the result says where) or the
   operation is refused (policy ``refuse``). A version replaced by a write is
   kept there by a hard link made only once the new content is durable, and the
-  replacement is one rename: a failure at any step (a full disk) leaves the
-  robot's version in place. Deleted paths go to a bounded ``.fetchsync/trash/``.
+  replacement is one rename (renameat2: an exchange, the old version deleted only
+  if it is still the one checked): a failure at any step (a full disk), or an
+  edit made between the check and the rename, leaves the robot's version kept. Deleted paths go to a bounded ``.fetchsync/trash/``.
   Nothing is lost.
 - The index (``.fetchsync/index``, a :mod:`marshal` snapshot, plus
   ``index.log``, the changes made since, appended after every request and
@@ -1068,6 +1069,7 @@ class _Batch:
         self.ops = []  # type: List[M.Op]
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
+        self.exchanged = False  # the operation being committed has swapped its temporary in
 
     def _view(self, op: M.Op) -> memoryview:
         """The operation's data, not copied (hashed and written as it lies in the request)."""
@@ -1331,6 +1333,7 @@ class _Batch:
         the rename replaces it, and the rename is the only change to op.path."""
         s = self.s
         with s._root().parent(op.path) as (dir_fd, name):
+            before = lstat_at(name, dir_fd)
             cur = s._at(op.path, dir_fd, name)
             preserved, aside = "", ""
             if cur is not None and cur.kind == DIR and op.expect == M.IS_DIR:
@@ -1344,17 +1347,44 @@ class _Batch:
                 aside = "conflicts"
             elif cur is not None and not _same(op, cur) and self._conflict(op, cur):
                 preserved = s._keep_copy(dir_fd, name, op.path, "conflicts")
+            self.exchanged = False
             try:
-                os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+                if aside or not self._swap_in(op, dir_fd, name, tmp, before, preserved):
+                    os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+                elif lstat_at(tmp, dir_fd) is not None:
+                    # what the exchange took out changed after it was checked: kept
+                    preserved = s._set_aside(dir_fd, tmp, op.path, "conflicts")
             except BaseException:
                 if aside:
                     s._put_back(dir_fd, name, op.path, aside)
+                elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
+                    _renameat2(dir_fd, tmp, name, RENAME_EXCHANGE)  # the robot's version back
                 elif preserved:
                     s._drop_copy(op.path, "conflicts")
                 raise
         item = s.written(op.path, op.hash if op.kind == M.WRITE else "")
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+
+    def _swap_in(self, op: M.Op, dir_fd: int, name: str, tmp: str, before: Optional[os.stat_result],
+                 preserved: str) -> bool:
+        """Put the temporary in place with renameat2, so nothing the robot does between the
+        check and the rename is lost: over nothing, only if nothing appeared meanwhile
+        (RENAME_NOREPLACE); over a file, by exchanging the two, the old version then
+        deleted only if it is still the one checked (else it stays at the temporary's
+        name for the caller to keep). False where renameat2 cannot (a plain rename then)."""
+        if before is None:
+            if _renameat2(dir_fd, tmp, name, RENAME_NOREPLACE):
+                return True
+            return False
+        if stat_mod.S_ISDIR(before.st_mode) or not _renameat2(dir_fd, tmp, name, RENAME_EXCHANGE):
+            return False
+        self.exchanged = True
+        out = lstat_at(tmp, dir_fd)
+        if out is not None and (out.st_ino, out.st_size, out.st_mtime_ns) == \
+                (before.st_ino, before.st_size, before.st_mtime_ns):
+            os.unlink(tmp, dir_fd=dir_fd)  # exactly what was checked (and kept, if edited)
+        return True
 
     def _unlink(self, path: str, tmp: str) -> None:
         try:
@@ -1367,6 +1397,37 @@ class _Batch:
         for op, _idx, tmp in self.pending:
             self._unlink(op.path, tmp)
         self.pending = []
+
+
+RENAME_NOREPLACE = 1
+RENAME_EXCHANGE = 2
+# renameat2's system call number (glibc has a wrapper only from 2.28, after Ubuntu 18.04's)
+_RENAMEAT2 = {"x86_64": 316, "aarch64": 276, "riscv64": 276, "i386": 353, "i686": 353,
+              "armv6l": 382, "armv7l": 382, "armv8l": 382, "ppc64le": 357}
+_renameat2_works = True
+
+
+def _renameat2(dir_fd: int, src: str, dst: str, flags: int) -> bool:
+    """renameat2(2) of ``src`` to ``dst`` in ``dir_fd``; False where the kernel or the file
+    system cannot (the caller renames plainly); an OSError otherwise (EEXIST: something
+    appeared at ``dst`` under RENAME_NOREPLACE)."""
+    global _renameat2_works, _libc
+    number = _RENAMEAT2.get(os.uname().machine)
+    if not _renameat2_works or number is None:
+        return False
+    import ctypes
+    if _libc is None:
+        _libc = ctypes.CDLL(None, use_errno=True)
+    if _libc.syscall(ctypes.c_long(number), ctypes.c_int(dir_fd), ctypes.c_char_p(os.fsencode(src)),
+                     ctypes.c_int(dir_fd), ctypes.c_char_p(os.fsencode(dst)), ctypes.c_uint(flags)) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err == errno.ENOSYS:
+        _renameat2_works = False
+        return False
+    if err in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False  # not on this file system
+    raise OSError(err, os.strerror(err))
 
 
 def _same(op: M.Op, cur: M.Listed) -> bool:
