@@ -704,8 +704,9 @@ def render(res: dict[str, Any]) -> str:
             out.append(f"- {k}: {len(v)} difference(s), e.g. " + "; ".join(v[:3]))
     else:
         out.append(
-            "verification: PASS (after the saves and the burst every remote tree equals the local "
-            "src/: paths, kinds, modes, symlink targets, SHA-256)"
+            "verification: PASS (at live, after the saves and the burst"
+            + (", and after the outages" if res.get("recovery") else "")
+            + " every remote tree equals the local src/: paths, kinds, modes, symlink targets, SHA-256)"
         )
     return "\n".join(out)
 
