@@ -69,7 +69,16 @@ for _p in (str(BENCH), str(REPO / "tests")):
         sys.path.insert(0, _p)
 
 from countproxy import LINKS, Link, proxy_command, set_link_state
-from run import _workdir, differences, link_line, load_average, machine_info, robot_python, snapshot
+from run import (
+    _workdir,
+    baseline_checkout,
+    differences,
+    link_line,
+    load_average,
+    machine_info,
+    robot_python,
+    snapshot,
+)
 from sshd import SSHD, make_ssh_home, running_sshd
 from workspace import Workspace, generate
 
@@ -256,6 +265,27 @@ class FetchsyncWatch(WatchTool):
     def stop(self) -> None:
         super().stop()
         self.bench.stop_masters()
+
+
+def baseline_watch(rev: str, checkout: Path) -> type[FetchsyncWatch]:
+    """``fetchsync watch`` of another revision (``--baseline-rev``): its source tree on
+    ``PYTHONPATH``, its own runtime directory, state and robot cache."""
+
+    class Baseline(FetchsyncWatch):
+        name = f"fetchsync@{rev}"
+
+        def env(self) -> dict[str, str]:
+            env = super().env()
+            runtime = self.bench.runtime_dir / "b"
+            runtime.mkdir(mode=0o700, exist_ok=True)
+            env.update(
+                PYTHONPATH=str(checkout),
+                XDG_RUNTIME_DIR=str(runtime),
+                FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot-cache-b"),
+            )
+            return env
+
+    return Baseline
 
 
 class Lsyncd(WatchTool):
@@ -573,9 +603,7 @@ def render(res: dict[str, Any]) -> str:
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     lat = res["latency"]
-    for name in ("fetchsync", "lsyncd"):
-        if name not in lat:
-            continue
+    for name in lat:
         s = _stats([x for x in lat[name] if x is not None])
         lost = sum(1 for x in lat[name] if x is None)
         out.append(
@@ -728,6 +756,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--idle-seconds", type=float, help="idle window (default 10)")
     ap.add_argument("--tools", default="fetchsync,lsyncd", help="comma-separated (default both)")
+    ap.add_argument(
+        "--baseline-rev",
+        metavar="REV",
+        help="also run the fetchsync watch of git revision REV, after this checkout's",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument(
         "--recovery",
@@ -790,6 +823,10 @@ def main(argv: list[str] | None = None) -> int:
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB")
         targets = pick_targets(ws)
         params["targets"] = len(targets)
+        if a.baseline_rev:
+            rev, checkout = baseline_checkout(a.baseline_rev, workdir)
+            classes[f"fetchsync@{rev}"] = baseline_watch(rev, checkout)
+            tools.insert(tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}")
         with running_sshd(workdir / "sshd") as sshd:
             bench = WatchBench(workdir, sshd, LINKS[a.link])
             try:
