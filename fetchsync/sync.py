@@ -19,7 +19,7 @@ import time
 import types
 import zlib
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Mapping
 
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
@@ -591,7 +591,6 @@ class Syncer:
         self.policy = policy
         self.algorithm = conn.algorithm
         self.opened: dict[str, Any] | None = None
-        self._robot_sigs: dict[str, bytes] = {}
         self._synced: dict[str, Synced] | None = None  # the state's entries, kept between calls
         self._signed: set[str] | None = None  # paths whose state entry holds a signature
         # upload parts this session abandoned (id -> how far they reach): a later upload
@@ -725,129 +724,34 @@ class Syncer:
 
         ``listed``: the paths the robot's listing reported (all, after a full one),
         which its index does not vouch for; those found identical are adopted there."""
-        robot_listed = set(listed or ())
-        adopt_all = False
         if self._signed is None:
             self._signed = self.state.signed_paths()
-        signed = self._signed
-        robot_sigs: dict[str, bytes] = {}
-        self._robot_sigs = robot_sigs
-        whole_only: set[str] = set()
-        new_synced = dict(synced)
-        upserts: dict[str, tuple[Synced, bytes | None]] = {}
-        deletes: set[str] = set()
-        now_ns = time.time_ns()
-
-        def expect(path: str) -> str:
-            s = new_synced.get(path)
-            return s.expectation() if s is not None else M.ABSENT
-
-        # what the laptop could not read, and what its rules now exclude (an --exclude,
-        # a pattern added to a .fetchsyncignore), is left as the robot has it
-        unreadable = local.guarded()
-        excluded = LocalRules(self.local_root, self.rules)
-        left_alone = {p for p, r in remote.items() if p not in local.items and excluded(p, r.kind == "d")}
-
-        def guarded(path: str) -> bool:
-            return path in left_alone or unreadable(path)
-
-        def has_sig(path: str, dst: M.Listed) -> bool:
-            s = new_synced.get(path)
-            return (path in signed and path not in whole_only and s is not None and s.kind == "f"
-                    and s.hash == dst.hash and dst.size >= SIG_MIN)
-
-        for _round in range(MAX_ROUNDS):
-            # what the laptop could not read is left as the robot has it
-            planned = [p for p in plan(local.items, remote, expect, has_signature=has_sig)
-                       if not guarded(p.op.path)]
-            if _round == 0 and not dry_run:
-                self._check_deletions(planned, remote, synced, confirmed=confirm_deletions)
+        rnd = Round(self, local, remote, synced, epoch, gen, report, scope=scope, listed=listed)
+        for n in range(MAX_ROUNDS):
+            planned = rnd.plan()
+            if n == 0 and not dry_run:
+                self._check_deletions(planned, rnd.remote, synced, confirmed=confirm_deletions)
             if dry_run:
-                for p in planned:
-                    report.count(p)
-                    report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
-                report.conflicts += _conflicts_ahead(planned, remote, expect, refuse=self.policy == "refuse")
+                rnd.report_ahead(planned)
                 break
             if not planned:
                 break
-            report.rounds += 1
-            planned = self._robot_signatures(planned, remote, robot_sigs, whole_only)
-            batcher = _Batcher(self.conn, {"policy": self.policy, "epoch": epoch, "gen": gen,
-                                           "require_fresh": True}, progress,
-                               sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
-            vanished = mismatch = False
-
-            def settle(answered: list[tuple[Any, M.Result]]) -> None:
-                nonlocal mismatch
-                for tag, res in answered:
-                    mismatch |= res.code == M.BASE_MISMATCH
-                    mismatch |= self._settle(tag, res, remote, new_synced, upserts, deletes,
-                                             whole_only, local, report, now_ns)
-
-            # settled as the robot answers, so a large push never holds every
-            # operation and every answer at once
-            planned.reverse()
-            while planned:
-                vanished |= self._send_op(batcher, planned.pop(), local, report)
-                if len(planned) % 512 == 0:
-                    settle(batcher.answered())
-            # no post-apply scan: the robot reported its changes at the start of
-            # this push, and each operation re-checks its own path there
-            batcher.flush()
-            settle(batcher.answered(wait=True))
-            stale = batcher.stale
-            if batcher.last:
-                epoch, gen = batcher.last["epoch"], batcher.last["gen"]
-            if stale:
+            again = rnd.run(planned, progress)
+            if rnd.stale:
                 if scope is not None:
-                    self._commit(upserts, deletes, new_synced, epoch, gen)
+                    rnd.commit()
                     return True
                 # another writer touched the robot: start again from what it holds now
-                listing = self.conn.request({"op": "list", "mode": "full"}).header
-                remote = self._apply_listing(listing, synced)
-                epoch, gen = listing["epoch"], listing["gen"]
-                adopt_all = True
+                rnd.relist()
                 continue
-            # only a base mismatch (it goes whole next time) or a file that
-            # vanished (its delete) is worth another round; a lasting failure
-            # (no space, permission) is reported once
-            if not vanished and not mismatch:
+            if not again:
                 break
         if not dry_run and report.rounds:  # no round: the first plan was empty already
-            failed = {e["path"] for e in report.errors}
-            left = [] if _same_tree(local.items, remote) else \
-                [p for p in plan(local.items, remote, expect)
-                 if p.op.path not in failed and not guarded(p.op.path)]
-            if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
-                report.errors.append({"path": left[0].op.path, "error":
-                                      f"{len(left)} path(s) still differ on the robot after "
-                                      f"{report.rounds} rounds (is something there rewriting them?)"})
-        # paths already identical need no operation, but the state must know them,
-        # and so must the robot's index if it did not (else every later drift
-        # check there would report them, and a no-op push would list them all)
-        adopt: list[list[Any]] = []
-        for path, item in local.items.items():
-            r = remote.get(path)
-            if r is not None and r == item and path not in upserts:
-                if adopt_all or path in robot_listed:
-                    adopt.append(item.to_wire())
-                s = _synced_from(item, local.stats.get(path), now_ns)
-                if new_synced.get(path) != s:
-                    upserts[path] = (s, None)
-                    new_synced[path] = s
-        if adopt and not dry_run:
-            ad = self.conn.request({"op": "adopt", "entries": adopt}).header
-            epoch, gen = ad["epoch"], ad["gen"]
-        candidates = list(new_synced) if scope_paths is None else \
-            [p for p in scope_paths if p in new_synced]
-        for path in candidates:
-            # an excluded path the robot did not list keeps its row: it is left alone there
-            if path not in remote and path not in upserts and (scope is None or scope(path)) \
-                    and not excluded(path, new_synced[path].kind == "d"):
-                deletes.add(path)
-                del new_synced[path]
+            rnd.check_converged()
+        rnd.take_identical(adopt=not dry_run)
+        rnd.forget_gone(scope_paths)
         if not dry_run:
-            self._commit(upserts, deletes, new_synced, epoch, gen)
+            rnd.commit()
         return False
 
     def _check_deletions(self, planned: list[Planned], remote: dict[str, M.Listed],
@@ -916,7 +820,8 @@ class Syncer:
             remote.pop(path, None)
         return remote
 
-    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report) -> bool:
+    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report,
+                 robot_sigs: dict[str, bytes]) -> bool:
         """Add one planned operation, reading its content now. Returns True if the local
         file vanished meanwhile (it is then dropped from ``local``: a delete to plan)."""
         op = p.op
@@ -950,7 +855,7 @@ class Syncer:
             local.items[op.path] = p.item  # type: ignore[assignment]
         local.stats[op.path] = entry
         if p.how == DELTA:
-            stored = self._robot_sigs.get(op.path) or self.state.signature(op.path)
+            stored = robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None:
                 d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
                 if len(d) < len(data):
@@ -1037,12 +942,115 @@ class Syncer:
         if upload and extent:
             self._spare_uploads[upload] = extent
 
-    def _settle(self, tag: Any, res: M.Result, remote: dict[str, M.Listed], new_synced: dict[str, Synced],
-                upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str], whole_only: set[str],
-                local: LocalTree, report: Report, now_ns: int) -> bool:
+
+
+class Round:
+    """One push's rounds: its plan, batches, answers and their settling, until the robot
+    holds the local tree (within a scope); then the state's new rows. What lives across
+    pushes (the connection, the state, upload parts, recent deletions) is the Syncer's.
+    """
+
+    def __init__(self, syncer: Syncer, local: LocalTree, remote: dict[str, M.Listed],
+                 synced: dict[str, Synced], epoch: str, gen: int, report: Report, *,
+                 scope: Callable[[str], bool] | None, listed: Iterable[str] | None) -> None:
+        self.syncer = syncer
+        self.local = local
+        self.remote = remote          # what the robot holds, as its answers say
+        self.synced = synced          # what the state says was last synced
+        self.new_synced = dict(synced)
+        self.upserts: dict[str, tuple[Synced, bytes | None]] = {}
+        self.deletes: set[str] = set()
+        self.whole_only: set[str] = set()  # base mismatches: sent whole next time
+        self.robot_sigs: dict[str, bytes] = {}
+        self.epoch, self.gen = epoch, gen
+        self.report = report
+        self.scope = scope
+        self.robot_listed = set(listed or ())
+        self.adopt_all = False
+        self.stale = False
+        self.now_ns = time.time_ns()
+        self.excluded = LocalRules(syncer.local_root, syncer.rules)
+        self.unreadable = local.guarded()
+        self.left_alone = {p for p, r in remote.items()
+                           if p not in local.items and self.excluded(p, r.kind == "d")}
+
+    def expect(self, path: str) -> str:
+        s = self.new_synced.get(path)
+        return s.expectation() if s is not None else M.ABSENT
+
+    def plan(self) -> list[Planned]:
+        """The next round's operations (see :func:`reconcile`)."""
+        signed, whole_only, new_synced = self.syncer._signed or set(), self.whole_only, self.new_synced
+
+        def has_signature(path: str, dst: M.Listed) -> bool:
+            s = new_synced.get(path)
+            return (path in signed and path not in whole_only and s is not None and s.kind == "f"
+                    and s.hash == dst.hash and dst.size >= SIG_MIN)
+
+        return reconcile(self.local.items, self.remote, self.expect, guarded=self.guarded,
+                         has_signature=has_signature)
+
+    def guarded(self, path: str) -> bool:
+        """What the laptop could not read, and what its rules now exclude (an --exclude, a
+        pattern added to a .fetchsyncignore), is left as the robot has it."""
+        return path in self.left_alone or self.unreadable(path)
+
+    def report_ahead(self, planned: list[Planned]) -> None:
+        """A dry run's report: the plan and the conflicts it would meet."""
+        for p in planned:
+            self.report.count(p)
+            self.report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
+        self.report.conflicts += _conflicts_ahead(planned, self.remote, self.expect,
+                                                  refuse=self.syncer.policy == "refuse")
+
+    def run(self, planned: list[Planned], progress: Progress | None) -> bool:
+        """Send one round and settle its answers. Returns whether another round is worth
+        it: a base mismatch (it goes whole next time), a file that vanished (its
+        delete), content the robot holds unseen. A lasting failure (no space,
+        permission) is reported once. ``stale`` says if another writer was met."""
+        syncer = self.syncer
+        self.report.rounds += 1
+        planned = syncer._robot_signatures(planned, self.remote, self.robot_sigs, self.whole_only)
+        batcher = _Batcher(syncer.conn, {"policy": syncer.policy, "epoch": self.epoch, "gen": self.gen,
+                                         "require_fresh": True}, progress,
+                           sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
+        again = False
+        # settled as the robot answers, so a large push never holds every
+        # operation and every answer at once
+        planned.reverse()
+        while planned:
+            again |= syncer._send_op(batcher, planned.pop(), self.local, self.report, self.robot_sigs)
+            if len(planned) % 512 == 0:
+                again |= self.settle(batcher.answered())
+        # no post-apply scan: the robot reported its changes at the start of
+        # this push, and each operation re-checks its own path there
+        batcher.flush()
+        again |= self.settle(batcher.answered(wait=True))
+        self.stale = batcher.stale
+        if batcher.last:
+            self.epoch, self.gen = batcher.last["epoch"], batcher.last["gen"]
+        return again
+
+    def relist(self) -> None:
+        """Start again from what the robot holds now (another writer was met)."""
+        listing = self.syncer.conn.request({"op": "list", "mode": "full"}).header
+        self.remote = self.syncer._apply_listing(listing, self.synced)
+        self.epoch, self.gen = listing["epoch"], listing["gen"]
+        self.adopt_all = True
+        self.stale = False
+
+    def settle(self, answered: list[tuple[Any, M.Result]]) -> bool:
+        again = False
+        for tag, res in answered:
+            again |= res.code == M.BASE_MISMATCH
+            again |= self._settle(tag, res)
+        return again
+
+    def _settle(self, tag: Any, res: M.Result) -> bool:
         """Take one answer into the round's view of the robot and the state's rows.
         Returns True if the robot now holds content this laptop never saw there (another
         round must replace it, keeping the robot's version aside)."""
+        report, remote = self.report, self.remote
         if tag is None:  # an upload piece
             if not res.ok:
                 report.errors.append({"path": "(upload)", "error": res.message})
@@ -1052,7 +1060,7 @@ class Syncer:
         if res.preserved:
             report.conflicts.append({"path": path, "kept": res.preserved})
         if res.code == M.BASE_MISMATCH:
-            whole_only.add(path)
+            self.whole_only.add(path)
             remote.pop(path, None)  # unknown: the next round sends it whole
             return False
         if not res.ok:
@@ -1063,13 +1071,7 @@ class Syncer:
             return False
         report.count(p)
         if p.op.kind == M.DELETE:
-            prefix = path + "/"
-            for key in [k for k in remote if k == path or k.startswith(prefix)]:
-                del remote[key]
-            for key in [k for k in new_synced if k == path or k.startswith(prefix)]:
-                del new_synced[key]
-                upserts.pop(key, None)
-                deletes.add(key)
+            self._forget_below(path, including=True)
             return False
         written = _as_sent(res.written, p.item) if res.written else p.item
         if written is None:
@@ -1083,21 +1085,84 @@ class Syncer:
             return True
         if p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK) and path in remote and remote[path].kind == "d" \
                 and written.kind != "d":
-            prefix = path + "/"
-            for key in [k for k in remote if k.startswith(prefix)]:
-                del remote[key]
-            for key in [k for k in new_synced if k.startswith(prefix)]:
-                del new_synced[key]
-                deletes.add(key)
+            self._forget_below(path, including=False)
         remote[path] = written
-        item = local.items.get(path)
-        s = _synced_from(written, local.stats.get(path) if item is not None and item.hash == written.hash
-                         else None, now_ns)
-        new_synced[path] = s
-        upserts[path] = (s, sig)
-        deletes.discard(path)
+        item = self.local.items.get(path)
+        s = _synced_from(written, self.local.stats.get(path) if item is not None and item.hash == written.hash
+                         else None, self.now_ns)
+        self.new_synced[path] = s
+        self.upserts[path] = (s, sig)
+        self.deletes.discard(path)
         return False
 
+    def _forget_below(self, path: str, *, including: bool) -> None:
+        """``path``'s subtree (and ``path`` itself if ``including``) is gone from the robot."""
+        prefix = path + "/"
+
+        def gone(key: str) -> bool:
+            return key.startswith(prefix) or (including and key == path)
+
+        for key in [k for k in self.remote if gone(k)]:
+            del self.remote[key]
+        for key in [k for k in self.new_synced if gone(k)]:
+            del self.new_synced[key]
+            self.upserts.pop(key, None)
+            self.deletes.add(key)
+
+    def check_converged(self) -> None:
+        """Report it if the robot still differs after the rounds (and nothing else says why)."""
+        report, local = self.report, self.local
+        failed = {e["path"] for e in report.errors}
+        left = [] if _same_tree(local.items, self.remote) else \
+            [p for p in plan(local.items, self.remote, self.expect)
+             if p.op.path not in failed and not self.guarded(p.op.path)]
+        if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
+            report.errors.append({"path": left[0].op.path, "error":
+                                  f"{len(left)} path(s) still differ on the robot after "
+                                  f"{report.rounds} rounds (is something there rewriting them?)"})
+
+    def take_identical(self, *, adopt: bool) -> None:
+        """Paths already identical need no operation, but the state must know them, and so
+        must the robot's index if it did not (else every later drift check there would
+        report them, and a no-op push would list them all); ``adopt``: tell the robot."""
+        wire_items: list[list[Any]] = []
+        for path, item in self.local.items.items():
+            r = self.remote.get(path)
+            if r is not None and r == item and path not in self.upserts:
+                if self.adopt_all or path in self.robot_listed:
+                    wire_items.append(item.to_wire())
+                s = _synced_from(item, self.local.stats.get(path), self.now_ns)
+                if self.new_synced.get(path) != s:
+                    self.upserts[path] = (s, None)
+                    self.new_synced[path] = s
+        if wire_items and adopt:
+            ad = self.syncer.conn.request({"op": "adopt", "entries": wire_items}).header
+            self.epoch, self.gen = ad["epoch"], ad["gen"]
+
+    def forget_gone(self, scope_paths: set[str] | None) -> None:
+        """Drop the rows of what the robot no longer holds (within the scope). An excluded
+        path the robot did not list keeps its row: it is left alone there."""
+        new_synced = self.new_synced
+        candidates = list(new_synced) if scope_paths is None else \
+            [p for p in scope_paths if p in new_synced]
+        for path in candidates:
+            if path not in self.remote and path not in self.upserts \
+                    and (self.scope is None or self.scope(path)) \
+                    and not self.excluded(path, new_synced[path].kind == "d"):
+                self.deletes.add(path)
+                del new_synced[path]
+
+    def commit(self) -> None:
+        self.syncer._commit(self.upserts, self.deletes, self.new_synced, self.epoch, self.gen)
+
+
+def reconcile(local: Mapping[str, M.Listed], remote: Mapping[str, M.Listed],
+              expect: Callable[[str], str], *, guarded: Callable[[str], bool],
+              has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False) -> list[Planned]:
+    """The operations that make the robot (``remote``, as it holds it) hold ``local``,
+    each expecting what ``expect(path)`` says was last synced there, leaving ``guarded``
+    paths as the robot has them. Pure: no I/O (see :func:`fetchsync.plan.plan`)."""
+    return [p for p in plan(local, remote, expect, has_signature=has_signature) if not guarded(p.op.path)]
 
 def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
          rules: IgnoreRules, confirm: Callable[[Report], bool] | None = None,
@@ -1131,7 +1196,7 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     # a local path we could not read is left as it is, not replaced
     guarded = local.guarded()
     # whole files, no deltas: a delta is applied to the local file, which goes to the trash
-    planned = [p for p in plan(remote, local.items, expect) if not guarded(p.op.path)]
+    planned = reconcile(remote, local.items, expect, guarded=guarded)
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
@@ -1147,30 +1212,9 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
         if not confirm(preview):
             from fetchsync.errors import AbortedError
             raise AbortedError("pull cancelled; nothing was changed")
-    planned = _set_aside_first(planned, local.items)
-    store = Store(local_workspace, algorithm=algorithm, create=True)
-    store.lock()
-    try:
-        ops, blobs, tags = _fetch(conn, planned, local_root, report)
-        results = store.apply(ops, b"".join(blobs))
-        store.save_index()
-    finally:
-        store.unlock()
+    failed = _apply_pulled(conn, _set_aside_first(planned, local.items), local_workspace, report)
     now_ns = time.time_ns()
     upserts: list[tuple[str, Synced, bytes | None]] = []
-    failed: set[str] = set()
-    for tag, res in zip(tags, results):
-        if tag is None:
-            continue
-        if res.preserved:
-            report.conflicts.append({"path": tag.op.path, "kept": os.path.join(local_workspace, res.preserved)
-                                     if not os.path.isabs(res.preserved) else res.preserved})
-        if not res.ok:
-            failed.add(tag.op.path)
-            report.errors.append({"path": tag.op.path, "error": res.message or res.code})
-            continue
-        if tag.how != ASIDE:
-            report.count(tag)
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
     for path, item in final.items.items():
         r = remote.get(path)
@@ -1188,6 +1232,35 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     report.bytes_received = conn.bytes_in
     report.seconds = time.monotonic() - t0
     return report
+
+
+def _apply_pulled(conn: Connection, planned: list[Planned], local_workspace: str,
+                  report: Report) -> set[str]:
+    """Fetch what ``planned`` needs from the robot and apply it to the local workspace,
+    by the same endpoint code the robot runs; report each answer. Returns the paths
+    that failed."""
+    store = Store(local_workspace, algorithm=conn.algorithm, create=True)
+    store.lock()
+    try:
+        ops, blobs, tags = _fetch(conn, planned, report)
+        results = store.apply(ops, b"".join(blobs))
+        store.save_index()
+    finally:
+        store.unlock()
+    failed: set[str] = set()
+    for tag, res in zip(tags, results):
+        if tag is None:
+            continue
+        if res.preserved:
+            report.conflicts.append({"path": tag.op.path, "kept": os.path.join(local_workspace, res.preserved)
+                                     if not os.path.isabs(res.preserved) else res.preserved})
+        if not res.ok:
+            failed.add(tag.op.path)
+            report.errors.append({"path": tag.op.path, "error": res.message or res.code})
+            continue
+        if tag.how != ASIDE:
+            report.count(tag)
+    return failed
 
 
 ASIDE = "aside"  # a pull's delete that keeps a local file before its replacement is written
@@ -1217,44 +1290,14 @@ def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list
     return out
 
 
-def _fetch(conn: Connection, planned: list[Planned], local_root: str,
+def _fetch(conn: Connection, planned: list[Planned],
            report: Report) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
     """Read what the plan needs from the robot; return local operations with their blob."""
     ops: list[M.Op] = []
     blobs: list[bytes] = []
     tags: list[Planned | None] = []
     pos = 0
-    pending: list[tuple[int, list[Planned]]] = []
-    items: list[dict[str, Any]] = []
-    group: list[Planned] = []
-    queued = 0
-
-    def flush() -> None:
-        nonlocal items, group, queued
-        if items:
-            pending.append((conn.send({"op": "read", "items": items}), group))
-        items, group, queued = [], [], 0
-
-    for p in planned:
-        if p.op.kind != M.WRITE or p.how == COPY:
-            continue
-        if p.op.size > BIG:
-            continue  # fetched piece by piece below
-        items.append({"p": p.op.path})
-        group.append(p)
-        queued += p.op.size
-        if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
-            flush()
-    flush()
-    fetched: dict[str, tuple[dict[str, Any], bytes]] = {}
-    for req, group in pending:
-        frame = conn.wait(req)
-        for p, ans in zip(group, frame.header.get("items", [])):
-            if ans.get("c") != M.OK:
-                report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
-                continue
-            off, length = ans["bl"]
-            fetched[p.op.path] = (ans, frame.blob[off:off + length])
+    fetched = _read_small(conn, planned, report)
     for p in planned:
         op = p.op
         if op.kind == M.WRITE and p.how != COPY:
@@ -1274,14 +1317,50 @@ def _fetch(conn: Connection, planned: list[Planned], local_root: str,
                     continue
                 ans, data = got
                 listed = M.Listed.from_wire(ans["l"])
-                src = M.SRC_DELTA if ans["src"] == M.SRC_DELTA else M.SRC_DATA
-                op = op.but(hash=listed.hash, size=listed.size, mode=_no_setid(listed).mode, source=src,
-                            base=op.base if src == M.SRC_DELTA else "", blob=(pos, len(data)))
+                # whole content: pull asks for no delta (see _set_aside_first)
+                op = op.but(hash=listed.hash, size=listed.size, mode=_no_setid(listed).mode,
+                            source=M.SRC_DATA, base="", blob=(pos, len(data)))
                 blobs.append(data)
                 pos += len(data)
         ops.append(op)
         tags.append(p)
     return ops, blobs, tags
+
+
+def _read_small(conn: Connection, planned: list[Planned],
+                report: Report) -> dict[str, tuple[dict[str, Any], bytes]]:
+    """The robot's answers and content for the whole files of ``planned`` (those up to BIG),
+    asked for in pipelined requests of about BATCH_BYTES."""
+    pending: list[tuple[int, list[Planned]]] = []
+    items: list[dict[str, Any]] = []
+    group: list[Planned] = []
+    queued = 0
+
+    def flush() -> None:
+        nonlocal items, group, queued
+        if items:
+            pending.append((conn.send({"op": "read", "items": items}), group))
+        items, group, queued = [], [], 0
+
+    for p in planned:
+        if p.op.kind != M.WRITE or p.how == COPY or p.op.size > BIG:
+            continue  # a large file is fetched piece by piece (_fetch_big)
+        items.append({"p": p.op.path})
+        group.append(p)
+        queued += p.op.size
+        if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
+            flush()
+    flush()
+    fetched: dict[str, tuple[dict[str, Any], bytes]] = {}
+    for req, group in pending:
+        frame = conn.wait(req)
+        for p, ans in zip(group, frame.header.get("items", [])):
+            if ans.get("c") != M.OK:
+                report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
+                continue
+            off, length = ans["bl"]
+            fetched[p.op.path] = (ans, frame.blob[off:off + length])
+    return fetched
 
 
 def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:

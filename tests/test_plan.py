@@ -74,3 +74,39 @@ def test_expectations_come_from_the_caller():
 def test_symlink_target_change():
     ops = plan(tree(M.Listed("l", "l", target="/abs")), tree(M.Listed("l", "l", target="rel")), absent)
     assert kinds(ops) == [("symlink", "l", "")]
+
+
+# reconcile (fetchsync.sync): the local scan, the last-synced state and the robot's
+# listing in, the push's operations out; no I/O
+
+
+def synced_expect(state):
+    return lambda path: state[path].expectation() if path in state else M.ABSENT
+
+
+def test_reconcile_expects_what_was_last_synced_not_what_the_robot_holds():
+    from fetchsync.sync import reconcile
+
+    local = tree(d("a"), f("a/x", "h1", mode=0o755))
+    last = tree(d("a"), f("a/x", "h1"))
+    robot = tree(d("a"), f("a/x", "h2"))  # edited on the robot since
+    (p,) = reconcile(local, robot, synced_expect(last), guarded=lambda _p: False)
+    assert (p.op.kind, p.op.path, p.op.expect) == (M.WRITE, "a/x", M.expect_file("h1"))
+
+
+def test_reconcile_leaves_guarded_paths_as_the_robot_has_them():
+    from fetchsync.sync import reconcile
+
+    local = tree(d("a"), f("a/x", "h1"))
+    robot = tree(d("a"), f("a/x", "h0"), d("build"), f("build/out", "h3"), f("a/locked", "h4"))
+    guarded = {"build", "a/locked", "a/x"}.__contains__  # excluded, unreadable
+    assert reconcile(local, robot, synced_expect(robot), guarded=guarded) == []
+    assert kinds(reconcile(local, robot, synced_expect(robot), guarded=lambda _p: False)) == [
+        ("write", "a/x", WHOLE), ("delete", "a/locked", ""), ("delete", "build", "")]
+
+
+def test_reconcile_of_identical_trees_is_empty():
+    from fetchsync.sync import reconcile
+
+    t = tree(d("a"), f("a/x", "h1"))
+    assert reconcile(t, dict(t), synced_expect(t), guarded=lambda _p: False) == []
