@@ -10,6 +10,7 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 from __future__ import annotations
 
 import errno
+import gc
 import logging
 import os
 import queue
@@ -614,6 +615,14 @@ class Syncer:
                 return False
             raise
         return True
+
+    def reload_entries(self) -> None:
+        """Drop the state's entries held in memory and load them again in one go (the
+        watch agent's compaction after a large sync: see Agent._compact)."""
+        if self._synced is not None:
+            self._synced = None
+            gc.collect()
+            self._load_synced()
 
     def _load_synced(self) -> dict[str, Synced]:
         if self._synced is None:

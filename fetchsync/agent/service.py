@@ -463,11 +463,8 @@ class Agent:
         stays at ~190 MB resident instead of ~365 MB (bench/scale.py), for
         one read of the state (~0.5 s there).
         """
-        syncer = self._syncer
-        if syncer is not None and getattr(syncer, "_synced", None) is not None:
-            syncer._synced = None
-            gc.collect()
-            syncer._load_synced()
+        if self._syncer is not None:
+            self._syncer.reload_entries()
         release_memory()
 
     def _set_state(self, state: str) -> None:
