@@ -85,6 +85,9 @@ def resolve_target(
     """
     robot_name = resolve_robot(robot, environ=environ)
     is_local = robot_name == LOCAL_ROBOT
+    if remote_workspace is None:  # robots.toml's [robots.NAME] counts as its option
+        from fetchsync.fleet import robot_settings
+        remote_workspace = robot_settings(robot_name, environ=environ).get("remote_workspace")
     if is_local or defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
         login = None
     else:
@@ -118,12 +121,11 @@ def robot_with_source(robot: str | None = None, *,
                 "(ROS_MASTER_URI=http://NAME:11311 works too; --robot local is the built-in local robot)"
             )
         source, value = f"ROS_MASTER_URI={uri}", ros_master_host(uri)
+    if "," in value or value.startswith("@"):  # a list or a group: one robot, or refused
+        from fetchsync.fleet import one_robot
+        value = one_robot(value, source, environ=environ)
     if value == LOCAL_ROBOT:
         return value, source
-    if "," in value:
-        # the fleet issue will make a list mean several robots; until then, say so
-        raise ConfigError(f"several robots ({value}, from {source}) are not supported yet: "
-                          "give one robot")
     _check_robot_name(value, source)
     if is_loopback(value):
         raise ConfigError(

@@ -184,27 +184,26 @@ def test_the_ssh_configs_user_is_named_and_noted(tmp_path: Path) -> None:
                              remote_workspace="~/w", is_local=True), environ=env) is None
 
 
-# -- one robot at a time ----------------------------------------------------------
+# -- one robot at a time, but for push and run (tests/test_fleet.py) ------------------
 
 
 @pytest.mark.parametrize("args", [["--robot", "a", "--robot", "b"], ["--robot", "a,b"]])
 def test_several_robots_are_refused_in_one_line(args: list[str], tmp_path: Path) -> None:
     env = clean_env(HOME=str(tmp_path), FETCHSYNC_WORKSPACE=str(make_workspace(tmp_path / "ws")))
-    for verb in (["push", *args], ["pull", "--yes", *args], ["watch", *args], ["config", *args],
-                 ["run", *args, "true"]):
+    for verb in (["pull", "--yes", *args], ["watch", *args], ["config", *args]):
         result = invoke(verb, env)
         assert result.exit_code == 2, (verb, result.output)
         [line] = result.output.splitlines()
-        assert line in ("fetchsync: error: several robots (a, b) are not supported yet: give one --robot",
-                        "fetchsync: error: several robots (a,b) are not supported yet: give one --robot")
+        assert line == ("fetchsync: error: several robots (a, b, from --robot): only push and run "
+                        "take several; give one robot")
 
 
 def test_several_robots_in_a_variable_are_refused(tmp_path: Path) -> None:
     env = clean_env(HOME=str(tmp_path), FETCH_ROBOT="a,b",
                     FETCHSYNC_WORKSPACE=str(make_workspace(tmp_path / "ws")))
-    result = invoke(["push"], env)
+    result = invoke(["pull", "--yes"], env)
     assert result.exit_code == 2
-    assert "several robots (a,b, from FETCH_ROBOT) are not supported yet" in result.output
+    assert "several robots (a, b, from FETCH_ROBOT): only push and run take several" in result.output
 
 
 # -- push: a missing src/ ---------------------------------------------------------

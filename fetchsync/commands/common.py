@@ -15,17 +15,11 @@ def complete_robot(ctx: click.Context, param: click.Parameter, incomplete: str) 
     return complete(ctx, param, incomplete)
 
 
-def _one_robot(_ctx: click.Context, _param: click.Parameter, values: tuple[str, ...]) -> str | None:
-    """The one ``--robot`` given, or None; several are refused (exit 2) until the fleet
-    issue makes them mean several robots: silently taking the last one pushed to a robot
-    the user may not have meant."""
-    from fetchsync.errors import UsageError
-
-    names = [v for v in values if v.strip()]
-    if len(names) > 1 or any("," in v for v in names):
-        raise UsageError(f"several robots ({', '.join(names)}) are not supported yet: "
-                         "give one --robot")
-    return names[0] if names else None
+def _robots(_ctx: click.Context, _param: click.Parameter, values: tuple[str, ...]) -> str | None:
+    """The ``--robot`` values as one comma-separated list (None when none): several robots
+    are a fleet for push and run (:mod:`fetchsync.fleet`), refused in one line elsewhere."""
+    names = [v.strip() for v in values if v.strip()]
+    return ",".join(names) if names else None
 
 
 def target_options(func: Callable[..., Any] | None = None, *,
@@ -33,9 +27,10 @@ def target_options(func: Callable[..., Any] | None = None, *,
     """The fetch_tools options every robot verb takes; ``host_key=False`` leaves out
     ``--accept-host-key`` (for verbs that open no connection of their own)."""
     opts = [
-        click.option("--robot", multiple=True, callback=_one_robot, metavar="NAME",
+        click.option("--robot", multiple=True, callback=_robots, metavar="NAME",
                      shell_complete=complete_robot,
-                     help="Robot host name (or 'local'). "
+                     help="Robot host name (or 'local'); push and run take several (repeated, "
+                     "a,b, or @group of robots.toml). "
                      "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI."),
         click.option("--user", help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
                      "the ssh config's User, $USER."),
