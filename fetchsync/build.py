@@ -348,6 +348,7 @@ class TransportRunner:
     pty: bool = False
     stdout: int = 1
     python: str = "python3"
+    stderr: int = 2
 
     def run(self, step: Step) -> int:
         from fetchsync.console import NO_STATUS, attach
@@ -361,7 +362,7 @@ class TransportRunner:
                 channel.send_all(step.password.encode("utf-8") + b"\n")
             status = attach(channel, pty=self.pty,
                             stdin=0 if self.pty and step.password is None else None,
-                            stdout=self.stdout)
+                            stdout=self.stdout, stderr=self.stderr)
         finally:
             channel.close()
         return 255 if status == NO_STATUS else status
@@ -418,25 +419,28 @@ def _announcer(stream: int) -> Callable[[str], None]:
 
 
 def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
-                   accept_fingerprint: str | None = None, quiet_stdout: bool = False) -> None:
+                   accept_fingerprint: str | None = None, quiet_stdout: bool = False,
+                   stdout: int | None = None, stderr: int = 2) -> None:
     """Run ``request`` in the target's remote workspace, as ``push --build`` does.
 
     ``src`` is the local ``src/`` just pushed (the robot's is the same): its
     manifests help :func:`detect_tool`. ``quiet_stdout`` sends the build's
     stdout to our stderr (for ``--json``). A terminal on both stdin and stdout
-    gives the build a PTY, so sudo (rosdep) can ask for a password.
+    gives the build a PTY, so sudo (rosdep) can ask for a password. ``stdout`` and
+    ``stderr`` are other descriptors for its output (a fleet's per-robot pipes: no PTY).
     """
     from fetchsync.connection import remote_python
     from fetchsync.session import open_transport
 
-    out = 2 if quiet_stdout else 1
-    pty = not quiet_stdout and not target.is_local and sys.stdin.isatty() and sys.stdout.isatty()
+    out = stdout if stdout is not None else 2 if quiet_stdout else 1
+    pty = (stdout is None and not quiet_stdout and not target.is_local and sys.stdin.isatty()
+           and sys.stdout.isatty())
     transport = open_transport(target, accept_fingerprint=accept_fingerprint, persistent=False)
     try:
         runner = TransportRunner(transport, where=target.robot, pty=pty, stdout=out,
-                                 python=remote_python())
+                                 python=remote_python(), stderr=stderr)
         tool = request.tool
-        announce = _announcer(2)
+        announce = _announcer(stderr)
         password = None
         if request.install_deps:
             password = _rosdep_sudo(runner, target.remote_workspace, pty=pty)

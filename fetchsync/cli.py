@@ -20,6 +20,7 @@ from fetchsync.commands.build_options import BuildCommand, build_options, build_
 from fetchsync.commands.common import resolve as _resolve
 from fetchsync.commands.common import say_where, target_options
 from fetchsync.errors import FetchsyncError
+from fetchsync.fleet import fleet_options, robots_for
 from fetchsync.protocol.errors import ProtocolError
 
 # verb -> "module:attribute" of its click command, imported only when used
@@ -322,10 +323,11 @@ def cli() -> None:
 @click.option("--force", is_flag=True,
               help="Push even a missing or empty src/, or one that deletes most of the robot's files.")
 @build_options
+@fleet_options
 def push(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
          accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
          strict: bool, force: bool, builds: tuple[str, ...], build_type: str, build_tool: str,
-         install_deps: bool) -> None:
+         install_deps: bool, jobs: int, fail_fast: bool, retry_failed: bool) -> None:
     """Make the robot's <remote workspace>/src identical to the local src/.
 
     Files changed on the robot since the last sync are kept under
@@ -334,12 +336,20 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     A push that would delete most of the robot's files needs --force (which
     also resumes a watch agent paused for that reason).
     With --build or --install-deps, then builds on the robot.
+    Several robots (--robot a,b or @group) are pushed in parallel; a table ends it.
     """
     from fetchsync.errors import ConfigError, SyncError
     from fetchsync.protocol.ignore import build_rules
     from fetchsync.session import connect
 
     _collect_less()
+    robots = robots_for("push", robot, retry_failed=retry_failed)
+    if robots is not None:
+        from fetchsync import fleet
+        sys.exit(fleet.push(robots, user=user, workspace=workspace, remote_workspace=remote_workspace,
+                            accept_host_key=accept_host_key, excludes=excludes, as_json=as_json,
+                            dry_run=dry_run, strict=strict, force=force, jobs=jobs, fail_fast=fail_fast,
+                            request=build_request(builds, build_type, build_tool, install_deps)))
     target = _resolve(robot, user, workspace, remote_workspace)
     src = target.workspace / "src"
     if not force:

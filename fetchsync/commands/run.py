@@ -13,6 +13,7 @@ import click
 
 from fetchsync.commands.common import resolve, say_where, target_options
 from fetchsync.errors import ConfigError, LinkLostError, TransportError
+from fetchsync.fleet import fleet_options, robots_for
 
 LINK_EXIT = 255
 """Exit status when fetchsync itself fails to run the command, as ssh's."""
@@ -87,11 +88,12 @@ def _ending_signals() -> Iterator[None]:
 @target_options
 @click.option("--tty/--no-tty", "-t/-T", "tty", default=None,
               help="Run the command on a terminal (PTY) on the robot. Default: when stdin is a terminal.")
+@fleet_options
 @click.argument("words", nargs=-1, required=True, type=click.UNPROCESSED, metavar="COMMAND...")
 @click.pass_context
 def command(ctx: click.Context, robot: str | None, user: str | None, workspace: str | None,
             remote_workspace: str | None, accept_host_key: str | None, tty: bool | None,
-            words: tuple[str, ...]) -> None:
+            jobs: int, fail_fast: bool, retry_failed: bool, words: tuple[str, ...]) -> None:
     """Run COMMAND on the robot, with the robot's ROS environment.
 
     \b
@@ -101,7 +103,8 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     The environment is the remote workspace's devel/setup.bash or
     install/setup.bash, else /opt/ros/$ROS_DISTRO/setup.bash of the robot.
     Ctrl-C stops the command on the robot. Exits with the command's status,
-    255 when fetchsync could not run it.
+    255 when fetchsync could not run it. On several robots (--robot a,b or
+    @group) it runs on each in parallel, its output prefixed [robot].
     """
     from fetchsync.connection import remote_python
     from fetchsync.console import NO_STATUS, attach
@@ -110,6 +113,11 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
 
     argv_form = ctx.meta.get(_AFTER_DASHES) == list(words)
     line = remote_command_line(words, argv_form=argv_form)
+    robots = robots_for("run", robot, retry_failed=retry_failed)
+    if robots is not None:
+        from fetchsync import fleet
+        ctx.exit(fleet.run(robots, user=user, workspace=workspace, remote_workspace=remote_workspace,
+                           accept_host_key=accept_host_key, line=line, jobs=jobs, fail_fast=fail_fast))
     target, remote_ws = _target(robot, user, workspace, remote_workspace)
     # stderr is the command's: said only to a person watching it
     say_where("run on", target, remote=remote_ws, terminal_only=True)
