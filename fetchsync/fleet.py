@@ -367,10 +367,15 @@ def run_all(robots: Sequence[str], work: Callable[[str, Prefixed], RobotResult],
         if not result.ok:
             stop.set()
 
-    with ThreadPoolExecutor(max_workers=max(1, min(jobs, len(robots))),
-                            thread_name_prefix="fetchsync-fleet") as pool:
+    pool = ThreadPoolExecutor(max_workers=max(1, min(jobs, len(robots))),
+                              thread_name_prefix="fetchsync-fleet")
+    try:
         for future in [pool.submit(one, name) for name in robots]:
             future.result()
+    finally:
+        # Ctrl-C must not wait for the robots still working: the process ends, and
+        # with it their links (a command run there is stopped as a single run's is)
+        pool.shutdown(wait=False, cancel_futures=True)
     return [results[name] for name in robots]
 
 

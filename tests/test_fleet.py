@@ -156,3 +156,40 @@ def test_names_expand_lists_and_groups_in_order_each_once(tmp_path):
     os.remove(conf / "robots.toml")
     with pytest.raises(fleet.ConfigError, match="known groups .*: none"):
         fleet.expand("@lab", environ=environ)
+
+
+def test_ctrl_c_ends_a_fleet_run_and_its_commands_on_every_robot(fleet_env):
+    import signal
+    import subprocess
+    import sys
+    import time
+    import uuid
+
+    marker = f"0.{uuid.uuid4().int % 10**9:09d}"
+
+    def sleeps() -> list[str]:
+        return subprocess.run(["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True,
+                              text=True, check=False).stdout.split()
+
+    saved = signal.getsignal(signal.SIGINT)
+    if saved == signal.SIG_IGN:  # as test_run: children of a background suite would ignore it
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    proc = subprocess.Popen([sys.executable, "-m", "fetchsync", "run", "--robot", "fetch1,fetch2",
+                             "--", "sleep", "300", marker], env=fleet_env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while len(sleeps()) < 2:
+            assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read()
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130
+        deadline = time.monotonic() + 30
+        while sleeps():  # the robots' reapers stop the commands once the links close
+            assert time.monotonic() < deadline, "a command was left running on a robot"
+            time.sleep(0.1)
+    finally:
+        signal.signal(signal.SIGINT, saved)
+        proc.kill()
+        for pid in sleeps():
+            os.kill(int(pid), signal.SIGKILL)
