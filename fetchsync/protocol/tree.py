@@ -176,6 +176,53 @@ def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> Optional[bytes]:
         os.close(fd)
 
 
+def _list_dir(fd: int, rel: str, dir_rules, is_temp: Optional[Callable[[str], bool]],  # type: ignore[no-untyped-def]
+              entries: Dict[str, Entry], skipped: List[Tuple[str, str]]):
+    """Record the entries of the directory at ``fd`` (wire path ``rel``); the names of its
+    subdirectories and the rules in force below it."""
+    with os.scandir(fd) as it:
+        items = list(it)
+    if dir_rules is not None:
+        for de in items:
+            if de.name == IGNORE_FILE:
+                text = _read_at(IGNORE_FILE, fd)
+                if text is not None:
+                    dir_rules = dir_rules.with_file(rel, text.decode("utf-8", "surrogateescape"))
+                break
+    subdirs = []
+    for de in items:
+        name = de.name
+        if is_temp is not None and is_temp(name):
+            continue
+        path = rel + "/" + name if rel else name
+        try:
+            is_dir = de.is_dir(follow_symlinks=False)
+        except OSError:
+            continue
+        if dir_rules is not None and dir_rules.ignored(path, is_dir):
+            continue
+        try:
+            st = de.stat(follow_symlinks=False)
+        except OSError:
+            continue  # vanished while we looked
+        mode = st.st_mode
+        if S_ISREG(mode):
+            entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
+                                  st.st_ino)
+        elif S_ISDIR(mode):
+            entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+            subdirs.append(name)
+        elif S_ISLNK(mode):
+            try:
+                target = os.fsdecode(os.readlink(name, dir_fd=fd))
+            except OSError:
+                continue
+            entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
+        else:
+            skipped.append((path, "not a regular file, directory or symlink"))
+    return subdirs, dir_rules
+
+
 def scan_fd(root_fd: int, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
             prefix: str = "") -> ScanResult:
     """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
@@ -187,51 +234,7 @@ def scan_fd(root_fd: int, rules=None, *, is_temp: Optional[Callable[[str], bool]
     entries = {}  # type: Dict[str, Entry]
     skipped = []  # type: List[Tuple[str, str]]
 
-    def listing(fd: int, rel: str, dir_rules):  # type: ignore[no-untyped-def]
-        """The subdirectories' names of the directory at ``fd`` (its entries recorded)."""
-        with os.scandir(fd) as it:
-            items = list(it)
-        if dir_rules is not None:
-            for de in items:
-                if de.name == IGNORE_FILE:
-                    text = _read_at(IGNORE_FILE, fd)
-                    if text is not None:
-                        dir_rules = dir_rules.with_file(rel, text.decode("utf-8", "surrogateescape"))
-                    break
-        subdirs = []
-        for de in items:
-            name = de.name
-            if is_temp is not None and is_temp(name):
-                continue
-            path = rel + "/" + name if rel else name
-            try:
-                is_dir = de.is_dir(follow_symlinks=False)
-            except OSError:
-                continue
-            if dir_rules is not None and dir_rules.ignored(path, is_dir):
-                continue
-            try:
-                st = de.stat(follow_symlinks=False)
-            except OSError:
-                continue  # vanished while we looked
-            mode = st.st_mode
-            if S_ISREG(mode):
-                entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
-                                      st.st_ino)
-            elif S_ISDIR(mode):
-                entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
-                subdirs.append(name)
-            elif S_ISLNK(mode):
-                try:
-                    target = os.fsdecode(os.readlink(name, dir_fd=fd))
-                except OSError:
-                    continue
-                entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
-            else:
-                skipped.append((path, "not a regular file, directory or symlink"))
-        return subdirs, dir_rules
-
-    names, top_rules = listing(root_fd, prefix, rules)
+    names, top_rules = _list_dir(root_fd, prefix, rules, is_temp, entries, skipped)
     stack = [(root_fd, prefix, top_rules, iter(names))]
     try:
         while stack:
@@ -252,7 +255,7 @@ def scan_fd(root_fd: int, rules=None, *, is_temp: Optional[Callable[[str], bool]
                 skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
                 continue
             try:
-                names, sub_rules = listing(sub, path, dir_rules)
+                names, sub_rules = _list_dir(sub, path, dir_rules, is_temp, entries, skipped)
             except OSError as exc:
                 os.close(sub)
                 skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
