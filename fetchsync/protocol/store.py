@@ -720,9 +720,12 @@ class Store:
         not read again: the stat cache learns the hash directly.
         """
         with self._root().parent(path) as (dir_fd, name):
-            st = lstat_at(name, dir_fd)
-            if st is None or not stat_mod.S_ISREG(st.st_mode) or not digest:
-                return self._at(path, dir_fd, name)
+            return self._written_at(path, dir_fd, name, digest)
+
+    def _written_at(self, path: str, dir_fd: int, name: str, digest: str) -> Optional[M.Listed]:
+        st = lstat_at(name, dir_fd)
+        if st is None or not stat_mod.S_ISREG(st.st_mode) or not digest:
+            return self._at(path, dir_fd, name)
         self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
         return M.Listed(path, FILE, stat_mod.S_IMODE(st.st_mode), st.st_size, hash=digest)
 
@@ -1362,7 +1365,7 @@ class _Batch:
                 elif preserved:
                     s._drop_copy(op.path, "conflicts")
                 raise
-        item = s.written(op.path, op.hash if op.kind == M.WRITE else "")
+            item = s._written_at(op.path, dir_fd, name, op.hash if op.kind == M.WRITE else "")
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
