@@ -971,6 +971,7 @@ class Round:
         self.deletes: set[str] = set()
         self.whole_only: set[str] = set()  # base mismatches: sent whole next time
         self.robot_sigs: dict[str, bytes] = {}
+        self.kept: set[str] = set()  # paths whose robot version was kept aside
         self.epoch, self.gen = epoch, gen
         self.report = report
         self.scope = scope
@@ -1066,7 +1067,10 @@ class Round:
             return False
         p, sig = tag
         path = p.op.path
-        if res.preserved:
+        if res.preserved and path not in self.kept:
+            # once per push: a chmod's conflict keeps the robot's version, and the write
+            # of the next round keeps it again
+            self.kept.add(path)
             report.conflicts.append({"path": path, "kept": res.preserved})
         if res.code == M.BASE_MISMATCH:
             self.whole_only.add(path)
@@ -1400,7 +1404,7 @@ def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect
     """The conflicts ``planned`` would meet on the robot (a dry run's report): each
     operation whose path there holds something else than was last synced, and each
     directory it replaces or deletes with files edited there below it; as the endpoint
-    checks them (a chmod, or a mkdir over a directory, is not checked)."""
+    checks them (a mkdir over a directory is not checked)."""
     out: list[dict[str, str]] = []
 
     def conflict(path: str) -> None:
@@ -1410,7 +1414,7 @@ def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect
     for p in planned:
         op = p.op
         r = remote.get(op.path)
-        if op.kind == M.CHMOD or (op.kind == M.MKDIR and r is not None and r.kind == "d"):
+        if op.kind == M.MKDIR and r is not None and r.kind == "d":
             continue
         if (r.expectation() if r is not None else M.ABSENT) != op.expect:
             conflict(op.path)

@@ -327,10 +327,12 @@ def test_a_dry_run_reports_the_conflicts_the_real_push_meets(env):
     shutil.rmtree(src / "my_pkg/scripts")  # deletes a directory holding a robot-side file
     (src / "my_pkg/package.xml").write_text("<edited here/>\n")
     (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited here only\n")
+    (ws / "src/my_pkg/src/node.cpp").write_text("// edited on the robot\n")
+    (src / "my_pkg/src/node.cpp").chmod(0o755)  # only a chmod here
     before = tree_of(ws)  # its index in .fetchsync/ included
     dry = report(fetchsync("push", "--json", "--dry-run", env=env))
     assert tree_of(ws) == before
-    want = ["my_pkg/package.xml", "my_pkg/scripts"]
+    want = ["my_pkg/package.xml", "my_pkg/scripts", "my_pkg/src/node.cpp"]
     assert sorted(c["path"] for c in dry["conflicts"]) == want
     strict_dry = fetchsync("push", "--json", "--dry-run", "--strict", env=env, check=False)
     assert strict_dry.returncode == 6 and tree_of(ws) == before
