@@ -179,8 +179,9 @@ def _print_report(report: Any, as_json: bool) -> None:
             click.echo(f"  conflict: {p_(c['path'])} changed on the robot; left as it is", err=True)
         else:
             side = "on the robot" if report.verb == "push" else "locally"
+            kept = "would be kept in" if report.dry_run else "is kept in"
             click.echo(f"  conflict: {p_(c['path'])} was changed {side} since the last sync; "
-                       f"that version is kept in {p_(c['kept'])}", err=True)
+                       f"that version {kept} {p_(c['kept'])}", err=True)
     for s in report.skipped:
         click.echo(f"  skipped: {p_(s['path'])}: {p_(s['reason'])}", err=True)
     for e in report.errors:
