@@ -659,7 +659,8 @@ class Syncer:
             self.opened = self.conn.wait(open_req).header
         listing = self.conn.wait(list_req).header if list_req is not None else \
             {"full": True, "entries": [], "epoch": "", "gen": -1}  # a dry run's robot that holds nothing
-        differing = None if dry_run else _local_changes(scanned, synced, listing, epoch, gen)
+        differing = None if dry_run else _local_changes(
+            scanned, synced, listing, epoch, gen, LocalRules(self.local_root, self.rules))
         if differing is not None:
             # the robot holds what we last synced: only the paths that changed here
             # since need a plan, as the watch agent pushes them
@@ -1469,7 +1470,7 @@ QUICK_MAX = 1000  # local changes pushed path by path when the robot has not dri
 
 
 def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict[str, Any],
-                   epoch: str, gen: int) -> set[str] | None:
+                   epoch: str, gen: int, excluded: Callable[[str, bool], bool]) -> set[str] | None:
     """The local paths that differ from what the state recorded when it synced them, if the
     robot reports no drift since the state's generation and they are few; else None.
 
@@ -1492,7 +1493,8 @@ def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict
             if len(out) > QUICK_MAX:
                 return None
     if len(entries) - len(out) != len(synced):
-        out.update(p for p in synced if p not in entries)
+        # gone here, unless the laptop's rules now exclude it (its row is kept: left alone)
+        out.update(p for p, s in synced.items() if p not in entries and not excluded(p, s.kind == "d"))
         if len(out) > QUICK_MAX:
             return None
     return out
