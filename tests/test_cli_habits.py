@@ -405,3 +405,14 @@ def test_home_is_never_the_workspace_around(tmp_path: Path) -> None:
     assert resolve_workspace(None, environ=e, cwd=str(home / "src" / "my_pkg")) == home / "noetic"
     ws = catkin_ws(home / "noetic", "devel")
     assert resolve_workspace(None, environ=e, cwd=str(ws / "src")) == ws
+
+
+def test_the_where_line_prints_no_escape_sequence(tmp_path: Path) -> None:
+    ws = make_workspace(tmp_path / "ws\x1b]0;owned\x07")
+    env = clean_env(HOME=str(tmp_path), FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+                    XDG_STATE_HOME=str(tmp_path / "state"))
+    result = invoke(["push", "--robot", "local", "--workspace", str(ws), "--remote-workspace",
+                     "~/r"], env)
+    assert result.exit_code == 0, result.output
+    [line] = [x for x in result.output.splitlines() if x.startswith("push ")]
+    assert "\x1b" not in line and "\x07" not in line and "\\x1b" in line

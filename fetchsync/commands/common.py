@@ -81,11 +81,12 @@ def where_line(verb: str, target: Any, *, local: Any = None, remote: str | None 
     for home), the robot's place with its user; ``direction`` is ``to`` the robot, ``from``
     it, or ``both`` (a comparison)."""
     from fetchsync.config import home_relative
+    from fetchsync.console import printable  # a directory's name may hold escape sequences
 
-    there = robot_place(target, remote)
+    there = printable(robot_place(target, remote))
     if local is None:
         return f"{verb} {there}"
-    here = home_relative(local)
+    here = printable(home_relative(local))
     if direction == "from":
         return f"{verb} {there} {ARROW} {here}"
     return f"{verb} {here} {BOTH if direction == 'both' else ARROW} {there}"
