@@ -129,6 +129,8 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     Takes the options of the robot verbs, to show what they would do with
     them. Connects to nothing; exits 0 also when a setting is missing.
     """
+    from fetchsync.console import printable  # a directory's name may hold escape sequences
+
     found = settings(robot=robot, user=user, workspace=workspace, remote_workspace=remote_workspace)
     if as_json:
         rows: list[dict[str, Any]] = [dict(asdict(s), order=ORDERS.get(s.name)) for s in found]
@@ -138,7 +140,7 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     for s in found:
         value = s.value if s.value is not None else "-"
         source = s.source if s.source.startswith(("not set", "none", "default")) else f"from {s.source}"
-        click.echo(f"{s.name:<{width}}  {value}  ({source})")
+        click.echo(printable(f"{s.name:<{width}}  {value}  ({source})"))
     click.echo("")
     click.echo("Each is the first of these that is set:")
     for name, order in ORDERS.items():
