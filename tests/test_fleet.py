@@ -193,3 +193,23 @@ def test_ctrl_c_ends_a_fleet_run_and_its_commands_on_every_robot(fleet_env):
         proc.kill()
         for pid in sleeps():
             os.kill(int(pid), signal.SIGKILL)
+
+
+def test_at_a_terminal_a_host_key_is_asked_once_for_robots_sharing_it(fleet_env, ssh_home, tmp_path):
+    """fetch1..3 are one host: its key is asked about once, before any robot uses it, and
+    the question is whole (asked in parallel, three would wait on one answer)."""
+    from terminal import Terminal
+
+    question = b"(yes/no/[fingerprint])? "
+    ssh_home.known_hosts.write_text("")
+    env = dict(fleet_env, PYTHONPATH=os.environ.get("PYTHONPATH", ""))
+    term = Terminal(["push", "--robot", "@lab"], env, cols=200)
+    try:
+        term.read_until(question)
+        term.send(b"yes\n")
+        assert term.wait(60) == 0, term.output.decode()
+    finally:
+        term.close()
+    assert term.output.count(question) == 1, term.output.decode()
+    for name in ROBOTS:
+        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(_src(env))
