@@ -423,9 +423,18 @@ def robots_for(verb: str, robot: str | None, *, retry_failed: bool) -> list[str]
     return names_given(robot)
 
 
-def _remote_option(robot: str, remote_workspace: str | None) -> str | None:
-    """The robot's ``--remote-workspace``: the option, else robots.toml's for that robot."""
-    return remote_workspace or robot_settings(robot).get("remote_workspace")
+def remote_option(robot: str | None, remote_workspace: str | None) -> str | None:
+    """The robot's ``--remote-workspace``: the option, else robots.toml's for the robot
+    ``robot`` (or the robot variables) names; None when neither gives one."""
+    if remote_workspace is not None:
+        return remote_workspace
+    from fetchsync.config import resolve_robot
+
+    try:
+        name = resolve_robot(robot)
+    except ConfigError:
+        return None  # no robot (yet): the verb's resolution says so in its own words
+    return robot_settings(name).get("remote_workspace")
 
 
 def _quiet() -> bool:
@@ -470,7 +479,7 @@ def push(robots: Sequence[str], *, user: str | None, workspace: str | None,
     quiet = _quiet()
 
     def work(name: str, out: Prefixed) -> RobotResult:
-        target = resolve(name, user, workspace, _remote_option(name, remote_workspace))
+        target = resolve(name, user, workspace, remote_workspace)
         if not quiet:
             out.line(where_line("push", target, local=src, remote=target.remote_workspace + "/src"))
         report = None if (dry_run or strict or excludes or force) else cli._push_via_agent(target)
@@ -536,7 +545,7 @@ def run(robots: Sequence[str], *, user: str | None, workspace: str | None,
     asking = question_lock()
 
     def work(name: str, out: Prefixed) -> RobotResult:
-        target, remote_ws = _target(name, user, workspace, _remote_option(name, remote_workspace))
+        target, remote_ws = _target(name, user, workspace, remote_option(name, remote_workspace))
         body = script(line, environment=ros_environment(remote_ws))
         try:
             with asking:

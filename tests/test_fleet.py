@@ -213,3 +213,13 @@ def test_at_a_terminal_a_host_key_is_asked_once_for_robots_sharing_it(fleet_env,
     assert term.output.count(question) == 1, term.output.decode()
     for name in ROBOTS:
         assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(_src(env))
+
+
+def test_run_sources_each_robots_own_remote_workspace_from_robots_toml(fleet_env, tmp_path):
+    devel = tmp_path / "robot-fetch2/devel"
+    devel.mkdir(parents=True)
+    (devel / "setup.bash").write_text("export FLEET_MARK=fetch2-workspace\n")
+    proc = fetchsync("run", "--robot", "fetch2", "echo mark=$FLEET_MARK", env=fleet_env)
+    assert proc.stdout == b"mark=fetch2-workspace\n"
+    proc = fetchsync("run", "--robot", "fetch1,fetch2", "echo mark=$FLEET_MARK", env=fleet_env)
+    assert sorted(proc.stdout.decode().splitlines()) == ["[fetch1] mark=", "[fetch2] mark=fetch2-workspace"]

@@ -53,7 +53,9 @@ def _target(robot: str | None, user: str | None, workspace: str | None,
     (its path under ~), else none: then only the robot's distribution is sourced.
     """
     from fetchsync import config
+    from fetchsync.fleet import remote_option
 
+    remote_workspace = remote_option(robot, remote_workspace)  # robots.toml's counts as the option
     try:
         local: Path | None = config.resolve_workspace(workspace)
     except ConfigError:
