@@ -195,6 +195,7 @@ class Connection:
             watchdog.stop()
             raise
         if hello.get("version") != wire.VERSION:
+            watchdog.stop()
             channel.close()
             raise ProtocolError(f"the robot's endpoint speaks protocol {hello.get('version')}, "
                                 f"we speak {wire.VERSION}")
@@ -202,6 +203,7 @@ class Connection:
         try:
             algorithm = hashing.negotiate(hashing.available(), theirs)
         except ProtocolError:
+            watchdog.stop()
             channel.close()
             raise
         compress = "zlib" in (hello.get("compression") or [])

@@ -264,3 +264,24 @@ def test_garbage_on_the_masters_socket_runs_nothing_and_breaks_nothing(env, remo
     r = report(fetchsync("push", "--json", env=env))
     assert r["connection"] == "master" and tree_of(Path(env["FETCHSYNC_WORKSPACE"]) / "src") == \
         tree_of(remote_dir / "src")
+
+
+def test_a_directory_deleted_and_re_created_between_pushes_through_a_master_is_pushed(env, remote_dir):
+    """Issue 22 item 6 in small: a directory removed and made again (its inode number may
+    come back, as after a git checkout), with other files in it, is pushed whole."""
+    runtime = Path(env["XDG_RUNTIME_DIR"])
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    pkg = local / "my_pkg"
+    fetchsync("push", env=env)
+    assert wait_for(lambda: serving(runtime))
+    for round_ in range(6):
+        fetchsync("push", env=env)
+        time.sleep(0.6)  # the master's view, if it keeps one, has caught up
+        for name in ("launch", "src"):
+            shutil.rmtree(pkg / name, ignore_errors=True)
+            (pkg / name).mkdir()
+            for i in range(3):
+                (pkg / name / f"r{round_}_{i}.txt").write_text(f"{round_} {i}\n")
+        r = report(fetchsync("push", "--json", "--force", env=env))
+        assert r["connection"] == "master"
+        assert tree_of(local) == tree_of(remote_dir / "src"), f"round {round_}"
