@@ -456,10 +456,11 @@ def push(robots: Sequence[str], *, user: str | None, workspace: str | None,
     from fetchsync.build import build_on_robot
     from fetchsync.commands.common import resolve, where_line
     from fetchsync.config import resolve_workspace
+    from fetchsync.connection import Connection, remote_python
     from fetchsync.console import printable
     from fetchsync.errors import SyncError
     from fetchsync.protocol.ignore import build_rules
-    from fetchsync.session import connect, open_state
+    from fetchsync.session import open_state, open_transport
     from fetchsync.sync import Syncer, raise_for, scan_tree
 
     src = resolve_workspace(workspace) / "src"
@@ -489,8 +490,12 @@ def push(robots: Sequence[str], *, user: str | None, workspace: str | None,
                 out.line(f"fetchsync: note: {state.note}")
             try:
                 with ExitStack() as stack:
+                    # as session.connect, but only the opening (which may ask) is one at a time
                     with asking:
-                        conn = stack.enter_context(connect(target, accept_fingerprint=accept_host_key))
+                        transport = open_transport(target, accept_fingerprint=accept_host_key)
+                    stack.callback(transport.close)
+                    conn = Connection.open(transport, python=remote_python())
+                    stack.callback(conn.close)
                     syncer = Syncer(conn, state, local_root=str(src),
                                     remote_workspace=target.remote_workspace, rules=rules,
                                     policy="refuse" if strict else "preserve")
