@@ -30,6 +30,28 @@ class Planned:
     item: M.Listed | None = None   # the source entry this op makes dest hold
 
 
+CATKIN_TOPLEVEL = "catkin/cmake/toplevel.cmake"
+
+
+def catkin_toplevel(path: str, *, laptop: M.Listed | None, robot: M.Listed | None,
+                    last_synced: str) -> bool:
+    """Whether ``path`` is the ``src/CMakeLists.txt`` link the robot's ``catkin_make``
+    made where the laptop has none: push and pull leave it alone. ``last_synced`` is
+    the expectation of what was last synced there: a link this laptop pushed (it ran
+    ``catkin_make`` itself) is the laptop's, and deleting it here deletes it there.
+
+    ``catkin_make`` creates it when ``src/`` has no ``CMakeLists.txt``, as a symlink to
+    its installed ``toplevel.cmake`` (``/opt/ros/<distro>/share/catkin/cmake/``,
+    Debian's ``/usr/share/catkin/cmake/``). Mirroring would delete it on every push
+    (a conflict each time, a copy in ``.fetchsync/conflicts/``, and a full rebuild
+    when ``catkin_make`` makes it again), or pull a link into the robot's ROS install
+    onto the laptop. A laptop that has its own ``src/CMakeLists.txt`` pushes it.
+    """
+    return (path == "CMakeLists.txt" and laptop is None and robot is not None and robot.kind == "l"
+            and (robot.target == CATKIN_TOPLEVEL or robot.target.endswith("/" + CATKIN_TOPLEVEL))
+            and last_synced != robot.expectation())
+
+
 def _same(a: M.Listed, b: M.Listed) -> bool:
     if a.kind != b.kind:
         return False

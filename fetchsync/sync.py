@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from fetchsync.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
-from fetchsync.plan import COPY, DELTA, WHOLE, Planned, plan
+from fetchsync.plan import COPY, DELTA, WHOLE, Planned, catkin_toplevel, plan
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
@@ -1128,8 +1128,8 @@ class Round:
         report, local = self.report, self.local
         failed = {e["path"] for e in report.errors}
         left = [] if _same_tree(local.items, self.remote) else \
-            [p for p in plan(local.items, self.remote, self.expect)
-             if p.op.path not in failed and not self.guarded(p.op.path)]
+            [p for p in reconcile(local.items, self.remote, self.expect, guarded=self.guarded)
+             if p.op.path not in failed]
         if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
             report.errors.append({"path": left[0].op.path, "error":
                                   f"{len(left)} path(s) still differ on the robot after "
@@ -1172,11 +1172,18 @@ class Round:
 
 def reconcile(local: Mapping[str, M.Listed], remote: Mapping[str, M.Listed],
               expect: Callable[[str], str], *, guarded: Callable[[str], bool],
-              has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False) -> list[Planned]:
+              has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
+              pulling: bool = False) -> list[Planned]:
     """The operations that make the robot (``remote``, as it holds it) hold ``local``,
     each expecting what ``expect(path)`` says was last synced there, leaving ``guarded``
-    paths as the robot has them. Pure: no I/O (see :func:`fetchsync.plan.plan`)."""
-    return [p for p in plan(local, remote, expect, has_signature=has_signature) if not guarded(p.op.path)]
+    paths and the link of :func:`fetchsync.plan.catkin_toplevel` as the robot has
+    them. ``pulling``: the other way, ``local`` is the robot's tree and ``remote`` the
+    laptop's. Pure: no I/O (see :func:`fetchsync.plan.plan`)."""
+    laptop, robot = (remote, local) if pulling else (local, remote)
+    return [p for p in plan(local, remote, expect, has_signature=has_signature)
+            if not guarded(p.op.path)
+            and not catkin_toplevel(p.op.path, laptop=laptop.get(p.op.path), robot=robot.get(p.op.path),
+                                    last_synced=expect(p.op.path))]
 
 def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
          rules: IgnoreRules, confirm: Callable[[Report], bool] | None = None,
@@ -1210,7 +1217,7 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     # a local path we could not read is left as it is, not replaced
     guarded = local.guarded()
     # whole files, no deltas: a delta is applied to the local file, which goes to the trash
-    planned = reconcile(remote, local.items, expect, guarded=guarded)
+    planned = reconcile(remote, local.items, expect, guarded=guarded, pulling=True)
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
