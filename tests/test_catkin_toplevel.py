@@ -9,7 +9,8 @@ import os
 import shutil
 
 import pytest
-from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML, fetchsync, report
+from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
+from helpers import fetchsync, report
 
 from fetchsync.plan import WHOLE
 from fetchsync.protocol import messages as M
