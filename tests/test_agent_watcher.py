@@ -36,7 +36,7 @@ from typing import Callable, Iterator
 
 import pytest
 
-from fetchsync.agent.coalescer import Batch, Change, Item, Rescan
+from fetchsync.agent.coalescer import Batch, Change, Coalescer, Item, Rescan
 from fetchsync.agent.watcher import IgnoreFilter, Watcher, batches
 from fetchsync.protocol.ignore import IgnoreRules
 
@@ -249,7 +249,11 @@ def test_directory_created_with_content(src: Path, feed: Feed) -> None:
     (src / "new" / "a" / "b" / "f.txt").write_text("x")
     (src / "new" / "g.txt").write_text("y")
     feed.wait_path("new", since=m)
-    assert only(feed, m) == {"new/"}
+    # "new/" alone on a quick machine; on a loaded one the watch on new/ may be in place
+    # before its content is made, which then comes as its own paths: both say it all
+    named = only(feed, m)
+    assert "new/" in named
+    assert all(p == "new/" or p.startswith("new/") for p in named), named
 
 
 def test_directory_moved_within_the_tree(src: Path, feed: Feed) -> None:
@@ -447,16 +451,9 @@ def _git(repo: Path, *args: str) -> None:
                     *args], check=True, capture_output=True)
 
 
-@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
-def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path) -> None:
-    """2,000 files created, then deleted, by ``git checkout`` (another process, as in life).
-
-    With cap 0.5 s the number of batches is asserted: the quiet window and
-    the deduplication hold across a burst, on a machine of any speed. With
-    the default cap (0.1 s) a burst is cut every 0.1 s by design, so the
-    count is about the checkout's duration / 0.1 s: printed, not asserted.
-    """
-    repo = src / "repo"
+def _two_branches(repo: Path) -> set[str]:
+    """A repository whose branch "one" has 2,000 files in 20 directories and "two" the
+    directories only (checked out: "two"); the files' paths below ``src``."""
     names = [f"d{k % 20:02d}/f{k:04d}.cpp" for k in range(2000)]
     for k, name in enumerate(names):
         (repo / name).parent.mkdir(parents=True, exist_ok=True)
@@ -468,34 +465,102 @@ def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path) -
     _git(repo, "commit", "-qm", "one")
     _git(repo, "checkout", "-qb", "two")
     _git(repo, "rm", "-q", "--", *names)
-    _git(repo, "commit", "-qm", "two")                 # "two" has the directories only
-    expected = {f"repo/{name}" for name in names}
+    _git(repo, "commit", "-qm", "two")
+    return {f"{repo.name}/{name}" for name in names}
 
-    counts = {}
-    for cap, branch in ((0.5, "one"), (None, "two")):
-        f = Feed(src) if cap is None else Feed(src, cap=cap)
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+def test_every_path_of_a_git_checkout_of_2000_files_arrives_without_a_rescan(src: Path) -> None:
+    """2,000 files created, then deleted, by ``git checkout`` (another process, as in life),
+    through :func:`batches` on the real filesystem: every path arrives, as a path, and
+    nothing is a rescan. How many batches depends on the machine's pace (see the next
+    test for the coalescing): printed, not asserted."""
+    expected = _two_branches(src / "repo")
+    for branch in ("one", "two"):
+        f = Feed(src)
         try:
             m = f.mark()
-            t0 = time.monotonic()
-            _git(repo, "checkout", "-q", branch)
-            took = time.monotonic() - t0
+            _git(src / "repo", "checkout", "-q", branch)
             seen: set[str] = set()
 
             def all_in(b: Batch, seen: set[str] = seen) -> bool:
                 seen.update(b.paths)
                 return expected <= seen
 
-            f.wait_for(all_in, since=m)
+            f.wait_for(all_in, since=m, timeout=60)
             got = f.settle(m)
         finally:
             f.close()
         paths, dirs_seen, rescans = union(got)
         assert paths == expected and not dirs_seen and not rescans
-        counts[cap] = len(got)
-        print(f"\ncap {cap or 'default (0.1)'}: git checkout of 2000 files took "
-              f"{took * 1000:.0f} ms -> {len(got)} batches of {[len(b.paths) for b in got]} "
-              f"paths ({sum(b.items for b in got)} events)")
-    assert counts[0.5] <= 10
+        print(f"\ncheckout {branch}: {len(got)} batches of {[len(b.paths) for b in got]} paths "
+              f"({sum(b.items for b in got)} events)")
+
+
+def _replay(events: list[Item], *, gaps: Callable[[int], float], cap: float) -> list[Batch]:
+    """The batches a :class:`Coalescer` makes of ``events`` when event k comes ``gaps(k)``
+    seconds after the one before, taken as :func:`batches` takes them (each one once due)."""
+    c = Coalescer(cap=cap)
+    out: list[Batch] = []
+    t = 1000.0
+    for k, item in enumerate(events):
+        t += gaps(k)
+        while c.due(t) == 0.0:
+            b = c.take(t)
+            if b is not None:
+                out.append(b)
+        c.add(item, t)
+    b = c.take(t, force=True)
+    return out + ([b] if b is not None else [])
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+@pytest.mark.parametrize("pace", [0.00005, 0.0005, 0.002])
+def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path, pace: float) -> None:
+    """The events the real watcher reports for a ``git checkout`` of 2,000 files, replayed
+    with scripted times (watchfiles' habit; no clock of this machine's in the count): one
+    every ``pace`` seconds, a fast laptop's to a loaded one's, with a 20 ms stall (the
+    scheduler, the disk) every 500. The burst is coalesced: cut only by the cap, so a
+    checkout that lasts T seconds comes as about T / cap batches, every path in one, no
+    rescan."""
+    expected = _two_branches(src / "repo")
+    events: list[Item] = []
+    lock = threading.Lock()
+
+    def sink(item: Item, _at: float) -> None:
+        with lock:
+            events.append(item)
+
+    w = Watcher(str(src), sink=sink)
+    w.start()
+    try:
+        _git(src / "repo", "checkout", "-q", "one")
+        deadline = time.monotonic() + 60
+        while True:
+            with lock:
+                seen = {e.path for e in events if isinstance(e, Change)}
+            if expected <= seen or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+    finally:
+        w.stop()
+    with lock:
+        events = [e for e in events if not isinstance(e, Rescan) or not e.reason.startswith("started")]
+    assert len(events) >= len(expected)
+
+    def gaps(k: int) -> float:
+        return 0.020 if k % 500 == 499 else pace
+
+    span = sum(gaps(k) for k in range(len(events)))
+    for cap in (0.5, 0.1):
+        got = _replay(events, gaps=gaps, cap=cap)
+        paths, dirs_seen, rescans = union(got)
+        assert paths == expected and not dirs_seen and not rescans
+        assert len(got) <= span / cap + 2, (cap, len(got), [len(b.paths) for b in got])
+        # cut by the cap only, never by a stall or the pace: each batch but the last
+        # holds (nearly) cap seconds of the burst
+        assert all(b.last_at - b.first_at >= cap - 0.021 - pace for b in got[:-1]), \
+            [round(b.last_at - b.first_at, 4) for b in got]
 
 
 def test_latency_is_measured(src: Path, feed: Feed) -> None:
