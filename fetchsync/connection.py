@@ -125,6 +125,8 @@ class Connection:
                 if frame is None:
                     failure = LinkLostError(f"the fetchsync endpoint on {self.transport.name} went away")
                     break
+                if frame.type == wire.T_PROGRESS:  # its bytes are the progress the watchdog sees
+                    continue
                 with self._arrived:
                     self._pending[frame.req_id] = frame
                     self._owed.discard(frame.req_id)
@@ -207,7 +209,11 @@ class Connection:
             channel.close()
             raise
         compress = "zlib" in (hello.get("compression") or [])
-        ours = {"algorithm": algorithm, "compression": "zlib" if compress else "none"}
+        ours: dict[str, Any] = {"algorithm": algorithm, "compression": "zlib" if compress else "none"}
+        offered = hello.get("progress")
+        if isinstance(offered, (int, float)) and not isinstance(offered, bool) and offered > 0:
+            # keepalives while the robot works on a request: several per deadline
+            ours["progress"] = min(float(offered), watchdog.deadline / 4)
         data = wire.encode_hello(ours)
         channel.send_all(data)
         conn = cls(transport, channel, reader, hello, algorithm, compress, watchdog)

@@ -16,6 +16,7 @@ import os
 import queue
 import sys
 import threading
+import time
 from typing import Any, BinaryIO, Deque, Dict, List, Optional, Tuple
 
 from fetchsync.protocol import hashing, wire
@@ -24,6 +25,10 @@ from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import Store, StoreError, unpack_zpart
 
 MAX_WORKSPACE = 4096
+# Keepalives while a request is worked on: the most often a client may ask for them,
+# and the least often they come (its progress deadline is 30 s by default)
+PROGRESS_MIN = 0.1
+PROGRESS_MAX = 5.0
 
 
 def expand_workspace(spec: str) -> str:
@@ -49,14 +54,42 @@ class Server:
         self.compress = False
         self.algorithm = ""
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
+        # one writer at a time on ``out``: the serving thread's frames and the keepalives
+        self._out_lock = threading.Lock()
+        self._working = None  # type: Optional[int]  # the id of the request being served
+        self._quiet_since = time.monotonic()  # the last write, or the request's start
+        self._done = threading.Event()
 
     def _recv(self, n: int) -> bytes:
         read1 = getattr(self.inp, "read1", None)
         return read1(n) if read1 is not None else self.inp.read(n)
 
     def _send(self, frame: wire.Frame) -> None:
-        self.out.write(wire.encode_frame(frame, compress=self.compress))
-        self.out.flush()
+        data = wire.encode_frame(frame, compress=self.compress)
+        with self._out_lock:
+            self.out.write(data)
+            self.out.flush()
+            self._working = None
+            self._quiet_since = time.monotonic()
+
+    def _keepalive(self, interval: float) -> None:
+        """Send a T_PROGRESS frame whenever a request has been worked on for ``interval``
+        seconds with nothing written: legitimately long silent work (a cold listing of
+        a huge tree, hashing a large file, a long syncfs on an SD card) must not look
+        like a stalled endpoint to the client's progress deadline. A stopped endpoint
+        (SIGSTOP) stops this thread too, so the deadline still catches it."""
+        while not self._done.wait(interval / 4):
+            with self._out_lock:
+                req_id = self._working
+                now = time.monotonic()
+                if req_id is None or now - self._quiet_since < interval:
+                    continue
+                try:
+                    self.out.write(wire.encode_frame(wire.Frame(wire.T_PROGRESS, req_id, {})))
+                    self.out.flush()
+                except (OSError, ValueError):  # the serving thread finds out on its own
+                    return
+                self._quiet_since = now
 
     def hello(self) -> Dict[str, Any]:
         return {
@@ -66,12 +99,14 @@ class Server:
             "executable": sys.executable,  # the laptop runs it by this path next time
             "host": os.uname().nodename,  # socket.gethostname(), without importing socket
             "home": os.path.expanduser("~"),
+            "progress": PROGRESS_MAX,  # T_PROGRESS frames, to a client that asks
         }
 
     def serve(self) -> None:
         try:
             self._serve()
         finally:
+            self._done.set()
             if self.store is not None:
                 self.store.discard_uploads()
                 self.store.close()
@@ -84,6 +119,11 @@ class Server:
         if self.algorithm not in hashing.available():
             raise ProtocolError("client asked for unknown hash algorithm %r" % (self.algorithm,))
         self.compress = client.get("compression") == "zlib"
+        interval = client.get("progress")
+        if isinstance(interval, (int, float)) and not isinstance(interval, bool) and interval > 0:
+            interval = min(max(float(interval), PROGRESS_MIN), PROGRESS_MAX)
+            threading.Thread(target=self._keepalive, args=(interval,), name="fetchsync-keepalive",
+                             daemon=True).start()
         # frames are read ahead by a thread, so the link keeps carrying the next
         # batch while this one is applied and flushed to disk (the SSH window
         # alone holds ~2 MB: the client would stall after that)
@@ -99,6 +139,9 @@ class Server:
                 return
             if frame.type != wire.T_REQUEST:
                 raise ProtocolError("expected a request frame")
+            with self._out_lock:
+                self._working = frame.req_id
+                self._quiet_since = time.monotonic()
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
@@ -165,6 +208,7 @@ class Server:
 
     def do_list(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         store = self._store()
+        _test_pause("FETCHSYNC_TEST_SLOW_LIST")
         out = {"epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
         if h.get("mode") == "drift" and self._fresh(store, h):
             changed, gone = store.drift()
@@ -273,6 +317,14 @@ class Server:
 
     def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         return {}, b""
+
+
+def _test_pause(name: str) -> None:
+    """Sleep ``$name`` seconds if it is set: the tests make a request slower than the
+    client's progress deadline with it (the ``local`` robot's endpoint inherits it)."""
+    value = os.environ.get(name)
+    if value:
+        time.sleep(float(value))
 
 
 def _error_frame(req_id: int, exc: Exception) -> wire.Frame:

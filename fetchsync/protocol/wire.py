@@ -15,6 +15,13 @@ Frame::
 body is zlib-compressed and ``body_len`` is its compressed size. Every length
 is checked against a hard cap *before* anything is allocated or read.
 Requests and responses are paired by id, so a client may pipeline requests.
+
+While the endpoint works on a request without writing anything (a cold listing of
+a huge tree, hashing a large file, a long syncfs), it sends a ``T_PROGRESS`` frame
+(header ``{}``, the request's id) every few seconds, so the client's progress
+deadline does not end a healthy call. Only to a client that asked for them in its
+hello (``"progress": seconds``), after the endpoint offered them in its own: an
+older client's reader refuses an unknown frame type.
 """
 
 from __future__ import annotations
@@ -42,6 +49,8 @@ FLAG_ZHEAD = 0x02  # only the JSON header is (the blob carries its own compressi
 T_REQUEST = 1
 T_RESPONSE = 2
 T_ERROR = 3        # the request failed as a whole; header {"error": str, "kind": str}
+T_PROGRESS = 4     # still working on the request: header {}; only if the client asked
+FRAME_TYPES = (T_REQUEST, T_RESPONSE, T_ERROR, T_PROGRESS)
 
 _FRAME = struct.Struct(">IBBI")
 _U32 = struct.Struct(">I")
@@ -102,7 +111,7 @@ def encode_frame_parts(frame: Frame, blob_parts: "list[bytes]", *, compress: boo
 def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
     if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
         raise ProtocolError("unknown frame flags 0x%02x" % flags)
-    if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
+    if ftype not in FRAME_TYPES:
         raise ProtocolError("unknown frame type %d" % ftype)
     if flags & FLAG_ZLIB:
         body = inflate(body, MAX_BODY)
@@ -247,7 +256,7 @@ class Reader:
         # must end in an error, not in waiting for bytes that never come
         if blen > MAX_FRAME:
             raise ProtocolError("frame of %d bytes announced, over the cap of %d" % (blen, MAX_FRAME))
-        if ftype not in (T_REQUEST, T_RESPONSE, T_ERROR):
+        if ftype not in FRAME_TYPES:
             raise ProtocolError("unknown frame type %d" % ftype)
         if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
             raise ProtocolError("unknown frame flags 0x%02x" % flags)
