@@ -15,6 +15,7 @@ from typing import Any, Callable, Iterator
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
 from fetchsync.errors import ConfigError, ConnectError
+from fetchsync.protocol.loader import loader_spec
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 
@@ -129,8 +130,9 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     if path is not None and transport.auth_method != "password":
         # this call paid for the handshake; leave a master behind for the next
         # ones, once it is done: a master starting now would take the CPU this
-        # call needs
-        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path)
+        # call needs. It keeps a spare of the endpoint this call started (see mux).
+        warm = loader_spec(remote_python())[0]
+        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm)
     return transport
 
 
