@@ -15,7 +15,6 @@ from typing import Any, Callable, Iterator
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
 from fetchsync.errors import ConfigError, ConnectError
-from fetchsync.protocol.loader import loader_spec
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 
@@ -131,8 +130,7 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         # this call paid for the handshake; leave a master behind for the next
         # ones, once it is done: a master starting now would take the CPU this
         # call needs. It keeps a spare of the endpoint this call started (see mux).
-        warm = loader_spec(remote_python())[0]
-        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path, warm=warm)
+        transport.on_close = lambda: mux.spawn_master(target.host, target.user, path, spare=True)
     return transport
 
 

@@ -158,7 +158,7 @@ def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(c
 
 def robot_endpoints(mark: str) -> list[int]:
     out = subprocess.run(["pgrep", "-f", f"^[^ ]*python3 -X fsmark={mark} "], check=False,
-                         capture_output=True)  # not the master: its --warm names the mark too
+                         capture_output=True)
     return [int(p) for p in out.stdout.split()]
 
 

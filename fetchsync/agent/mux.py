@@ -9,7 +9,7 @@ exits after ``FETCHSYNC_PERSIST`` idle seconds (default 600; 0 disables it) or
 as soon as its link dies.
 
 The master also keeps one *spare* robot endpoint started: the endpoint's
-command (``--warm``, the loader line a push runs) is run ahead of the call and
+command (the loader line a push runs) is run ahead of the call and
 left waiting right after the endpoint's hello (or its loader's request for the
 endpoint's archive), so the next push does not wait for sshd's session start,
 the robot's Python start and the loader (0.4-0.5 s of a one-edit push's 0.7 s
@@ -294,9 +294,10 @@ class MuxTransport:
         pass
 
 
-def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = None) -> None:
+def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False) -> None:
     """Start a connection master in the background (it authenticates on its own);
-    ``warm``: the endpoint's command, which it keeps one spare of (see above)."""
+    with ``spare`` it keeps one spare endpoint (see above), of the command this call's
+    environment gives (its FETCHSYNC_REMOTE_PYTHON: the master inherits it)."""
     seconds = persist_seconds()
     if seconds <= 0:
         return
@@ -304,8 +305,8 @@ def spawn_master(host: str, user: str | None, path: Path, *, warm: str | None = 
             "--idle", str(seconds)]
     if user:
         argv += ["--user", user]
-    if warm:
-        argv += ["--warm", warm]
+    if spare:
+        argv += ["--spare"]
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
     if log_path:
         with open(log_path, "ab") as err:
@@ -595,7 +596,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--user")
     parser.add_argument("--socket", required=True)
     parser.add_argument("--idle", type=float, default=DEFAULT_PERSIST)
-    parser.add_argument("--warm")
+    parser.add_argument("--spare", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
     try:
@@ -604,7 +605,13 @@ def main(argv: list[str] | None = None) -> int:
         log.error("cannot connect to %s: %s", args.host, exc)
         return 1
     try:
-        Master(transport, Path(args.socket), args.idle, args.warm).serve()
+        warm = None
+        if args.spare:
+            from fetchsync.connection import remote_python
+            from fetchsync.protocol.loader import loader_spec
+
+            warm = loader_spec(remote_python())[0]
+        Master(transport, Path(args.socket), args.idle, warm).serve()
     except OSError as exc:
         log.error("cannot serve on %s: %s", args.socket, exc)
         transport.close()
