@@ -312,6 +312,21 @@ class Server:
         store.save_index()
         return {"adopted": n, "epoch": store.epoch, "gen": store.gen}, b""
 
+    def do_kept(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+        """Read-only: the files kept in ``.fetchsync/<where>`` (``conflicts``, ``trash``), or,
+        with ``at`` and ``p``, a piece of one (``off``, ``len``) as the blob."""
+        store = self._store()
+        where = h.get("where")
+        if "p" not in h:
+            entries, more = store.kept(where)
+            return {"entries": entries, "more": more}, b""
+        at, path, off, n = h.get("at"), h.get("p"), h.get("off", 0), h.get("len", 0)
+        if not (isinstance(at, str) and isinstance(path, str) and isinstance(off, int)
+                and isinstance(n, int)):
+            raise ProtocolError("bad kept read")
+        size, data = store.read_kept(where, at, path, off, n)
+        return {"size": size}, data
+
     def do_ping(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
         return {"pong": True}, b""
 

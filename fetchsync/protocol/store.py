@@ -82,6 +82,8 @@ TMP = "tmp"
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
 O_NEW = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | _CLOEXEC
 NAME_MAX = 255
+KEPT = ("conflicts", "trash")  # the places a robot keeps replaced and deleted files
+MAX_KEPT = 100000  # the most kept files one listing names
 
 
 class StoreError(ProtocolError):
@@ -878,6 +880,102 @@ class Store:
                                     "pieces" % (path, MAX_READ >> 20))
             fh.seek(offset)
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
+
+    # ------------------------------------------------------------------ kept versions
+    def _kept_root(self, where: str) -> Optional[paths.Root]:
+        """``.fetchsync/<where>`` (``conflicts`` or ``trash``) as a :class:`paths.Root`, never
+        through a symlink; None if there is none (read-only: nothing is made)."""
+        if where not in KEPT:
+            raise ProtocolError("unknown kept place %r" % (where,))
+        self._open()
+        if self._meta_fd < 0:
+            return None
+        shown = os.path.join(self.meta, where)
+        try:
+            fd = open_dir(where, self._meta_fd)
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            if exc.errno in paths.NOT_A_DIR:
+                raise StoreError("%s is a symlink or not a directory: fetchsync does not read "
+                                 "through it" % shown) from None
+            raise
+        return paths.Root(fd, shown)
+
+    def kept(self, where: str) -> Tuple[List[List[Any]], bool]:
+        """The files kept in ``.fetchsync/<where>/<time>/<path>``: ``[time, path, size,
+        mtime]`` each (at most MAX_KEPT; the flag says some were left out). Walked by
+        descriptor, O_NOFOLLOW: a symlink in there is listed as nothing, never followed."""
+        root = self._kept_root(where)
+        if root is None:
+            return [], False
+        out = []  # type: List[List[Any]]
+
+        def walk(fd: int, rel: str, stamp: str) -> bool:
+            for name in sorted(os.listdir(fd)):
+                path = rel + "/" + name if rel else name
+                st = lstat_at(name, fd)
+                if st is None:
+                    continue
+                if stat_mod.S_ISDIR(st.st_mode):
+                    try:
+                        sub = open_dir(name, fd)
+                    except OSError:
+                        continue  # swapped for something else meanwhile
+                    try:
+                        if not walk(sub, path, stamp):
+                            return False
+                    finally:
+                        os.close(sub)
+                elif stat_mod.S_ISREG(st.st_mode):
+                    if len(out) >= MAX_KEPT:
+                        return False
+                    out.append([stamp, path, st.st_size, st.st_mtime])
+            return True
+
+        try:
+            for stamp in sorted(os.listdir(root.fd)):
+                try:
+                    fd = open_dir(stamp, root.fd)
+                except OSError:
+                    continue  # not a directory (or a symlink): not one of ours
+                try:
+                    if not walk(fd, "", stamp):
+                        return out, True
+                finally:
+                    os.close(fd)
+        finally:
+            os.close(root.fd)
+        return out, False
+
+    def read_kept(self, where: str, stamp: str, path: str, offset: int,
+                  length: int) -> Tuple[int, bytes]:
+        """``(size, bytes)`` of the kept file ``.fetchsync/<where>/<stamp>/<path>`` from
+        ``offset`` (at most MAX_READ at once); every component opened O_NOFOLLOW."""
+        if "/" in paths.validate(stamp):
+            raise PathError("bad kept time %r" % (stamp,))
+        paths.validate(path)
+        if offset < 0 or not 0 <= length <= MAX_READ:
+            raise ProtocolError("bad read range, or more than %d MiB at once" % (MAX_READ >> 20))
+        root = self._kept_root(where)
+        if root is None:
+            raise PathError("nothing is kept in %s" % os.path.join(self.meta, where))
+        try:
+            with root.parent(stamp + "/" + path) as (dir_fd, name):
+                try:
+                    fd = os.open(name, O_FILE, dir_fd=dir_fd)
+                except OSError as exc:
+                    if exc.errno in paths.NOT_A_DIR:
+                        raise PathError("%r is not a regular file" % path) from None
+                    raise
+        finally:
+            os.close(root.fd)
+        with io.FileIO(fd, "rb", closefd=True) as fh:
+            st = os.fstat(fd)
+            if not stat_mod.S_ISREG(st.st_mode):
+                raise PathError("%r is not a regular file" % path)
+            fh.seek(offset)
+            return st.st_size, fh.read(length)
 
     # ------------------------------------------------------------------ writing
     def _writable(self) -> None:
