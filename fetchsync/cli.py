@@ -26,6 +26,7 @@ from fetchsync.protocol.errors import ProtocolError
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
     "config": "fetchsync.commands.config:command",
+    "conflicts": "fetchsync.commands.conflicts:command",
     "create-account": "fetchsync.commands.create_account:command",
     "lint": "fetchsync.commands.lint:command",
     "run": "fetchsync.commands.run:command",
