@@ -914,6 +914,10 @@ class Store:
         def walk(fd: int, rel: str, stamp: str) -> bool:
             for name in sorted(os.listdir(fd)):
                 path = rel + "/" + name if rel else name
+                try:
+                    paths.validate(path)  # no wire path (too long): not listed
+                except PathError:
+                    continue
                 st = lstat_at(name, fd)
                 if st is None:
                     continue
