@@ -107,3 +107,13 @@ def test_symlinked_time_directory_on_the_robot_is_not_followed(env, remote_dir, 
                      env=env, check=False)
     assert proc.returncode != 0
     assert not (Path(env["FETCHSYNC_WORKSPACE"]) / "src/my_pkg/secret.txt").exists()
+
+
+def test_binary_versions_are_said_to_differ_with_their_sizes():
+    from fetchsync.commands.conflicts import Kept, diff_lines
+
+    kept = Kept("20260101-000000-000001", "my_pkg/blob.bin", 5, "conflicts")
+    lines = diff_lines(kept, b"a\0bcd", b"xy\0", local_size=3)
+    assert lines == ["my_pkg/blob.bin: binary or large files differ: robot 5 bytes, local 3 bytes"]
+    assert diff_lines(kept, b"same\n", b"same\n", local_size=5)[0].endswith("same as the local file")
+    assert "+robot" in diff_lines(kept, b"robot\n", None, local_size=-1)

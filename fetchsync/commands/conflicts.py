@@ -124,8 +124,7 @@ def diff_lines(kept: Kept, robot: bytes, local: bytes | None, *, local_size: int
         return [f"{kept.path}: the robot's kept version is the same as the local file"]
     local_text = "absent" if local_size < 0 else f"{local_size} bytes"
     if (local is None and local_size >= 0) or b"\0" in robot or (local is not None and b"\0" in local):
-        return [f"{kept.path}: binary or large files differ: robot {len(robot)} bytes, "
-                f"local {local_text}"]
+        return [f"{kept.path}: binary or large files differ: robot {len(robot)} bytes, local {local_text}"]
     try:
         theirs = robot.decode("utf-8").splitlines(keepends=True)
         ours = local.decode("utf-8").splitlines(keepends=True) if local is not None else []
@@ -318,8 +317,8 @@ def command(robot: str | None, user: str | None, workspace: str | None,
                 data.seek(0)
                 robot_bytes = data.read() if size <= MAX_DIFF else b""
                 if size > MAX_DIFF:
-                    lines = [f"{kept.path}: large files differ: robot {size} bytes, local "
-                             f"{local_size if local_size >= 0 else 'absent'}"]
+                    local_text = f"{local_size} bytes" if local_size >= 0 else "absent"
+                    lines = [f"{kept.path}: large files differ: robot {size} bytes, local {local_text}"]
                 else:
                     lines = diff_lines(kept, robot_bytes, local, local_size=local_size)
                 for line in lines:
