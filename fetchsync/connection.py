@@ -256,11 +256,11 @@ class Connection:
         last = text.splitlines()[-1] if text else ""
         if status == 127:
             return ConnectError(f"python3 was not found on {transport.name}",
-                                hint="the robot needs python3 >= 3.8: install it (sudo apt install "
+                                hint="the robot needs python3 >= 3.6: install it (sudo apt install "
                                      "python3), or set FETCHSYNC_REMOTE_PYTHON to where it is")
         if "SyntaxError" in text or "ModuleNotFoundError" in text:
             return ConnectError(f"the robot's python3 is too old for fetchsync: {last}",
-                                hint="python3 >= 3.8 is needed")
+                                hint="python3 >= 3.6 is needed")
         return ConnectError(f"the fetchsync endpoint did not start on {transport.name}"
                             + (f": {last}" if last else f" (exit status {status})"))
 

@@ -77,21 +77,19 @@ input's own size justifies)::
 
 Literal data is stored raw: the wire layer compresses whole frames.
 
-Standard library only, Python 3.8 (runs on the robot).
+Standard library only, Python 3.6 (runs on the robot).
 """
-
-from __future__ import annotations
 
 import struct
 import sys
 import zlib
 from array import array
-from dataclasses import dataclass
 from itertools import accumulate, chain, compress, count, repeat
 from operator import lt, mod, sub
 from typing import BinaryIO, Iterable, Iterator, Tuple, Union
 
 from fetchsync.protocol import hashing
+from fetchsync.protocol.compat import dataclass
 from fetchsync.protocol.errors import DeltaError
 
 __all__ = [
@@ -118,7 +116,7 @@ __all__ = [
 
 #: (TARGET, MIN, MAX): mean, smallest and largest chunk in bytes (see above).
 Params = Tuple[int, int, int]
-DEFAULT_PARAMS: Params = (1024, 256, 8192)
+DEFAULT_PARAMS: "Params" = (1024, 256, 8192)
 #: No chunk may be bigger than this, whatever a peer asks (bounds memory).
 MAX_CHUNK_LIMIT = 1 << 24
 #: Always available on both ends; callers pass the negotiated algorithm.
@@ -132,7 +130,7 @@ def _is_int(value: object) -> bool:
     return type(value) is int  # bool is not a size
 
 
-def check_params(params: object) -> Params:
+def check_params(params: object) -> "Params":
     """``params`` as a ``(TARGET, MIN, MAX)`` tuple; DeltaError if it is not one."""
     if not isinstance(params, tuple) or len(params) != 3 or not all(map(_is_int, params)):
         raise DeltaError(f"chunking parameters must be three integers, got {params!r}")
@@ -153,7 +151,7 @@ class _Chunker:
     the fed block plus less than ``MAX + TARGET`` bytes carried over.
     """
 
-    def __init__(self, params: Params) -> None:
+    def __init__(self, params: "Params") -> None:
         target, self._min, self._max = check_params(params)
         self._mod = target - self._min
         self._buf = b""    # the data from absolute offset _base to _end
@@ -169,7 +167,7 @@ class _Chunker:
             return self._buf
         return self._buf[start - base:end - base]
 
-    def feed(self, block: bytes) -> list[int]:
+    def feed(self, block: bytes) -> "list[int]":
         if not block:
             return []
         self._trim()
@@ -179,7 +177,7 @@ class _Chunker:
         accepted = self._scan(buf)
         return self._walk(accepted)
 
-    def finish(self) -> list[int]:
+    def finish(self) -> "list[int]":
         if self._end > self._start:
             self._start = self._end
             return [self._end]
@@ -195,7 +193,7 @@ class _Chunker:
             self._buf = self._buf[keep - self._base:]
             self._base = keep
 
-    def _scan(self, buf: bytes) -> list[int]:
+    def _scan(self, buf: bytes) -> "list[int]":
         """Evaluate every line ended in ``buf`` since the last call; the accepted cuts."""
         lo = self._line - self._base   # < 0: the line's start was trimmed away
         lines = (buf if lo <= 0 else buf[lo:]).split(b"\n")
@@ -215,7 +213,7 @@ class _Chunker:
         # the cut after the k-th line is after its k newlines
         return [line + ended[k - 1] + k for k in compress(count(1), flags)]
 
-    def _walk(self, accepted: list[int]) -> list[int]:
+    def _walk(self, accepted: "list[int]") -> "list[int]":
         lo, hi = self._min, self._max
         start = self._start
         cuts = []
@@ -238,7 +236,7 @@ class _Chunker:
         return cuts
 
 
-def _chunks(data: bytes, params: Params) -> Iterator[tuple[int, bytes]]:
+def _chunks(data: bytes, params: "Params") -> "Iterator[tuple[int, bytes]]":
     """``(offset, chunk)`` for each chunk of ``data``."""
     chunker = _Chunker(params)
     start = 0
@@ -247,7 +245,7 @@ def _chunks(data: bytes, params: Params) -> Iterator[tuple[int, bytes]]:
         start = end
 
 
-def _read_chunks(fileobj: BinaryIO, params: Params, bufsize: int) -> Iterator[tuple[int, bytes]]:
+def _read_chunks(fileobj: "BinaryIO", params: "Params", bufsize: int) -> "Iterator[tuple[int, bytes]]":
     """``(offset, chunk)`` for each chunk of the rest of ``fileobj``, read in blocks."""
     if bufsize <= 0:
         raise ValueError("bufsize must be positive")
@@ -263,9 +261,9 @@ def _read_chunks(fileobj: BinaryIO, params: Params, bufsize: int) -> Iterator[tu
             return
 
 
-def iter_chunks(fileobj: BinaryIO, *, algorithm: str = DEFAULT_ALGORITHM,
-                params: Params = DEFAULT_PARAMS,
-                bufsize: int = DEFAULT_BUFSIZE) -> Iterator[tuple[int, int, bytes, bytes]]:
+def iter_chunks(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
+                params: "Params" = DEFAULT_PARAMS,
+                bufsize: int = DEFAULT_BUFSIZE) -> "Iterator[tuple[int, int, bytes, bytes]]":
     """``(offset, length, digest, data)`` for each chunk of the rest of ``fileobj``.
 
     Reads ``bufsize`` bytes at a time; cuts exactly where :func:`signature` and
@@ -298,8 +296,8 @@ class Signature:
 
     algorithm: str
     size: int
-    params: Params
-    ends: tuple[int, ...]
+    params: "Params"
+    ends: "tuple[int, ...]"
     digests: bytes
 
     def __repr__(self) -> str:
@@ -311,7 +309,7 @@ class Signature:
         """The number of chunks."""
         return len(self.ends)
 
-    def lengths(self) -> list[int]:
+    def lengths(self) -> "list[int]":
         """The length of each chunk."""
         return list(map(sub, self.ends, chain((0,), self.ends)))
 
@@ -355,7 +353,7 @@ class Signature:
         return b"".join((head, name, lengths.tobytes(), self.digests))
 
     @classmethod
-    def from_bytes(cls, data: hashing.Buffer) -> Signature:
+    def from_bytes(cls, data: "hashing.Buffer") -> "Signature":
         """Parse and validate :meth:`to_bytes` output; DeltaError on anything else."""
         data = bytes(data)
         if len(data) < _SIG_HEAD.size:
@@ -383,8 +381,8 @@ class Signature:
         return sig
 
 
-def signature(data: hashing.Buffer, *, algorithm: str = DEFAULT_ALGORITHM,
-              params: Params = DEFAULT_PARAMS) -> Signature:
+def signature(data: "hashing.Buffer", *, algorithm: str = DEFAULT_ALGORITHM,
+              params: "Params" = DEFAULT_PARAMS) -> "Signature":
     """The signature of ``data``, the base a later :func:`delta` is made against."""
     data = bytes(data)
     digest = hashing.chunk_digester(algorithm)
@@ -394,9 +392,9 @@ def signature(data: hashing.Buffer, *, algorithm: str = DEFAULT_ALGORITHM,
     return Signature(algorithm, len(data), params, ends, b"".join(map(digest, chunks)))
 
 
-def signature_file(fileobj: BinaryIO, *, algorithm: str = DEFAULT_ALGORITHM,
-                   params: Params = DEFAULT_PARAMS,
-                   bufsize: int = DEFAULT_BUFSIZE) -> Signature:
+def signature_file(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
+                   params: "Params" = DEFAULT_PARAMS,
+                   bufsize: int = DEFAULT_BUFSIZE) -> "Signature":
     """The signature of the rest of ``fileobj``, read in blocks (bounded memory)."""
     digest = hashing.chunk_digester(algorithm)
     ends = []
@@ -409,8 +407,8 @@ def signature_file(fileobj: BinaryIO, *, algorithm: str = DEFAULT_ALGORITHM,
     return Signature(algorithm, end, params, tuple(ends), b"".join(digests))
 
 
-def signature_file_bytes(fileobj: BinaryIO, *, algorithm: str = DEFAULT_ALGORITHM,
-                         params: Params = DEFAULT_PARAMS,
+def signature_file_bytes(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
+                         params: "Params" = DEFAULT_PARAMS,
                          bufsize: int = DEFAULT_BUFSIZE) -> bytes:
     """``signature_file(...).to_bytes()``, built without a Python object per chunk: the
     robot signs files of any size in memory that is the signature's own (10 bytes a
@@ -476,9 +474,9 @@ class Delta:
     known (:func:`delta` always knows it); :func:`patch` then refuses another.
     """
 
-    ops: tuple[Op, ...]
+    ops: "tuple[Op, ...]"
     new_size: int
-    base_size: int | None = None
+    base_size: "int | None" = None
 
     def validate(self) -> None:
         """Raise DeltaError unless the ops are well formed and add up to ``new_size``."""
@@ -506,7 +504,7 @@ class Delta:
             raise DeltaError(f"delta: ops make {total} bytes, not {self.new_size}")
 
 
-def stats(d: Delta) -> tuple[int, int]:
+def stats(d: "Delta") -> "tuple[int, int]":
     """``(bytes copied from the base, literal bytes)`` of a delta."""
     copied = literal = 0
     for op in d.ops:
@@ -517,7 +515,7 @@ def stats(d: Delta) -> tuple[int, int]:
     return copied, literal
 
 
-def _make_delta(chunks: Iterable[tuple[int, bytes]], sig: Signature) -> Delta:
+def _make_delta(chunks: "Iterable[tuple[int, bytes]]", sig: "Signature") -> "Delta":
     sig.validate()
     digest = hashing.chunk_digester(sig.algorithm)
     ends = sig.ends
@@ -527,8 +525,8 @@ def _make_delta(chunks: Iterable[tuple[int, bytes]], sig: Signature) -> Delta:
     keys = [sig.digests[i:i + _DIGEST] for i in range(0, n * _DIGEST, _DIGEST)]
     # The first chunk with a digest wins, so runs of equal chunks copy from one place.
     index = dict(zip(reversed(keys), range(n - 1, -1, -1)))
-    ops: list[Op] = []
-    literal: list[bytes] = []
+    ops: "list[Op]" = []
+    literal: "list[bytes]" = []
     copy_at = copy_len = 0
     last = -1        # base chunk of the latest match: the next one is tried first
     size = 0
@@ -562,13 +560,13 @@ def _make_delta(chunks: Iterable[tuple[int, bytes]], sig: Signature) -> Delta:
     return Delta(tuple(ops), size, sig.size)
 
 
-def delta(new: hashing.Buffer, sig: Signature) -> Delta:
+def delta(new: "hashing.Buffer", sig: "Signature") -> "Delta":
     """The delta that turns the base ``sig`` describes into ``new``."""
     new = bytes(new)
     return _make_delta(_chunks(new, check_params(sig.params)), sig)
 
 
-def delta_file(fileobj: BinaryIO, sig: Signature, *, bufsize: int = DEFAULT_BUFSIZE) -> Delta:
+def delta_file(fileobj: "BinaryIO", sig: "Signature", *, bufsize: int = DEFAULT_BUFSIZE) -> "Delta":
     """:func:`delta` of the rest of ``fileobj``, read in blocks.
 
     Memory is bounded by the literal bytes of the result, not the file size.
@@ -577,7 +575,7 @@ def delta_file(fileobj: BinaryIO, sig: Signature, *, bufsize: int = DEFAULT_BUFS
 
 
 # ---------------------------------------------------------------------------- patch
-def patch(base: hashing.Buffer, d: Delta) -> bytes:
+def patch(base: "hashing.Buffer", d: "Delta") -> bytes:
     """The new file: ``d`` applied to ``base``. DeltaError if it does not fit."""
     d.validate()
     size = len(base)
@@ -585,7 +583,7 @@ def patch(base: hashing.Buffer, d: Delta) -> bytes:
         raise DeltaError(f"patch: the base has {size} bytes, the delta was made for "
                          f"{d.base_size}")
     view = memoryview(base)
-    parts: list[bytes | memoryview] = []
+    parts: "list[bytes | memoryview]" = []
     for op in d.ops:
         if type(op) is Copy:
             end = op.offset + op.length
@@ -601,7 +599,7 @@ def patch(base: hashing.Buffer, d: Delta) -> bytes:
     return out
 
 
-def patch_to_file(base_fileobj: BinaryIO, d: Delta, out_fileobj: BinaryIO, *,
+def patch_to_file(base_fileobj: "BinaryIO", d: "Delta", out_fileobj: "BinaryIO", *,
                   bufsize: int = DEFAULT_BUFSIZE) -> int:
     """Write ``d`` applied to a seekable base file to ``out_fileobj``; bytes written.
 
@@ -648,7 +646,7 @@ _LIT64_S = struct.Struct("<BQ")
 _U32_MAX = 0xFFFFFFFF
 
 
-def encode_delta(d: Delta) -> bytes:
+def encode_delta(d: "Delta") -> bytes:
     """The compact binary form of a delta (see the module docstring)."""
     d.validate()
     flags = 0 if d.base_size is None else _FLAG_BASE_SIZE
@@ -671,7 +669,7 @@ def encode_delta(d: Delta) -> bytes:
     return b"".join(parts)
 
 
-def decode_delta(data: hashing.Buffer, *, max_size: int) -> Delta:
+def decode_delta(data: "hashing.Buffer", *, max_size: int) -> "Delta":
     """Parse and validate :func:`encode_delta` output; DeltaError on anything else.
 
     A delta whose result would exceed ``max_size`` bytes is refused before any
@@ -697,7 +695,7 @@ def decode_delta(data: hashing.Buffer, *, max_size: int) -> Delta:
             raise DeltaError("delta: truncated header")
         (base_size,) = _U64.unpack_from(view, pos)
         pos += _U64.size
-    ops: list[Op] = []
+    ops: "list[Op]" = []
     made = 0
     while pos < total_len:
         tag = view[pos]
@@ -707,7 +705,7 @@ def decode_delta(data: hashing.Buffer, *, max_size: int) -> Delta:
                 raise DeltaError(f"delta: truncated copy at byte {pos}")
             _tag, offset, length = st.unpack_from(view, pos)
             pos += st.size
-            op: Op = Copy(offset, length)
+            op: "Op" = Copy(offset, length)
         elif tag == _LIT32 or tag == _LIT64:
             st = _LIT32_S if tag == _LIT32 else _LIT64_S
             if total_len - pos < st.size:

@@ -59,10 +59,8 @@ Paths are POSIX paths relative to the synced root (``pkg/src/node.cpp``):
 no leading or trailing ``/``, no ``.`` or ``..``. They are not validated on
 each call, to keep matching fast; the wire layer validates them.
 
-Standard library only, Python 3.8: this module runs on the robot.
+Standard library only, Python 3.6: this module runs on the robot.
 """
-
-from __future__ import annotations
 
 import errno
 import os
@@ -89,7 +87,7 @@ MAX_IGNORE_FILE_SIZE = 1 << 20
 # Bound of the per-rules memo of directory verdicts used by ignored_any.
 _DIR_CACHE_SIZE = 1 << 16
 
-DEFAULT_PATTERNS: tuple[str, ...] = (
+DEFAULT_PATTERNS: "tuple[str, ...]" = (
     # Version control metadata: never wanted on the robot, and large. `.git` has
     # no trailing slash because in submodules and worktrees it is a *file*.
     ".git",
@@ -173,7 +171,7 @@ def _trim_trailing_spaces(line: str) -> str:
     return line if last_space < 0 else line[:last_space]
 
 
-def _normalize_line(line: str) -> str | None:
+def _normalize_line(line: str) -> "str | None":
     """The pattern one line of an ignore file holds; None for a blank line or a comment."""
     # git reads lines as C strings: a NUL ends the pattern.
     line = line.split("\0", 1)[0]
@@ -185,7 +183,7 @@ def _normalize_line(line: str) -> str | None:
     return line or None
 
 
-def _parse_text(text: str) -> tuple[str, ...]:
+def _parse_text(text: str) -> "tuple[str, ...]":
     """The patterns of an ignore file's text, in order."""
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -198,7 +196,7 @@ def _parse_text(text: str) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _check_lines(lines: Iterable[Any], what: str) -> tuple[str, ...]:
+def _check_lines(lines: "Iterable[Any]", what: str) -> "tuple[str, ...]":
     """Lines that must already be normalized patterns (wire input)."""
     if isinstance(lines, (str, bytes)) or not isinstance(lines, (list, tuple)):
         raise ValueError(f"{what}: expected a list of pattern strings")  # noqa: TRY004 (wire)
@@ -210,7 +208,7 @@ def _check_lines(lines: Iterable[Any], what: str) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _check_dirpath(dirpath: Any) -> str:
+def _check_dirpath(dirpath: "Any") -> str:
     """``dirpath`` if it is "" or a normalized relative POSIX path, else ValueError."""
     if not isinstance(dirpath, str):
         raise ValueError(f"directory path must be a string, not {dirpath!r}")  # noqa: TRY004 (wire)
@@ -260,7 +258,7 @@ def _simple_length(p: bytes) -> int:
     return len(p)
 
 
-def _char_class(chars: Iterable[int]) -> bytes:
+def _char_class(chars: "Iterable[int]") -> bytes:
     """A regex matching one byte of ``chars``; ``/`` never (git's WM_PATHNAME)."""
     members = sorted(set(chars) - {_SLASH})
     if not members:
@@ -279,7 +277,7 @@ def _char_class(chars: Iterable[int]) -> bytes:
     return b"[" + b"".join(parts) + b"]"
 
 
-def _bracket(p: bytes, i: int) -> tuple[bytes, int] | None:
+def _bracket(p: bytes, i: int) -> "tuple[bytes, int] | None":
     """Translate the bracket expression at ``p[i] == '['``: (regex, index after it).
 
     None when it is malformed (no closing ``]``, unknown ``[:class:]``): git's
@@ -294,7 +292,7 @@ def _bracket(p: bytes, i: int) -> tuple[bytes, int] | None:
     negated = p[i] in b"!^"
     if negated:
         i += 1
-    matched: set[int] = set()
+    matched: "set[int]" = set()
     prev = 0
     while True:
         if i >= n:
@@ -341,7 +339,7 @@ def _bracket(p: bytes, i: int) -> tuple[bytes, int] | None:
     return _char_class(matched), i + 1
 
 
-def _translate(p: bytes, *, pathname: bool) -> bytes | None:
+def _translate(p: bytes, *, pathname: bool) -> "bytes | None":
     """The regex (for fullmatch) of wildmatch pattern ``p``; None if it never matches.
 
     ``pathname`` is git's WM_PATHNAME: ``**`` may span directories. Without it
@@ -406,7 +404,7 @@ class _Pattern:
             p = p[:-1]
         # Without a slash (the trailing one aside) it matches a name at any depth.
         self.basename = b"/" not in p
-        regex: bytes | None
+        regex: "bytes | None"
         if not p:
             regex = None
         elif self.basename:
@@ -422,7 +420,7 @@ class _Pattern:
             rest = _translate(p[prefix:], pathname=True)
             regex = None if rest is None else re.escape(p[:prefix]) + rest
         self.regex = regex
-        self._match: Callable[[bytes], Any] | None = None
+        self._match: "Callable[[bytes], Any] | None" = None
 
     def matches(self, name: bytes, rel: bytes, is_dir: bool) -> bool:
         """Slow path, one pattern at a time (for explain)."""
@@ -438,9 +436,9 @@ class _Pattern:
 _Run = Tuple[bool, Optional[Callable[[bytes], Any]], Optional[Callable[[bytes], Any]]]
 
 
-def _compile_runs(patterns: Sequence[_Pattern], is_dir: bool) -> tuple[_Run, ...]:
+def _compile_runs(patterns: "Sequence[_Pattern]", is_dir: bool) -> "tuple[_Run, ...]":
     """The runs of ``patterns`` that can match, the last (winning) run first."""
-    groups: list[tuple[bool, list[bytes], list[bytes]]] = []
+    groups: "list[tuple[bool, list[bytes], list[bytes]]]" = []
     for pat in patterns:
         if pat.regex is None or (pat.dir_only and not is_dir):
             continue
@@ -449,7 +447,7 @@ def _compile_runs(patterns: Sequence[_Pattern], is_dir: bool) -> tuple[_Run, ...
         _, names, paths = groups[-1]
         (names if pat.basename else paths).append(pat.regex)
 
-    def join(rxs: list[bytes]) -> Callable[[bytes], Any] | None:
+    def join(rxs: "list[bytes]") -> "Callable[[bytes], Any] | None":
         if not rxs:
             return None
         return re.compile(b"|".join(b"(?:" + rx + b")" for rx in rxs), re.DOTALL).fullmatch
@@ -462,18 +460,18 @@ class _Compiled:
 
     __slots__ = ("patterns", "runs")
 
-    def __init__(self, lines: tuple[str, ...]) -> None:
+    def __init__(self, lines: "tuple[str, ...]") -> None:
         self.patterns = tuple(_Pattern(line) for line in lines)
         # runs[is_dir]
         self.runs = (_compile_runs(self.patterns, False), _compile_runs(self.patterns, True))
 
 
 @lru_cache(maxsize=512)
-def _compiled(lines: tuple[str, ...]) -> _Compiled:
+def _compiled(lines: "tuple[str, ...]") -> "_Compiled":
     return _Compiled(lines)
 
 
-def _decide(runs: tuple[_Run, ...], name: bytes, rel: bytes) -> bool | None:
+def _decide(runs: "tuple[_Run, ...]", name: bytes, rel: bytes) -> "bool | None":
     """True excluded, False re-included, None no pattern matched."""
     for negated, by_name, by_path in runs:
         if (by_name is not None and by_name(name) is not None) or (
@@ -505,7 +503,7 @@ class IgnoreMatch:
         self.path = path
         self.ignored = ignored
 
-    def _key(self) -> tuple[str, str, str, str, bool]:
+    def _key(self) -> "tuple[str, str, str, str, bool]":
         return (self.origin, self.dirpath, self.pattern, self.path, self.ignored)
 
     def __eq__(self, other: object) -> bool:
@@ -543,17 +541,17 @@ class IgnoreRules:
 
     def __init__(
         self,
-        defaults: tuple[str, ...],
-        files: tuple[tuple[str, tuple[str, ...]], ...],
-        extra: tuple[str, ...],
+        defaults: "tuple[str, ...]",
+        files: "tuple[tuple[str, tuple[str, ...]], ...]",
+        extra: "tuple[str, ...]",
     ) -> None:
         # Private: use build(), with_file() or from_wire(). `files` is sorted by
         # (depth, dirpath), one entry per directory, none empty.
         self._defaults = defaults
         self._files = files
         self._extra = extra
-        root: tuple[str, ...] = ()
-        nested: dict[bytes, _Compiled] = {}
+        root: "tuple[str, ...]" = ()
+        nested: "dict[bytes, _Compiled]" = {}
         for dirpath, lines in files:
             if dirpath:
                 nested[dirpath.encode("utf-8", "surrogateescape")] = _compiled(lines)
@@ -566,12 +564,12 @@ class IgnoreRules:
         self._nested = nested
         # Directory -> "it or a parent is excluded", for ignored_any: a watcher
         # asks about many files in few directories. Invisible to callers.
-        self._dir_cache: dict[str, bool] = {}
+        self._dir_cache: "dict[str, bool]" = {}
 
     # -- construction -----------------------------------------------------
 
     @classmethod
-    def build(cls, *, defaults: bool = True, extra: Iterable[str] = ()) -> IgnoreRules:
+    def build(cls, *, defaults: bool = True, extra: "Iterable[str]" = ()) -> "IgnoreRules":
         """Rules with :data:`DEFAULT_PATTERNS` (unless ``defaults`` is false) and ``extra``.
 
         ``extra`` are the ``--exclude`` patterns: each is one line of a root
@@ -589,7 +587,7 @@ class IgnoreRules:
                 lines.append(line)
         return cls(DEFAULT_PATTERNS if defaults else (), (), tuple(lines))
 
-    def with_file(self, dirpath: str, text: str) -> IgnoreRules:
+    def with_file(self, dirpath: str, text: str) -> "IgnoreRules":
         """These rules plus the ignore file ``text`` found in ``dirpath`` ("" for the root).
 
         It applies below ``dirpath``, anchored there, and takes precedence
@@ -601,11 +599,11 @@ class IgnoreRules:
             raise TypeError("ignore file text must be a string")
         return self._replace(dirpath, _parse_text(text))
 
-    def without_file(self, dirpath: str) -> IgnoreRules:
+    def without_file(self, dirpath: str) -> "IgnoreRules":
         """These rules without the ignore file of ``dirpath`` (it was deleted)."""
         return self._replace(_check_dirpath(dirpath), ())
 
-    def _replace(self, dirpath: str, lines: tuple[str, ...]) -> IgnoreRules:
+    def _replace(self, dirpath: str, lines: "tuple[str, ...]") -> "IgnoreRules":
         files = [f for f in self._files if f[0] != dirpath]
         if lines:
             files.append((dirpath, lines))
@@ -614,20 +612,20 @@ class IgnoreRules:
 
     # -- wire ---------------------------------------------------------------
 
-    def to_wire(self) -> list[list[Any]]:
+    def to_wire(self) -> "list[list[Any]]":
         """JSON-able ``[[dirpath, [pattern, ...]], ...]``, lowest precedence first.
 
         The first entry is always the defaults (``""``), the last always the
         command-line patterns (``""``); between them the ignore files sorted
         by depth. The peer gets the exact patterns, never its own defaults.
         """
-        out: list[list[Any]] = [["", list(self._defaults)]]
+        out: "list[list[Any]]" = [["", list(self._defaults)]]
         out.extend([dirpath, list(lines)] for dirpath, lines in self._files)
         out.append(["", list(self._extra)])
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any) -> IgnoreRules:
+    def from_wire(cls, obj: "Any") -> "IgnoreRules":
         """The rules :meth:`to_wire` described; ValueError on any bad shape."""
         if not isinstance(obj, (list, tuple)) or len(obj) < 2:
             raise ValueError("ignore rules: expected a list of at least 2 entries")
@@ -667,7 +665,7 @@ class IgnoreRules:
         d = 1 if is_dir else 0
         nested = self._nested
         if nested and slash > 0:
-            found: list[tuple[int, _Compiled]] = []
+            found: "list[tuple[int, _Compiled]]" = []
             j = slash
             while j > 0:
                 compiled = nested.get(bpath[:j])
@@ -727,7 +725,7 @@ class IgnoreRules:
             cache[d] = excluded
         return excluded
 
-    def explain(self, path: str, is_dir: bool) -> IgnoreMatch | None:
+    def explain(self, path: str, is_dir: bool) -> "IgnoreMatch | None":
         """The pattern that decides about ``path`` as :meth:`ignored_any` sees it, or None.
 
         Slow (one pattern at a time); for messages and debugging, not scans.
@@ -740,10 +738,10 @@ class IgnoreRules:
             j = path.find("/", j + 1)
         return self._explain_own(path, is_dir)
 
-    def _explain_own(self, path: str, is_dir: bool) -> IgnoreMatch | None:
+    def _explain_own(self, path: str, is_dir: bool) -> "IgnoreMatch | None":
         bpath = path.encode("utf-8", "surrogateescape")
         name = bpath[bpath.rfind(b"/") + 1 :]
-        lists: list[tuple[str, str, tuple[str, ...]]] = [("extra", "", self._extra)]
+        lists: "list[tuple[str, str, tuple[str, ...]]]" = [("extra", "", self._extra)]
         for dirpath, lines in reversed(self._files):
             lists.append(("file", dirpath, lines))
         lists.append(("default", "", self._defaults))
@@ -786,7 +784,7 @@ class IgnoreRules:
 # Files
 
 
-def read_ignore_file(root: str, dirpath: str) -> str | None:
+def read_ignore_file(root: str, dirpath: str) -> "str | None":
     """The text of ``root/dirpath/.fetchsyncignore``, or None if there is none.
 
     Neither the file nor any directory of ``dirpath`` is followed through a
@@ -846,13 +844,13 @@ def _read_fd(fd: int, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def _is_absent(exc: OSError) -> bool:
+def _is_absent(exc: "OSError") -> bool:
     # ELOOP / EMLINK (some BSDs) / ENOTDIR: a symlink under O_NOFOLLOW or a file
     # where a directory was expected. ENXIO: a socket opened with O_NONBLOCK.
     return exc.errno in (errno.ENOENT, errno.ELOOP, errno.EMLINK, errno.ENOTDIR, errno.ENXIO)
 
 
-def _read_ignore_file_by_path(root: str, parts: list[str]) -> str | None:
+def _read_ignore_file_by_path(root: str, parts: "list[str]") -> "str | None":
     """Fallback without dir_fd support: the same checks with lstat (racy, but portable)."""
     path = root
     for k, part in enumerate(parts + [IGNORE_FILENAME]):
@@ -875,6 +873,6 @@ def _decode(data: bytes, dirpath: str) -> str:
     return data.decode("utf-8", "surrogateescape")
 
 
-def build_rules(excludes: Iterable[str] = ()) -> IgnoreRules:
+def build_rules(excludes: "Iterable[str]" = ()) -> "IgnoreRules":
     """Every verb's rules: the defaults, the ``.fetchsyncignore`` files, ``--exclude``."""
     return IgnoreRules.build(defaults=True, extra=tuple(excludes))

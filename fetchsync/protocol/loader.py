@@ -1,7 +1,7 @@
 """Delivery of the robot-side endpoint over the connection itself.
 
 The client runs a short loader with ``python3 -S -c`` on the robot. The loader
-refuses a Python older than 3.8 with a message that says so (the endpoint
+refuses a Python older than 3.6 with a message that says so (the endpoint
 itself would fail with a SyntaxError that says nothing useful), then looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
@@ -21,8 +21,6 @@ else; it is extracted from the verified bytes, not from the file again.
 Nothing is installed with root and nothing is downloaded by the robot.
 """
 
-from __future__ import annotations
-
 import os
 from typing import Callable, Tuple
 
@@ -32,8 +30,8 @@ NEED = b"FSYNC-NEED\n"
 
 LOADER = r"""
 import sys, os
-if sys.version_info < (3, 8):
-    sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.8: install one (apt install python3.8) and set FETCHSYNC_REMOTE_PYTHON=python3.8" % tuple(sys.version_info[:3]))
+if sys.version_info < (3, 6):
+    sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.6: install one (apt install python3) and set FETCHSYNC_REMOTE_PYTHON to it" % tuple(sys.version_info[:3]))
 if sys.flags.no_site:
     import site
     v = os.path.dirname(os.path.dirname(sys.executable))
@@ -123,7 +121,7 @@ if not whole(x):
         for r, _, fs in os.walk(t):
             for f in fs:
                 if f.endswith(".py"):
-                    py_compile.compile(os.path.join(r, f), doraise=True, invalidation_mode=py_compile.PycInvalidationMode.UNCHECKED_HASH)
+                    py_compile.compile(os.path.join(r, f), doraise=True, **({"invalidation_mode": py_compile.PycInvalidationMode.UNCHECKED_HASH} if hasattr(py_compile, "PycInvalidationMode") else {}))
         for r, _, fs in os.walk(t, topdown=False):
             for f in fs + ["."]:
                 fd2 = os.open(os.path.join(r, f), os.O_RDONLY)
@@ -148,7 +146,7 @@ _PACKAGE_INIT = b'"""fetchsync robot-side endpoint (the protocol package only)."
 _cache = None  # type: Tuple[bytes, str] | None
 
 
-def endpoint_archive() -> Tuple[bytes, str]:
+def endpoint_archive() -> "Tuple[bytes, str]":
     """The endpoint as a deterministic zip, and its sha256 (hex)."""
     global _cache
     if _cache is not None:
@@ -206,7 +204,7 @@ def _sources_stamp(here: str) -> str:
     return hashlib.sha256(repr(sorted(stats)).encode()).hexdigest()[:32]
 
 
-def endpoint_digest() -> Tuple[str, int]:
+def endpoint_digest() -> "Tuple[str, int]":
     """The archive's sha256 and length, without building it when a local note has them.
 
     Building the zip (and importing zipfile) costs a new process ~10 ms, and
@@ -228,7 +226,7 @@ def endpoint_digest() -> Tuple[str, int]:
     return digest, len(data)
 
 
-def loader_spec(python: str = "python3") -> Tuple[str, Callable[[], bytes]]:
+def loader_spec(python: str = "python3") -> "Tuple[str, Callable[[], bytes]]":
     """The remote command line that starts the endpoint, and how to get the archive on NEED."""
     digest, length = endpoint_digest()
     # -S: no .pth hooks nor sitecustomize run before the endpoint (a robot's
@@ -254,7 +252,7 @@ def loader_spec(python: str = "python3") -> Tuple[str, Callable[[], bytes]]:
     return cmd, archive
 
 
-def loader_command(python: str = "python3") -> Tuple[str, bytes]:
+def loader_command(python: str = "python3") -> "Tuple[str, bytes]":
     """The remote command line that starts the endpoint, and the archive to send on NEED."""
     cmd, archive = loader_spec(python)
     return cmd, archive()

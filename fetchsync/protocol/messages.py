@@ -15,12 +15,10 @@ operation applies, written as a string:
 A mismatch is a conflict: the receiver's version is preserved, never lost.
 """
 
-from __future__ import annotations
-
-from dataclasses import dataclass, field, fields
 from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from fetchsync.protocol import paths
+from fetchsync.protocol.compat import dataclass, field, fields
 from fetchsync.protocol.errors import ProtocolError
 
 MKDIR = "mkdir"
@@ -58,14 +56,14 @@ def expect_link(target: str) -> str:
     return "l:" + target
 
 
-def _check_expect(value: Optional[str]) -> None:
+def _check_expect(value: "Optional[str]") -> None:
     if value is None:
         return
     if not isinstance(value, str) or not (value in (ABSENT, IS_DIR) or value[:2] in ("f:", "l:")):
         raise ProtocolError("bad expectation %r" % (value,))
 
 
-def _check_int(name: str, value: Any, lo: int = 0, hi: int = 1 << 62) -> None:
+def _check_int(name: str, value: "Any", lo: int = 0, hi: int = 1 << 62) -> None:
     if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
         raise ProtocolError("%s out of range: %r" % (name, value))
 
@@ -74,7 +72,7 @@ def _check_int(name: str, value: Any, lo: int = 0, hi: int = 1 << 62) -> None:
 class Op:
     kind: str
     path: str
-    expect: Optional[str] = None   # None: no check (only for UPLOAD)
+    expect: "Optional[str]" = None   # None: no check (only for UPLOAD)
     mode: int = 0
     target: str = ""               # SYMLINK
     hash: str = ""                 # WRITE: content hash of the result (hex)
@@ -82,11 +80,11 @@ class Op:
     source: str = ""               # WRITE: one of SOURCES
     base: str = ""                 # WRITE from delta: hash of the base; from copy: its hash
     from_path: str = ""            # WRITE from copy
-    blob: Tuple[int, int] = (0, 0)  # (offset, length) in the request's blob
+    blob: "Tuple[int, int]" = (0, 0)  # (offset, length) in the request's blob
     upload: str = ""               # WRITE from upload / UPLOAD: the upload id
     z: int = 0                     # 1: the blob is zlib-compressed
 
-    def validate(self) -> Op:
+    def validate(self) -> "Op":
         if self.kind not in OP_KINDS:
             raise ProtocolError("unknown operation %r" % (self.kind,))
         if self.kind == UPLOAD:
@@ -121,7 +119,7 @@ class Op:
                 raise ProtocolError("bad upload id %r" % (self.upload,))
         return self
 
-    def but(self, **changes: Any) -> Op:
+    def but(self, **changes: "Any") -> "Op":
         """A copy with ``changes``: ``dataclasses.replace`` without the frozen __init__'s
         setattr per field (the laptop makes two or three per file it sends). Like it,
         no validation: ``validate()`` is the receiver's."""
@@ -134,7 +132,7 @@ class Op:
         d.update(changes)
         return new
 
-    def to_wire(self) -> Dict[str, Any]:
+    def to_wire(self) -> "Dict[str, Any]":
         out = {"k": self.kind, "p": self.path}  # type: Dict[str, Any]
         if self.expect is not None:
             out["e"] = self.expect
@@ -161,7 +159,7 @@ class Op:
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any) -> Op:
+    def from_wire(cls, obj: "Any") -> "Op":
         if not isinstance(obj, dict):
             raise ProtocolError("operation is not an object")
         get = obj.get
@@ -200,7 +198,7 @@ _FIELDS = frozenset(f.name for f in fields(Op))
 AS_ASKED = 0
 
 
-def asked(op: Op) -> Optional[List[Any]]:
+def asked(op: "Op") -> "Optional[List[Any]]":
     """The listing entry an operation leaves when it does exactly what it asks, as
     :meth:`Listed.to_wire` spells it; None for kinds that do not say (chmod, delete)."""
     if op.kind == WRITE:
@@ -219,13 +217,13 @@ class Result(NamedTuple):
     code: str = OK
     message: str = ""
     preserved: str = ""      # where the receiver's conflicting version was moved
-    written: Optional[List[Any]] = None   # the listing entry of what now stands there
+    written: "Optional[List[Any]]" = None   # the listing entry of what now stands there
 
     @property
     def ok(self) -> bool:
         return self.code == OK
 
-    def to_wire(self, op: Optional[Op] = None) -> Any:
+    def to_wire(self, op: "Optional[Op]" = None) -> "Any":
         """The wire form; with the ``op`` it answers, just AS_ASKED when it did exactly that."""
         if op is not None and self.code == OK and not self.message and not self.preserved \
                 and self.written is not None and self.written == asked(op):
@@ -240,7 +238,7 @@ class Result(NamedTuple):
         return out
 
     @classmethod
-    def from_wire(cls, obj: Any, op: Optional[Op] = None) -> Result:
+    def from_wire(cls, obj: "Any", op: "Optional[Op]" = None) -> "Result":
         """The result of ``op`` from its wire form (AS_ASKED needs the ``op``)."""
         if type(obj) is int and obj == AS_ASKED:
             written = asked(op) if op is not None else None
@@ -273,11 +271,11 @@ class Listed(NamedTuple):
             return expect_link(self.target)
         return expect_file(self.hash)
 
-    def to_wire(self) -> List[Any]:
+    def to_wire(self) -> "List[Any]":
         return [self.path, self.kind, self.mode, self.size, self.hash or self.target]
 
     @classmethod
-    def from_wire(cls, obj: Any) -> Listed:
+    def from_wire(cls, obj: "Any") -> "Listed":
         if not isinstance(obj, (list, tuple)) or len(obj) != 5:
             raise ProtocolError("bad listing entry")
         path, kind, mode, size, extra = obj
@@ -302,4 +300,4 @@ class Stats:
     deleted: int = 0
     bytes_literal: int = 0
     bytes_reused: int = 0
-    extra: Dict[str, Any] = field(default_factory=dict)
+    extra: "Dict[str, Any]" = field(default_factory=dict)

@@ -5,8 +5,6 @@ or ``..`` component, no leading ``/`` and no NUL. Names that are not UTF-8
 travel as ``os.fsdecode`` strings (surrogate escapes), which JSON carries.
 """
 
-from __future__ import annotations
-
 import errno
 import os
 from contextlib import contextmanager
@@ -44,7 +42,7 @@ def parent(path: str) -> str:
     return path[:i] if i >= 0 else ""
 
 
-def ancestors(path: str) -> list[str]:
+def ancestors(path: str) -> "list[str]":
     """Every proper ancestor of ``path``, outermost first."""
     parts = path.split("/")
     return ["/".join(parts[:i]) for i in range(1, len(parts))]
@@ -120,7 +118,7 @@ class Root:
         return fd
 
     @contextmanager
-    def parent(self, path: str) -> Iterator[Tuple[int, str]]:
+    def parent(self, path: str) -> "Iterator[Tuple[int, str]]":
         """``(descriptor of path's directory, path's last component)``, for one operation."""
         i = validate(path).rfind("/")
         if i < 0:
@@ -133,7 +131,7 @@ class Root:
             os.close(fd)
 
 
-def lstat_at(name: str, dir_fd: int) -> Optional[os.stat_result]:
+def lstat_at(name: str, dir_fd: int) -> "Optional[os.stat_result]":
     """``name``'s lstat in ``dir_fd``, or None if there is nothing there."""
     try:
         return os.stat(name, dir_fd=dir_fd, follow_symlinks=False)

@@ -8,8 +8,6 @@ request that cannot be served at all gets an error frame; only a broken
 stream ends the endpoint.
 """
 
-from __future__ import annotations
-
 import collections
 import gc
 import os
@@ -46,7 +44,7 @@ def expand_workspace(spec: str) -> str:
 
 
 class Server:
-    def __init__(self, inp: BinaryIO, out: BinaryIO) -> None:
+    def __init__(self, inp: "BinaryIO", out: "BinaryIO") -> None:
         self.inp = inp
         self.out = out
         self.reader = wire.Reader(self._recv, getattr(inp, "readinto", None))
@@ -64,7 +62,7 @@ class Server:
         read1 = getattr(self.inp, "read1", None)
         return read1(n) if read1 is not None else self.inp.read(n)
 
-    def _send(self, frame: wire.Frame) -> None:
+    def _send(self, frame: "wire.Frame") -> None:
         data = wire.encode_frame(frame, compress=self.compress)
         with self._out_lock:
             self.out.write(data)
@@ -91,7 +89,7 @@ class Server:
                     return
                 self._quiet_since = now
 
-    def hello(self) -> Dict[str, Any]:
+    def hello(self) -> "Dict[str, Any]":
         return {
             "algorithms": hashing.available(),
             "compression": ["zlib"],
@@ -158,7 +156,7 @@ class Server:
         except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
             frames.put(exc)
 
-    def dispatch(self, frame: wire.Frame) -> wire.Frame:
+    def dispatch(self, frame: "wire.Frame") -> "wire.Frame":
         op = frame.header.get("op")
         handler = getattr(self, "do_" + str(op), None)
         if handler is None:
@@ -174,19 +172,19 @@ class Server:
         return wire.Frame(wire.T_RESPONSE, frame.req_id, header, blob)
 
     # ------------------------------------------------------------------ requests
-    def _store(self) -> Store:
+    def _store(self) -> "Store":
         if self.store is None:
             raise ProtocolError("no workspace open")
         self.store.lock()
         return self.store
 
-    def _writable(self) -> Store:
+    def _writable(self) -> "Store":
         store = self._store()
         if store.readonly:
             raise StoreError("the workspace was opened read-only: nothing is written")
         return store
 
-    def do_open(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_open(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """Open a workspace; ``readonly``: create nothing, lock nothing, write nothing
         (``push --dry-run``, ``pull``, status reads), and refuse every change."""
         from fetchsync.protocol.ignore import IgnoreRules
@@ -203,10 +201,10 @@ class Server:
         return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen,
                 "readonly": readonly}, b""
 
-    def _fresh(self, store: Store, h: Dict[str, Any]) -> bool:
+    def _fresh(self, store: "Store", h: "Dict[str, Any]") -> bool:
         return h.get("epoch") == store.epoch and h.get("gen") == store.gen
 
-    def do_list(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_list(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         store = self._store()
         _test_pause("FETCHSYNC_TEST_SLOW_LIST")
         out = {"epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
@@ -219,7 +217,7 @@ class Server:
         store.save_index()
         return out, b""
 
-    def _sync_request(self, h: Dict[str, Any]) -> Optional[Tuple[Store, List[M.Op], str]]:
+    def _sync_request(self, h: "Dict[str, Any]") -> "Optional[Tuple[Store, List[M.Op], str]]":
         """A sync request's store (locked), operations and policy; None if it is stale."""
         store = self._writable()
         if h.get("require_fresh") and not self._fresh(store, h):
@@ -233,7 +231,7 @@ class Server:
             raise ProtocolError("unknown conflict policy %r" % (policy,))
         return store, ops, policy
 
-    def do_sync(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_sync(self, h: "Dict[str, Any]", blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         parsed = self._sync_request(h)
         if parsed is None:
             store = self._store()
@@ -250,7 +248,7 @@ class Server:
         return out, b""
 
     @staticmethod
-    def _per_item(h: Dict[str, Any], serve: Any) -> Tuple[List[Dict[str, Any]], bytes]:
+    def _per_item(h: "Dict[str, Any]", serve: "Any") -> "Tuple[List[Dict[str, Any]], bytes]":
         """Run ``serve(item) -> (answer, data)`` for each item; a failure is that item's answer."""
         items = h.get("items")
         if not isinstance(items, list):
@@ -273,11 +271,11 @@ class Server:
             pos += len(data)
         return answers, b"".join(parts)
 
-    def do_read(self, h: Dict[str, Any], blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_read(self, h: "Dict[str, Any]", blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """File contents, whole or as a delta against a signature the client sent."""
         store = self._store()
 
-        def serve(item: Dict[str, Any]) -> Tuple[Dict[str, Any], bytes]:
+        def serve(item: "Dict[str, Any]") -> "Tuple[Dict[str, Any], bytes]":
             sig = None
             if "sig" in item:
                 ref = item["sig"]
@@ -293,11 +291,11 @@ class Server:
         store.save_index()
         return {"items": answers}, data
 
-    def do_sigs(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_sigs(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """Delta signatures of files here, for a sender that has none of its own."""
         store = self._store()
 
-        def serve(item: Dict[str, Any]) -> Tuple[Dict[str, Any], bytes]:
+        def serve(item: "Dict[str, Any]") -> "Tuple[Dict[str, Any], bytes]":
             sig, digest = store.signature(item["p"])
             return {"c": M.OK, "h": digest}, sig
 
@@ -305,14 +303,14 @@ class Server:
         store.save_index()
         return {"items": answers}, data
 
-    def do_adopt(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_adopt(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         store = self._writable()
         items = [M.Listed.from_wire(e) for e in h.get("entries", [])]
         n = store.adopt(items)
         store.save_index()
         return {"adopted": n, "epoch": store.epoch, "gen": store.gen}, b""
 
-    def do_kept(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_kept(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """Read-only: the files kept in ``.fetchsync/<where>`` (``conflicts``, ``trash``), or,
         with ``at`` and ``p``, a piece of one (``off``, ``len``) as the blob."""
         store = self._store()
@@ -327,10 +325,10 @@ class Server:
         size, data = store.read_kept(where, at, path, off, n)
         return {"size": size}, data
 
-    def do_ping(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_ping(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         return {"pong": True}, b""
 
-    def do_bye(self, h: Dict[str, Any], _blob: bytes) -> Tuple[Dict[str, Any], bytes]:
+    def do_bye(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         return {}, b""
 
 
@@ -342,7 +340,7 @@ def _test_pause(name: str) -> None:
         time.sleep(float(value))
 
 
-def _error_frame(req_id: int, exc: Exception) -> wire.Frame:
+def _error_frame(req_id: int, exc: "Exception") -> "wire.Frame":
     if isinstance(exc, StoreError):
         return wire.Frame(wire.T_ERROR, req_id, {"error": str(exc), "kind": "store"})
     if isinstance(exc, ProtocolError):
@@ -365,11 +363,11 @@ class _ReadAhead:
     """
 
     def __init__(self) -> None:
-        self._items: Deque[Tuple[Any, int]] = collections.deque()
+        self._items: "Deque[Tuple[Any, int]]" = collections.deque()
         self._bytes = 0
         self._cond = threading.Condition()
 
-    def put(self, item: Any, size: int = 0) -> None:
+    def put(self, item: "Any", size: int = 0) -> None:
         """Queue ``item``, once there is room for ``size`` more bytes."""
         with self._cond:
             while self._items and (len(self._items) >= READ_AHEAD
@@ -379,7 +377,7 @@ class _ReadAhead:
             self._bytes += size
             self._cond.notify_all()
 
-    def get(self, timeout: Optional[float] = None) -> Any:
+    def get(self, timeout: "Optional[float]" = None) -> "Any":
         """The next item; queue.Empty if none came within ``timeout`` seconds."""
         with self._cond:
             if not self._cond.wait_for(lambda: self._items, timeout):
@@ -393,7 +391,7 @@ class _ReadAhead:
         return not self._items
 
 
-def _unpacked(frame: Optional[wire.Frame]) -> Optional[Tuple[bytes, Any]]:
+def _unpacked(frame: "Optional[wire.Frame]") -> "Optional[Tuple[bytes, Any]]":
     """A sync request's compressed part, inflated by the reading thread (zlib lets go of
     the GIL) while the serving one applies the request before; None if it has none, or
     if it is bad: applying the request then says why."""
@@ -416,7 +414,8 @@ def main() -> None:
     wire.widen_pipe(0)  # the push arrives on stdin
     # a push makes a few objects per file and no cycles worth the name, yet the
     # default thresholds ran ~100 collections in a 7,000-file push
-    gc.freeze()
+    if hasattr(gc, "freeze"):  # Python >= 3.7
+        gc.freeze()  # novermin
     gc.set_threshold(100000, 50, 100)
     # stdout carries frames only: anything else printed would corrupt the stream
     out = os.fdopen(os.dup(1), "wb")

@@ -40,8 +40,6 @@ Rules it keeps:
   copied and signed in pieces; runs of zeros are left as holes when written.
 """
 
-from __future__ import annotations
-
 import errno
 import fcntl
 import io
@@ -57,7 +55,7 @@ from fetchsync.protocol import hashing, paths, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
 from fetchsync.protocol.paths import O_FILE, lstat_at, mkdir_open, open_dir
-from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, entry_from_stat, scan_fd
+from fetchsync.protocol.tree import DIR, FILE, LINK, Entry, entry_from_stat, scan_fd, scandir_fd
 
 META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
@@ -133,7 +131,7 @@ def _umask() -> int:
     return _UMASK
 
 
-def unpack_zpart(blob: bytes, zpart: Any) -> Tuple[bytes, Any]:
+def unpack_zpart(blob: bytes, zpart: "Any") -> "Tuple[bytes, Any]":
     """A sync request's blob as (its compressed part inflated, the raw rest, not copied)."""
     if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
             and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
@@ -171,7 +169,7 @@ def rmtree_at(name: str, dir_fd: int) -> None:
             raise
     fd = open_dir(name, dir_fd)
     try:
-        with os.scandir(fd) as it:
+        with scandir_fd(fd) as it:
             items = [(de.name, de.is_dir(follow_symlinks=False)) for de in it]
         for sub, is_dir in items:
             if is_dir:
@@ -201,7 +199,7 @@ def _size_at(name: str, dir_fd: int) -> int:
         os.close(fd)
 
 
-def _write_all(fd: int, data: Any) -> None:
+def _write_all(fd: int, data: "Any") -> None:
     view = memoryview(data)
     while view:
         n = os.write(fd, view)
@@ -219,7 +217,7 @@ class _Out:
         self.sparse = sparse
         self.pending_hole = False
 
-    def write(self, data: Any) -> int:
+    def write(self, data: "Any") -> int:
         view = memoryview(data).cast("B") if not isinstance(data, memoryview) else data
         n = len(view)
         self.hasher.update(view)
@@ -245,7 +243,7 @@ class _Out:
         return self.hasher.digest().hex()
 
 
-def _copy_fd(src: int, out: _Out, length: int = -1) -> None:
+def _copy_fd(src: int, out: "_Out", length: int = -1) -> None:
     """Copy ``length`` bytes (-1: to the end) from ``src``'s position to ``out``."""
     while length != 0:
         block = os.read(src, PIECE if length < 0 else min(PIECE, length))
@@ -261,7 +259,7 @@ def _copy_fd(src: int, out: _Out, length: int = -1) -> None:
 class _Tee:
     """A file object that hashes what is read through it (for one pass over a file)."""
 
-    def __init__(self, fh: Any, algorithm: str) -> None:
+    def __init__(self, fh: "Any", algorithm: str) -> None:
         self.fh = fh
         self.hasher = hashing.new(algorithm)
 
@@ -272,7 +270,7 @@ class _Tee:
 
 
 class Store:
-    def __init__(self, workspace: str, *, algorithm: str, rules: Any = None, create: bool = True,
+    def __init__(self, workspace: str, *, algorithm: str, rules: "Any" = None, create: bool = True,
                  readonly: bool = False) -> None:
         self.workspace = workspace
         self.root = os.path.join(workspace, "src")
@@ -291,7 +289,7 @@ class Store:
         self._load_index()
 
     # ------------------------------------------------------------------ descriptors
-    def _unusable(self, exc: OSError, where: str) -> StoreError:
+    def _unusable(self, exc: "OSError", where: str) -> "StoreError":
         if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
             return StoreError("the remote workspace is not writable: cannot create %s: %s; "
                               "check the permissions of %s on the robot, or pass another "
@@ -357,7 +355,7 @@ class Store:
             os.close(self._meta_fd)
             self._meta_fd = -1
 
-    def _root(self) -> paths.Root:
+    def _root(self) -> "paths.Root":
         self._open()
         assert self.src is not None
         return self.src
@@ -378,7 +376,7 @@ class Store:
                               "write through it" % os.path.join(META, name)) from None
             raise
 
-    def _read_meta(self, name: str) -> Optional[bytes]:
+    def _read_meta(self, name: str) -> "Optional[bytes]":
         """A file of ``.fetchsync`` (None if absent; never through a symlink)."""
         if self._meta_fd < 0:
             return None
@@ -414,7 +412,7 @@ class Store:
         os.replace(tmp, name, src_dir_fd=meta, dst_dir_fd=meta)
 
     # ------------------------------------------------------------------ index
-    def _index_stamp(self) -> Any:
+    def _index_stamp(self) -> "Any":
         stamp = []  # type: List[Optional[Tuple[int, int, int]]]
         for name in (INDEX, JOURNAL):
             try:
@@ -555,14 +553,14 @@ class Store:
         self._snapshot_size = len(blob)
         self._journal_size = 0
 
-    def _set_cache(self, path: str, value: Optional[List[Any]]) -> None:
+    def _set_cache(self, path: str, value: "Optional[List[Any]]") -> None:
         self._set_row(self.cache, self._touched_cache, path, value)
 
-    def _set_synced(self, path: str, value: Optional[List[Any]]) -> None:
+    def _set_synced(self, path: str, value: "Optional[List[Any]]") -> None:
         self._set_row(self.synced, self._touched_synced, path, value)
 
-    def _set_row(self, table: Dict[str, Any], touched: set, path: str,
-                 value: Optional[List[Any]]) -> None:
+    def _set_row(self, table: "Dict[str, Any]", touched: "set", path: str,
+                 value: "Optional[List[Any]]") -> None:
         """Set or drop (None) ``path``'s row in one of the index's tables, for the journal."""
         if value is None:
             if table.pop(path, None) is None:
@@ -579,7 +577,7 @@ class Store:
         while stack:
             fd = stack.pop()
             try:
-                with os.scandir(fd) as it:
+                with scandir_fd(fd) as it:
                     items = [(de.name, de.is_dir(follow_symlinks=False)) for de in it]
                 for name, is_dir in items:
                     try:
@@ -639,7 +637,7 @@ class Store:
         self.close()
 
     # ------------------------------------------------------------------ reading
-    def _hash_fd(self, path: str, fd: int, st: os.stat_result) -> str:
+    def _hash_fd(self, path: str, fd: int, st: "os.stat_result") -> str:
         """Content hash of the open regular file ``fd`` (``st``: its fstat), stat-cached."""
         cached = self.cache.get(path)
         if (cached is not None and cached[0] == st.st_size and cached[1] == st.st_mtime_ns
@@ -651,7 +649,7 @@ class Store:
         self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
         return digest
 
-    def _cached(self, path: str, entry: Entry) -> Optional[str]:
+    def _cached(self, path: str, entry: "Entry") -> "Optional[str]":
         c = self.cache.get(path)
         if (c is not None and c[0] == entry.size and c[1] == entry.mtime_ns and c[2] == entry.ctime_ns
                 and c[3] == entry.ino and not self._racy(entry.mtime_ns)):
@@ -668,7 +666,7 @@ class Store:
         finally:
             os.close(fd)
 
-    def hash_file(self, path: str, entry: Entry) -> str:
+    def hash_file(self, path: str, entry: "Entry") -> str:
         """Content hash of the file at ``path`` (stat-cached)."""
         digest = self._cached(path, entry)
         if digest is not None:
@@ -680,9 +678,9 @@ class Store:
     def _racy(mtime_ns: int) -> bool:
         # a file modified within the last 2 s may change again without its
         # mtime moving on coarse-timestamp filesystems: do not trust the cache
-        return time.time_ns() - mtime_ns < 2_000_000_000
+        return int(time.time() * 1e9) - mtime_ns < 2_000_000_000
 
-    def listed(self, path: str, entry: Optional[Entry]) -> Optional[M.Listed]:
+    def listed(self, path: str, entry: "Optional[Entry]") -> "Optional[M.Listed]":
         if entry is None:
             return None
         if entry.kind == FILE:
@@ -691,7 +689,7 @@ class Store:
             return M.Listed(path, LINK, target=entry.target)
         return M.Listed(path, DIR, entry.mode)
 
-    def _at(self, path: str, dir_fd: int, name: str) -> Optional[M.Listed]:
+    def _at(self, path: str, dir_fd: int, name: str) -> "Optional[M.Listed]":
         """What stands at ``path`` (``name`` in ``dir_fd``), with its content hash."""
         st = lstat_at(name, dir_fd)
         if st is None:
@@ -715,7 +713,7 @@ class Store:
             return M.Listed(path, FILE, entry.mode, entry.size, hash=digest)
         return M.Listed(path, DIR, entry.mode)
 
-    def written(self, path: str, digest: str) -> Optional[M.Listed]:
+    def written(self, path: str, digest: str) -> "Optional[M.Listed]":
         """What stands at ``path`` right after we wrote content with hash ``digest`` there.
 
         The content was verified against its hash before the rename, so it is
@@ -724,21 +722,21 @@ class Store:
         with self._root().parent(path) as (dir_fd, name):
             return self._written_at(path, dir_fd, name, digest)
 
-    def _written_at(self, path: str, dir_fd: int, name: str, digest: str) -> Optional[M.Listed]:
+    def _written_at(self, path: str, dir_fd: int, name: str, digest: str) -> "Optional[M.Listed]":
         st = lstat_at(name, dir_fd)
         if st is None or not stat_mod.S_ISREG(st.st_mode) or not digest:
             return self._at(path, dir_fd, name)
         self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
         return M.Listed(path, FILE, stat_mod.S_IMODE(st.st_mode), st.st_size, hash=digest)
 
-    def current(self, path: str) -> Optional[M.Listed]:
+    def current(self, path: str) -> "Optional[M.Listed]":
         with self._root().parent(path) as (dir_fd, name):
             return self._at(path, dir_fd, name)
 
-    def _scan(self) -> Any:
+    def _scan(self) -> "Any":
         return scan_fd(self._root().fd, self.rules, is_temp=is_temp)
 
-    def listing(self) -> Tuple[List[M.Listed], List[Tuple[str, str]]]:
+    def listing(self) -> "Tuple[List[M.Listed], List[Tuple[str, str]]]":
         """Everything under the root, with content hashes."""
         result = self._scan()
         out = []
@@ -756,7 +754,7 @@ class Store:
         out.sort(key=lambda x: x.path)
         return out, result.skipped
 
-    def drift(self) -> Tuple[List[M.Listed], List[str]]:
+    def drift(self) -> "Tuple[List[M.Listed], List[str]]":
         """What differs on disk from what was last synced: (changed or new, gone).
 
         This runs on every push, so unchanged entries cost a stat comparison
@@ -787,7 +785,7 @@ class Store:
         return changed, gone
 
     @staticmethod
-    def _matches(item: M.Listed, rec: List[Any]) -> bool:
+    def _matches(item: "M.Listed", rec: "List[Any]") -> bool:
         kind, mode, extra = rec
         if item.kind != kind:
             return False
@@ -797,7 +795,7 @@ class Store:
             return item.target == extra
         return item.mode == mode
 
-    def _record(self, path: str, item: Optional[M.Listed]) -> None:
+    def _record(self, path: str, item: "Optional[M.Listed]") -> None:
         if item is None:
             self._set_synced(path, None)
             return
@@ -811,7 +809,7 @@ class Store:
         for key in [k for k in self.cache if k == path or k.startswith(prefix)]:
             self._set_cache(key, None)
 
-    def adopt(self, items: List[M.Listed]) -> int:
+    def adopt(self, items: "List[M.Listed]") -> int:
         """Record ``items`` as synced where the disk still holds exactly them."""
         self._writable()
         n = 0
@@ -824,7 +822,7 @@ class Store:
         self._dirty = True
         return n
 
-    def _open_file(self, path: str) -> Tuple[int, os.stat_result]:
+    def _open_file(self, path: str) -> "Tuple[int, os.stat_result]":
         """A regular file of the tree, opened for reading (never through a symlink)."""
         with self._root().parent(path) as (dir_fd, name):
             try:
@@ -839,7 +837,7 @@ class Store:
             raise PathError("%r is not a regular file" % path)
         return fd, st
 
-    def signature(self, path: str) -> Tuple[bytes, str]:
+    def signature(self, path: str) -> "Tuple[bytes, str]":
         """The delta signature of the file at ``path``, and its content hash: one pass over
         the file, in pieces (memory bounded by the signature, not the file)."""
         from fetchsync.protocol import delta as delta_mod  # see _write_temp
@@ -855,8 +853,8 @@ class Store:
                                                  bufsize=PIECE)
             return sig, tee.hasher.digest().hex()
 
-    def read(self, path: str, *, sig: Optional[bytes] = None, offset: int = 0,
-             length: int = -1) -> Tuple[M.Listed, str, bytes]:
+    def read(self, path: str, *, sig: "Optional[bytes]" = None, offset: int = 0,
+             length: int = -1) -> "Tuple[M.Listed, str, bytes]":
         """Content of a file: (what it is, "data" or "delta", payload). A delta is made
         reading the file in pieces; data is read from ``offset``, ``length`` bytes."""
         fd, st = self._open_file(path)
@@ -882,7 +880,7 @@ class Store:
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
 
     # ------------------------------------------------------------------ kept versions
-    def _kept_root(self, where: str) -> Optional[paths.Root]:
+    def _kept_root(self, where: str) -> "Optional[paths.Root]":
         """``.fetchsync/<where>`` (``conflicts`` or ``trash``) as a :class:`paths.Root`, never
         through a symlink; None if there is none (read-only: nothing is made)."""
         if where not in KEPT:
@@ -902,7 +900,7 @@ class Store:
             raise
         return paths.Root(fd, shown)
 
-    def kept(self, where: str) -> Tuple[List[List[Any]], bool]:
+    def kept(self, where: str) -> "Tuple[List[List[Any]], bool]":
         """The files kept in ``.fetchsync/<where>/<time>/<path>``: ``[time, path, size,
         mtime]`` each (at most MAX_KEPT; the flag says some were left out). Walked by
         descriptor, O_NOFOLLOW: a symlink in there is listed as nothing, never followed."""
@@ -953,7 +951,7 @@ class Store:
         return out, False
 
     def read_kept(self, where: str, stamp: str, path: str, offset: int,
-                  length: int) -> Tuple[int, bytes]:
+                  length: int) -> "Tuple[int, bytes]":
         """``(size, bytes)`` of the kept file ``.fetchsync/<where>/<stamp>/<path>`` from
         ``offset`` (at most MAX_READ at once); every component opened O_NOFOLLOW."""
         if "/" in paths.validate(stamp):
@@ -986,9 +984,9 @@ class Store:
         if self.readonly:
             raise StoreError("the workspace was opened read-only: nothing is written")
 
-    def apply(self, ops: List[M.Op], blob: bytes, *, policy: str = "preserve",
-              zpart: Optional[List[int]] = None,
-              unpacked: Optional[Tuple[bytes, Any]] = None) -> List[M.Result]:
+    def apply(self, ops: "List[M.Op]", blob: bytes, *, policy: str = "preserve",
+              zpart: "Optional[List[int]]" = None,
+              unpacked: "Optional[Tuple[bytes, Any]]" = None) -> "List[M.Result]":
         """Apply ``ops`` in order; one result each. Per-file failures are results.
 
         ``zpart`` = [compressed length, length] says the blob starts with one
@@ -1032,7 +1030,7 @@ class Store:
     def stamp(self) -> str:
         return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
 
-    def _aside_dir(self, path: str, where: str) -> Tuple[int, str, str]:
+    def _aside_dir(self, path: str, where: str) -> "Tuple[int, str, str]":
         """``(descriptor, name, path to show)`` of where ``path`` goes in
         ``.fetchsync/<where>/<stamp>/``, its directories made (none through a symlink)."""
         parts = [self.stamp()] + path.split("/")
@@ -1133,7 +1131,7 @@ class Store:
             total -= n
             self._dirty = True
 
-    def unsynced_below(self, path: str, dir_fd: int, name: str) -> List[str]:
+    def unsynced_below(self, path: str, dir_fd: int, name: str) -> "List[str]":
         """Files and links under directory ``path`` (``name`` in ``dir_fd``) that differ from
         what was last synced."""
         try:
@@ -1165,7 +1163,7 @@ class _Batch:
     """One apply() call: operations without content at once, new contents to temporaries;
     then one syncfs, the replacements (each checked again), one syncfs."""
 
-    def __init__(self, store: Store, blob: Any, packed: Any, policy: str) -> None:
+    def __init__(self, store: "Store", blob: "Any", packed: "Any", policy: str) -> None:
         self.s = store
         self.blob = blob
         self.zpart = packed
@@ -1176,7 +1174,7 @@ class _Batch:
         self.gen = 0  # the store's generation once this batch is applied
         self.exchanged = False  # the operation being committed has swapped its temporary in
 
-    def _view(self, op: M.Op) -> memoryview:
+    def _view(self, op: "M.Op") -> memoryview:
         """The operation's data, not copied (hashed and written as it lies in the request)."""
         off, length = op.blob
         data = self.zpart if op.z else self.blob
@@ -1184,7 +1182,7 @@ class _Batch:
             raise ProtocolError("operation on %r points past the request's data" % op.path)
         return memoryview(data)[off:off + length]
 
-    def run(self, op: M.Op, idx: int) -> M.Result:
+    def run(self, op: "M.Op", idx: int) -> "M.Result":
         try:
             return self._run(op, idx)
         except _Refused as exc:
@@ -1196,7 +1194,7 @@ class _Batch:
         except OSError as exc:
             return _os_error(op, exc)
 
-    def _run(self, op: M.Op, idx: int) -> M.Result:
+    def _run(self, op: "M.Op", idx: int) -> "M.Result":
         s = self.s
         if op.kind == M.UPLOAD:
             self._upload(op)
@@ -1226,7 +1224,7 @@ class _Batch:
         return M.Result()
 
     # -- operations without content: checked and done at once
-    def _conflict(self, op: M.Op, cur: M.Listed) -> bool:
+    def _conflict(self, op: "M.Op", cur: "M.Listed") -> bool:
         """Whether ``cur`` is not what the sender last saw at op.path; raises _Refused when
         the policy refuses."""
         if cur.expectation() == op.expect:
@@ -1235,7 +1233,7 @@ class _Batch:
             raise _Refused("%s was changed here since the last sync" % op.path)
         return True
 
-    def _dir_aside(self, op: M.Op, dir_fd: int, name: str) -> str:
+    def _dir_aside(self, op: "M.Op", dir_fd: int, name: str) -> str:
         """The directory at op.path goes to the trash, its files edited here (unsynced) to
         the conflicts first; where the first of those went ("" if none)."""
         s = self.s
@@ -1250,7 +1248,7 @@ class _Batch:
         s._forget_below(op.path)
         return kept[: len(kept) - len(unsynced[0])] + op.path if kept else ""
 
-    def _delete(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
+    def _delete(self, op: "M.Op", dir_fd: int, name: str) -> "M.Result":
         s = self.s
         cur = s._at(op.path, dir_fd, name)
         preserved = ""
@@ -1265,7 +1263,7 @@ class _Batch:
         s._record(op.path, None)
         return M.Result(preserved=preserved)
 
-    def _mkdir(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
+    def _mkdir(self, op: "M.Op", dir_fd: int, name: str) -> "M.Result":
         s = self.s
         mode = op.mode or 0o755
         cur = s._at(op.path, dir_fd, name)
@@ -1293,7 +1291,7 @@ class _Batch:
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
-    def _chmod(self, op: M.Op, dir_fd: int, name: str) -> M.Result:
+    def _chmod(self, op: "M.Op", dir_fd: int, name: str) -> "M.Result":
         s = self.s
         cur = s._at(op.path, dir_fd, name)
         if cur is None or cur.kind == LINK:
@@ -1310,7 +1308,7 @@ class _Batch:
         return M.Result(written=item.to_wire() if item else None)
 
     # -- content: to a temporary now, renamed at commit
-    def _upload(self, op: M.Op) -> None:
+    def _upload(self, op: "M.Op") -> None:
         """A piece of a large file's content, at its offset in an upload part."""
         s = self.s
         view = self._view(op)
@@ -1330,7 +1328,7 @@ class _Batch:
         finally:
             os.close(fd)
 
-    def _write_temp(self, op: M.Op, dir_fd: int, name: str, tmp: str) -> None:
+    def _write_temp(self, op: "M.Op", dir_fd: int, name: str, tmp: str) -> None:
         s = self.s
         mode = op.mode or 0o644
         fix = mode if mode & _umask() or mode & ~0o777 else None  # else open() makes it so
@@ -1380,7 +1378,7 @@ class _Batch:
             raise
         os.close(fd)
 
-    def _from_upload(self, op: M.Op, dir_fd: int, tmp: str, mode: int) -> None:
+    def _from_upload(self, op: "M.Op", dir_fd: int, tmp: str, mode: int) -> None:
         """The upload part, verified, becomes the temporary."""
         s = self.s
         part = "upload-" + op.upload
@@ -1432,7 +1430,7 @@ class _Batch:
             self._unlink(op.path, tmp)
         syncfs(root.fd)
 
-    def _replace(self, op: M.Op, tmp: str) -> M.Result:
+    def _replace(self, op: "M.Op", tmp: str) -> "M.Result":
         """Rename the temporary over op.path, once what stands there is what the sender
         last saw, or is kept: a version edited here is linked into the conflicts before
         the rename replaces it, and the rename is the only change to op.path."""
@@ -1471,7 +1469,7 @@ class _Batch:
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
-    def _swap_in(self, op: M.Op, dir_fd: int, name: str, tmp: str, before: Optional[os.stat_result],
+    def _swap_in(self, op: "M.Op", dir_fd: int, name: str, tmp: str, before: "Optional[os.stat_result]",
                  preserved: str) -> bool:
         """Put the temporary in place with renameat2, so nothing the robot does between the
         check and the rename is lost: over nothing, only if nothing appeared meanwhile
@@ -1535,7 +1533,7 @@ def _renameat2(dir_fd: int, src: str, dst: str, flags: int) -> bool:
     raise OSError(err, os.strerror(err))
 
 
-def _same(op: M.Op, cur: M.Listed) -> bool:
+def _same(op: "M.Op", cur: "M.Listed") -> bool:
     """Whether ``cur`` is already exactly what ``op`` writes (nothing of the robot's to keep)."""
     if op.kind == M.WRITE:
         return cur.kind == FILE and cur.hash == op.hash
@@ -1564,6 +1562,6 @@ def _chmod_at(dir_fd: int, name: str, mode: int) -> None:
         os.close(fd)
 
 
-def _os_error(op: M.Op, exc: OSError) -> M.Result:
+def _os_error(op: "M.Op", exc: "OSError") -> "M.Result":
     code = M.NO_SPACE if exc.errno in (errno.ENOSPC, errno.EDQUOT) else M.IO_ERROR
     return M.Result(code, "%s: %s" % (op.path or op.upload, exc.strerror or exc))

@@ -6,13 +6,12 @@ Content hashes are added by callers that keep a cache (the laptop's state, the
 robot's index), so a scan itself only stats.
 """
 
-from __future__ import annotations
-
 import errno
 import os
 import stat as stat_mod
+import sys
 from stat import S_ISDIR, S_ISLNK, S_ISREG
-from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
 
 FILE = "f"
 DIR = "d"
@@ -30,13 +29,13 @@ class Entry(NamedTuple):
     ino: int
     target: str = ""    # symlink target
 
-    def same_stat(self, other: Entry) -> bool:
+    def same_stat(self, other: "Entry") -> bool:
         return (self.kind == other.kind and self.mode == other.mode and self.size == other.size
                 and self.mtime_ns == other.mtime_ns and self.ctime_ns == other.ctime_ns
                 and self.ino == other.ino and self.target == other.target)
 
 
-def entry_from_stat(st: os.stat_result, target: str = "") -> Optional[Entry]:
+def entry_from_stat(st: "os.stat_result", target: str = "") -> "Optional[Entry]":
     mode = st.st_mode
     if stat_mod.S_ISREG(mode):
         return Entry(FILE, stat_mod.S_IMODE(mode), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
@@ -47,7 +46,7 @@ def entry_from_stat(st: os.stat_result, target: str = "") -> Optional[Entry]:
     return None
 
 
-def stat_path(full: str) -> Optional[Entry]:
+def stat_path(full: str) -> "Optional[Entry]":
     """The entry at ``full`` (not following symlinks), or None if absent or special."""
     try:
         st = os.lstat(full)
@@ -63,13 +62,13 @@ def stat_path(full: str) -> Optional[Entry]:
 
 
 class ScanResult(NamedTuple):
-    entries: Dict[str, Entry]
-    skipped: List[Tuple[str, str]]   # (path, reason): sockets, FIFOs, unreadable dirs
+    entries: "Dict[str, Entry]"
+    skipped: "List[Tuple[str, str]]"   # (path, reason): sockets, FIFOs, unreadable dirs
 
 
-def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
-         start: str = "", on_dir: Optional[Callable[[str, str], None]] = None,
-         rules_out: Optional[Dict[str, object]] = None) -> ScanResult:
+def scan(root: str, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None,
+         start: str = "", on_dir: "Optional[Callable[[str, str], None]]" = None,
+         rules_out: "Optional[Dict[str, object]]" = None) -> "ScanResult":
     """Stat every entry under ``root`` (not following symlinks), honouring ``rules``.
 
     ``rules`` is an ``IgnoreRules`` (or None); ``.fetchsyncignore`` files met on
@@ -154,7 +153,7 @@ def scan(root: str, rules=None, *, is_temp: Optional[Callable[[str], bool]] = No
     return ScanResult(entries, skipped)
 
 
-def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> Optional[bytes]:
+def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> "Optional[bytes]":
     """The content of regular file ``name`` in ``dir_fd`` (not through a symlink), or None."""
     from fetchsync.protocol.paths import O_FILE
     try:
@@ -176,11 +175,20 @@ def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> Optional[bytes]:
         os.close(fd)
 
 
-def _list_dir(fd: int, rel: str, dir_rules, is_temp: Optional[Callable[[str], bool]],  # type: ignore[no-untyped-def]
-              entries: Dict[str, Entry], skipped: List[Tuple[str, str]]):
+def scandir_fd(fd: int) -> "Any":
+    """``os.scandir`` of the directory open at ``fd``: Python 3.6's takes no descriptor, so
+    there it lists ``/proc/self/fd/N``, which names that very directory (not a path that
+    could be swapped meanwhile); its entries' ``stat()`` go through it the same way."""
+    if sys.version_info >= (3, 7):
+        return os.scandir(fd)
+    return os.scandir("/proc/self/fd/%d" % fd)
+
+
+def _list_dir(fd: int, rel: str, dir_rules, is_temp: "Optional[Callable[[str], bool]]",  # type: ignore[no-untyped-def]
+              entries: "Dict[str, Entry]", skipped: "List[Tuple[str, str]]"):
     """Record the entries of the directory at ``fd`` (wire path ``rel``); the names of its
     subdirectories and the rules in force below it."""
-    with os.scandir(fd) as it:
+    with scandir_fd(fd) as it:
         items = list(it)
     if dir_rules is not None:
         for de in items:
@@ -223,8 +231,8 @@ def _list_dir(fd: int, rel: str, dir_rules, is_temp: Optional[Callable[[str], bo
     return subdirs, dir_rules
 
 
-def scan_fd(root_fd: int, rules=None, *, is_temp: Optional[Callable[[str], bool]] = None,
-            prefix: str = "") -> ScanResult:
+def scan_fd(root_fd: int, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None,
+            prefix: str = "") -> "ScanResult":
     """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
     parent's descriptor without following symlinks (a directory swapped for a symlink
     while we look is skipped, never followed). ``prefix``: the wire path of ``root_fd``'s

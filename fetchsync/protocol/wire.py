@@ -24,8 +24,6 @@ hello (``"progress": seconds``), after the endpoint offered them in its own: an
 older client's reader refuses an unknown frame type.
 """
 
-from __future__ import annotations
-
 import fcntl
 import json
 import struct
@@ -62,15 +60,15 @@ COMPRESS_MIN = 512
 class Frame(NamedTuple):
     type: int
     req_id: int
-    header: Dict[str, Any]
+    header: "Dict[str, Any]"
     blob: bytes = b""
 
 
-def _json_default(obj: Any) -> Any:
+def _json_default(obj: "Any") -> "Any":
     raise TypeError("not JSON-serialisable: %r" % type(obj))
 
 
-def encode_frame(frame: Frame, *, compress: bool = False, compress_blob: bool = True,
+def encode_frame(frame: "Frame", *, compress: bool = False, compress_blob: bool = True,
                  level: int = 1) -> bytes:
     head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
     flags = 0
@@ -90,7 +88,7 @@ def encode_frame(frame: Frame, *, compress: bool = False, compress_blob: bool = 
     return _FRAME.pack(len(body), frame.type, flags, frame.req_id) + body
 
 
-def encode_frame_parts(frame: Frame, blob_parts: "list[bytes]", *, compress: bool = False,
+def encode_frame_parts(frame: "Frame", blob_parts: "list[bytes]", *, compress: bool = False,
                        level: int = 1) -> "list[bytes]":
     """A frame whose blob carries its own compression, as byte strings to send in order:
     the blob's parts are not copied into one (a batch's are megabytes)."""
@@ -108,7 +106,7 @@ def encode_frame_parts(frame: Frame, blob_parts: "list[bytes]", *, compress: boo
             *blob_parts]
 
 
-def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> Frame:
+def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> "Frame":
     if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:
         raise ProtocolError("unknown frame flags 0x%02x" % flags)
     if ftype not in FRAME_TYPES:
@@ -128,7 +126,7 @@ def _header_length(prefix: bytes, body_len: int) -> int:
     return int(hlen)
 
 
-def _frame(ftype: int, flags: int, req_id: int, raw_head: bytes, blob: bytes) -> Frame:
+def _frame(ftype: int, flags: int, req_id: int, raw_head: bytes, blob: bytes) -> "Frame":
     if flags & FLAG_ZHEAD:
         raw_head = inflate(raw_head, MAX_HEADER)
     try:
@@ -189,8 +187,8 @@ class Reader:
     frame's large blob is read into a ``bytearray`` of its own, not copied.
     """
 
-    def __init__(self, recv: Callable[[int], bytes],
-                 recv_into: Optional[Callable[[memoryview], Optional[int]]] = None) -> None:
+    def __init__(self, recv: "Callable[[int], bytes]",
+                 recv_into: "Optional[Callable[[memoryview], Optional[int]]]" = None) -> None:
         self._recv = recv
         self._recv_into = recv_into
         self._buf = bytearray()
@@ -219,7 +217,7 @@ class Reader:
         del buf[:n]
         return out
 
-    def read_hello(self) -> Dict[str, Any]:
+    def read_hello(self) -> "Dict[str, Any]":
         """Skip noise up to MAGIC, then read the peer's hello."""
         while True:
             idx = self._buf.find(MAGIC)
@@ -247,7 +245,7 @@ class Reader:
         hello["version"] = version
         return hello
 
-    def read_frame(self) -> Optional[Frame]:
+    def read_frame(self) -> "Optional[Frame]":
         """The next frame, or None at a clean end of stream (between frames)."""
         if not self._buf and not self._fill(1):
             return None
@@ -267,7 +265,7 @@ class Reader:
         raw_head = self._take(hlen)
         return _frame(ftype, flags, req_id, raw_head, self._take_blob(blen - 4 - hlen))
 
-    def _take_blob(self, n: int) -> Any:
+    def _take_blob(self, n: int) -> "Any":
         """``n`` bytes: a bytearray read in place when that is worth it, else bytes."""
         if self._recv_into is None or n < DIRECT_MIN:
             return self._take(n)
@@ -304,6 +302,6 @@ def widen_pipe(fd: int) -> None:
         pass
 
 
-def encode_hello(caps: Dict[str, Any]) -> bytes:
+def encode_hello(caps: "Dict[str, Any]") -> bytes:
     body = json.dumps(caps, separators=(",", ":")).encode("utf-8")
     return MAGIC + _HELLO.pack(VERSION, len(body)) + body
