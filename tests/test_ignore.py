@@ -585,8 +585,8 @@ def test_defaults_are_normalized_lines_with_a_reason_each() -> None:
     assert IgnoreRules.from_wire([["", list(DEFAULT_PATTERNS)], ["", []]]) == IgnoreRules.build()
     source = MODULE.read_text()
     block = source[
-        source.index("DEFAULT_PATTERNS: tuple") : source.index(
-            "\n)\n", source.index("DEFAULT_PATTERNS: tuple")
+        source.index("DEFAULT_PATTERNS: ") : source.index(
+            "\n)\n", source.index("DEFAULT_PATTERNS: ")
         )
     ]
     assert block.count("#") >= 10  # documented, not a bare list
