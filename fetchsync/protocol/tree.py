@@ -118,39 +118,55 @@ def scan(root: str, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = 
                     break
         if rules_out is not None:
             rules_out[rel] = dir_rules
-        for de in items:
-            name = de.name
-            if is_temp is not None and is_temp(name):
-                continue
-            path = rel + "/" + name if rel else name
-            try:
-                # d_type from the directory listing: no syscall; decides the
-                # ignore rules before paying for a stat
-                is_dir = de.is_dir(follow_symlinks=False)
-            except OSError:
-                continue
-            if dir_rules is not None and dir_rules.ignored(path, is_dir):
-                continue
-            try:
-                st = de.stat(follow_symlinks=False)
-            except OSError:
-                continue  # vanished while we looked
-            mode = st.st_mode
-            if S_ISREG(mode):
-                entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
-                                      st.st_ino)
-            elif S_ISDIR(mode):
-                entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+        for de, path in _kept(items, rel, dir_rules, is_temp):
+            if _record(de, path, lambda: os.readlink(de.path), entries, skipped):
                 stack.append((path, dir_rules))
-            elif S_ISLNK(mode):
-                try:
-                    target = os.fsdecode(os.readlink(de.path))
-                except OSError:
-                    continue
-                entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
-            else:
-                skipped.append((path, "not a regular file, directory or symlink"))
     return ScanResult(entries, skipped)
+
+
+def _kept(items: "List[Any]", rel: str, dir_rules, is_temp: "Optional[Callable[[str], bool]]"):  # type: ignore[no-untyped-def]
+    """The directory entries of ``items`` (a listing of wire path ``rel``) that neither
+    ``is_temp`` nor the rules exclude, with their wire paths."""
+    for de in items:
+        name = de.name
+        if is_temp is not None and is_temp(name):
+            continue
+        path = rel + "/" + name if rel else name
+        try:
+            # d_type from the directory listing: no syscall; decides the
+            # ignore rules before paying for a stat
+            is_dir = de.is_dir(follow_symlinks=False)
+        except OSError:
+            continue
+        if dir_rules is not None and dir_rules.ignored(path, is_dir):
+            continue
+        yield de, path
+
+
+def _record(de: "Any", path: str, readlink: "Callable[[], Any]", entries: "Dict[str, Entry]",
+            skipped: "List[Tuple[str, str]]") -> bool:
+    """Record the entry ``de`` at wire path ``path`` (``readlink()`` reads a symlink's
+    target); True when it is a directory to list in turn."""
+    try:
+        st = de.stat(follow_symlinks=False)
+    except OSError:
+        return False  # vanished while we looked
+    mode = st.st_mode
+    if S_ISREG(mode):
+        entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
+                              st.st_ino)
+    elif S_ISDIR(mode):
+        entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+        return True
+    elif S_ISLNK(mode):
+        try:
+            target = os.fsdecode(readlink())
+        except OSError:
+            return False
+        entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
+    else:
+        skipped.append((path, "not a regular file, directory or symlink"))
+    return False
 
 
 def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> "Optional[bytes]":
@@ -198,36 +214,9 @@ def _list_dir(fd: int, rel: str, dir_rules, is_temp: "Optional[Callable[[str], b
                     dir_rules = dir_rules.with_file(rel, text.decode("utf-8", "surrogateescape"))
                 break
     subdirs = []
-    for de in items:
-        name = de.name
-        if is_temp is not None and is_temp(name):
-            continue
-        path = rel + "/" + name if rel else name
-        try:
-            is_dir = de.is_dir(follow_symlinks=False)
-        except OSError:
-            continue
-        if dir_rules is not None and dir_rules.ignored(path, is_dir):
-            continue
-        try:
-            st = de.stat(follow_symlinks=False)
-        except OSError:
-            continue  # vanished while we looked
-        mode = st.st_mode
-        if S_ISREG(mode):
-            entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
-                                  st.st_ino)
-        elif S_ISDIR(mode):
-            entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
-            subdirs.append(name)
-        elif S_ISLNK(mode):
-            try:
-                target = os.fsdecode(os.readlink(name, dir_fd=fd))
-            except OSError:
-                continue
-            entries[path] = Entry(LINK, 0, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, target)
-        else:
-            skipped.append((path, "not a regular file, directory or symlink"))
+    for de, path in _kept(items, rel, dir_rules, is_temp):
+        if _record(de, path, lambda: os.readlink(de.name, dir_fd=fd), entries, skipped):
+            subdirs.append(de.name)
     return subdirs, dir_rules
 
 
