@@ -141,7 +141,13 @@ def test_install_deps_installs_the_debian_package_with_the_real_rosdep(ssh_home,
 
 def test_a_robot_without_rosdep_is_one_clear_line(ssh_home, remote_dir, tmp_path):
     local = _workspace(tmp_path / "ws")
-    _robot_environment(remote_dir, {"PATH": "/usr/bin:/bin"})  # rosdep comes from pip here
+    # A PATH without rosdep (pip's is in pyenv, Debian's python3-rosdep2 in /usr/bin):
+    # only the programs the probe uses besides rosdep.
+    bin_dir = tmp_path / "robot-bin"
+    bin_dir.mkdir()
+    for program in ("id", "sudo"):
+        (bin_dir / program).symlink_to(shutil.which(program, path="/usr/bin:/bin") or "/bin/false")
+    _robot_environment(remote_dir, {"PATH": str(bin_dir)})
     proc = fetchsync("push", "--install-deps", env=_env(ssh_home, local, remote_dir, tmp_path),
                      check=False)
     err = proc.stderr.decode()

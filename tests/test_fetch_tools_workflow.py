@@ -15,11 +15,20 @@ shell-init bash`` (``zsh``), with what a user of this laptop would have set up b
 "sourced" (``ROS_DISTRO=noetic``), ``FETCH_USER``, an ssh config entry for
 ``freight0`` (the test robot cannot be called that by DNS), the admin login of
 the robot (``FETCHSYNC_ADMIN_USER=root``: the test robot has no ``fetch``
-account) and the new account's password in ``FETCHSYNC_NEW_PASSWORD`` (no
-terminal). Differences from the README, each for the test machine's sake:
+account) and the new account's password in ``FETCHSYNC_NEW_PASSWORD`` and,
+for ``rosdep install``'s sudo, ``FETCHSYNC_SUDO_PASSWORD`` (no terminal).
 
-- ``--install-deps`` is left out: rosdep on the robot needs the network for
-  ``rosdep update`` (test_build_rosdep covers it offline);
+The robot has rosdep as a robot has it (Debian's ``python3-rosdep2``,
+``/usr/bin/rosdep``), configured offline by the test as robot-side set-up
+before the typed lines: the top of the new account's ``~/.bashrc`` (which
+bash reads for a command over ssh, before its non-interactive ``return``)
+exports ``ROSDEP_SOURCE_PATH`` and ``ROSDISTRO_INDEX_URL``, pointing at a
+``sources.list`` and rules in its home (``file://``: ``rosdep update`` needs no
+network). The rules map the package's ``<depend>make</depend>`` and catkin to
+Debian packages already installed, so ``rosdep install`` finds them satisfied.
+
+Differences from the README, for the test machine's sake:
+
 - the package is a C++ program, run by name (catkin's devel space puts its
   ``bin/`` on PATH), instead of ``roslaunch``, which Debian's catkin lacks.
 
@@ -48,6 +57,8 @@ pytestmark = [
     pytest.mark.skipif(shutil.which("catkin_make") is None or shutil.which("g++") is None,
                        reason="catkin (catkin_make) and g++ not installed"),
     pytest.mark.skipif(shutil.which("bash") is None, reason="bash not installed"),
+    pytest.mark.skipif(not os.access("/usr/bin/rosdep", os.X_OK) and not os.environ.get("CI"),
+                       reason="Debian's rosdep (python3-rosdep2) not installed"),
 ]
 
 
@@ -60,6 +71,9 @@ def shell(request: pytest.FixtureRequest) -> str:
     return str(request.param)
 
 PKG = "my_awesome_package"
+DEPEND = "make"  # a rosdep key whose Debian package is installed here (catkin needs it)
+PACKAGE_XML = CATKIN_PACKAGE_XML.format(name=PKG).replace(
+    "</package>", f"  <depend>{DEPEND}</depend>\n</package>")
 CMAKELISTS = f"""cmake_minimum_required(VERSION 3.0.2)
 project({PKG})
 find_package(catkin REQUIRED)
@@ -86,7 +100,7 @@ def _laptop(ssh_home, tmp_path: Path, user: str) -> dict[str, str]:
     home = ssh_home.home
     pkg = home / "noetic" / "src" / PKG
     (pkg / "src").mkdir(parents=True)
-    (pkg / "package.xml").write_text(CATKIN_PACKAGE_XML.format(name=PKG))
+    (pkg / "package.xml").write_text(PACKAGE_XML)
     (pkg / "CMakeLists.txt").write_text(CMAKELISTS)
     (pkg / "src" / "do_stuff.cpp").write_text(PROGRAM.format(message="doing stuff, badly"))
     # As a user would: freight0 is the test robot (another Host line for its address).
@@ -97,18 +111,40 @@ def _laptop(ssh_home, tmp_path: Path, user: str) -> dict[str, str]:
     wrapper = bin_dir / "fetchsync"  # this checkout's fetchsync, whatever is installed
     wrapper.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync \"$@\"\n")
     wrapper.chmod(0o755)
+    password = "Pw-" + secrets.token_urlsafe(12)
     env = {k: v for k, v in os.environ.items()
            if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))
            and k not in ("SSH_AUTH_SOCK", "BASH_ENV", "ENV")}
     env.update(
         HOME=str(home), PATH=f"{bin_dir}:{os.environ['PATH']}", PYTHONPATH=str(REPO),
         ROS_DISTRO="noetic", FETCH_USER=user, FETCHSYNC_ADMIN_USER="root",
-        FETCHSYNC_NEW_PASSWORD="Pw-" + secrets.token_urlsafe(12),
+        FETCHSYNC_NEW_PASSWORD=password,
+        # the account's sudo password for rosdep (a user types it at the terminal's prompt)
+        FETCHSYNC_SUDO_PASSWORD=password,
         # the tests' session settings (no lingering connection master, its own cache)
         FETCHSYNC_PERSIST="0", XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", ""),
         XDG_CACHE_HOME=os.environ.get("XDG_CACHE_HOME", ""), XDG_STATE_HOME=str(tmp_path / "st"),
     )
     return env
+
+
+def _robot_rosdep_offline(home: Path) -> None:
+    """The robot account's rosdep, offline: sources in its home, named at the top of its
+    ``~/.bashrc`` (what bash reads for a command over ssh, before the non-interactive
+    ``return``), as an admin would configure a robot without the internet."""
+    entry = home.stat()
+    root = home / ".rosdep-offline"
+    (root / "sources.list.d").mkdir(parents=True)
+    (root / "rules.yaml").write_text(
+        "".join(f"{key}:\n  debian: [{key}]\n" for key in ("catkin", DEPEND)))
+    (root / "sources.list.d" / "10-offline.list").write_text(f"yaml file://{root}/rules.yaml\n")
+    (root / "index.yaml").write_text("%YAML 1.1\n---\ndistributions: {}\ntype: index\nversion: 4\n")
+    bashrc = home / ".bashrc"
+    bashrc.write_text(f"export ROSDEP_SOURCE_PATH={shlex.quote(str(root / 'sources.list.d'))}\n"
+                      f"export ROSDISTRO_INDEX_URL={shlex.quote(f'file://{root}/index.yaml')}\n"
+                      + bashrc.read_text())
+    for path in (root, *root.rglob("*"), bashrc):
+        os.chown(path, entry.st_uid, entry.st_gid)
 
 
 def _typed(env: dict[str, str], cwd: Path, line: str,
@@ -139,8 +175,12 @@ def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_use
     robot_home = Path(os.path.expanduser(f"~{robot_user}"))
     assert robot_home.name == robot_user
 
-    pushed = _step(env, cwd, "fetch push --build")
+    _robot_rosdep_offline(robot_home)
+    pushed = _step(env, cwd, "fetch push --install-deps --build")
     assert pushed.returncode == 0, pushed.stdout + pushed.stderr
+    assert "rosdep update (on freight0)" in pushed.stderr
+    assert "rosdep install --from-paths src --ignore-src -y (on freight0)" in pushed.stderr
+    assert "All required rosdeps installed successfully" in pushed.stdout, pushed.stdout
     assert (robot_home / "noetic" / "src" / PKG / "src" / "do_stuff.cpp").is_file()
     built = robot_home / "noetic" / "devel" / "bin" / "do_stuff"
     assert built.is_file()
