@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.connection import Connection, remote_python
-from fetchsync.errors import ConfigError, ConnectError
+from fetchsync.errors import ConfigError, ConnectError, LinkLostError
 from fetchsync.state import State, state_path
 from fetchsync.transport import LocalTransport, Transport, local_robot_home
 
@@ -134,6 +134,44 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     return transport
 
 
+def open_connection(target: Target, transport: Transport, *, accept_fingerprint: str | None = None,
+                    meanwhile: Callable[[Callable[[], bool]], Any] | None = None
+                    ) -> tuple[Transport, Connection]:
+    """Start the endpoint over ``transport``; through a connection master, make sure it
+    answers before anything is asked of it, and once, start another if it does not.
+
+    The master hands over the spare endpoint it started ahead of the call, checked alive
+    just before (see mux); it can still die after that check (killed, OOM) and fail the
+    call with "went away" before it has answered anything. Nothing was asked of it then,
+    so this call starts a fresh endpoint in its place (through the master again, whose
+    spare it took, or directly if the master is gone) instead of failing a push that the
+    next call would do. A ping is the proof, the one round trip this costs: no request
+    of the caller's is sent before it is answered, so no write is ever replayed.
+    Returns the transport in use (a new one after a retry) and the connection.
+    """
+    from fetchsync.agent import mux
+
+    if not isinstance(transport, mux.MuxTransport):
+        return transport, Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
+    conn: Connection | None = None
+    try:
+        conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
+        conn.request({"op": "ping"})
+        return transport, conn
+    except (LinkLostError, ConnectError) as exc:
+        log.info("the endpoint from the connection master failed before any request (%s): "
+                 "starting another", exc)
+        if conn is not None:
+            conn.close()
+        transport.close()
+    transport = open_transport(target, accept_fingerprint=accept_fingerprint)
+    try:
+        return transport, Connection.open(transport, python=remote_python())
+    except BaseException:
+        transport.close()
+        raise
+
+
 @contextmanager
 def connect(target: Target, *, accept_fingerprint: str | None = None,
             meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Iterator[Connection]:
@@ -141,7 +179,12 @@ def connect(target: Target, *, accept_fingerprint: str | None = None,
     starts (see :meth:`Connection.open`)."""
     transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
-        conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
+        transport, conn = open_connection(target, transport, accept_fingerprint=accept_fingerprint,
+                                          meanwhile=meanwhile)
+    except BaseException:
+        transport.close()
+        raise
+    try:
         try:
             yield conn
         finally:

@@ -160,3 +160,21 @@ def test_a_robot_src_swapped_for_a_symlink_after_the_spare_started_is_refused(
     assert "took the spare endpoint" in mux_log(env)
     assert sorted(p.name for p in elsewhere.iterdir()) == ["keep.txt"]
     assert (elsewhere / "keep.txt").read_text() == "not fetchsync's\n"
+
+
+def test_a_spare_dying_after_the_masters_check_does_not_fail_the_push(env, remote_dir):
+    """Issue 22 item 21: the spare passes the master's liveness check and dies before the
+    client has read anything of it (FETCHSYNC_TEST_SPARE_DIES makes the master close it
+    right then, once). Nothing was asked of it: the push starts another endpoint within
+    the same call and succeeds."""
+    local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    env = dict(env, FETCHSYNC_TEST_SPARE_DIES="1")  # the master inherits it from the first push
+    spare_ready(env)
+    (local / "my_pkg" / "after_late_death.txt").write_text("still lands\n")
+    proc = fetchsync("push", "--json", env=env, check=False)
+    assert proc.returncode == 0, proc.stderr.decode()
+    r = report(proc)
+    assert r["connection"] == "master" and r["ok"]
+    assert mux_log(env).count("took the spare endpoint") >= 1
+    assert (remote_dir / "src" / "my_pkg" / "after_late_death.txt").read_text() == "still lands\n"
+    assert tree_of(local) == tree_of(remote_dir / "src")

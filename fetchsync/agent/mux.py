@@ -362,6 +362,7 @@ class Master:
         self.warm = warm  # the endpoint's command: one spare of it is kept started
         self.spare: _Spare | None = None
         self.starting = False  # a spare is being started
+        self.hook_fired = False  # FETCHSYNC_TEST_SPARE_DIES fires once
         self.closing = False
         self.lock = threading.Lock()
         self.started = threading.Condition(self.lock)  # a spare's start ended (either way)
@@ -477,6 +478,10 @@ class Master:
             self._start_refill()
             if spare.alive():
                 log.info("took the spare endpoint")
+                if os.environ.get("FETCHSYNC_TEST_SPARE_DIES") == "1" and not self.hook_fired:
+                    # tests only: the spare dies after its check, before the caller reads it
+                    self.hook_fired = True
+                    spare.channel.close()
                 return spare.channel, spare.said
             log.info("the spare endpoint had ended: starting a fresh one for this call")
             spare.channel.close()
