@@ -31,10 +31,12 @@ from typing import TYPE_CHECKING, Union
 from urllib.parse import urlsplit
 
 from fetchsync.errors import ConfigError
-from fetchsync.transport import LOCAL_ROBOT
 
 if TYPE_CHECKING:
     import paramiko
+
+LOCAL_ROBOT = "local"
+"""The built-in robot: this machine, as the user who runs fetchsync (no SSH server)."""
 
 SSHConfigSource = Union[str, "os.PathLike[str]", "paramiko.SSHConfig"]
 
@@ -86,7 +88,7 @@ def resolve_target(
     robot_name = resolve_robot(robot, environ=environ)
     is_local = robot_name == LOCAL_ROBOT
     if remote_workspace is None:  # robots.toml's [robots.NAME] counts as its option
-        from fetchsync.fleet import robot_settings
+        from fetchsync.robots import robot_settings
         remote_workspace = robot_settings(robot_name, environ=environ).get("remote_workspace")
     if is_local or defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
         login = None
@@ -122,7 +124,7 @@ def robot_with_source(robot: str | None = None, *,
             )
         source, value = f"ROS_MASTER_URI={uri}", ros_master_host(uri)
     if "," in value or value.startswith("@"):  # a list or a group: one robot, or refused
-        from fetchsync.fleet import one_robot
+        from fetchsync.robots import one_robot
         value = one_robot(value, source, environ=environ)
     if value == LOCAL_ROBOT:
         return value, source

@@ -1,6 +1,6 @@
 """Attaching a command running on the robot to this process's terminal and streams.
 
-:func:`attach` pumps a :class:`~fetchsync.transport.Channel` until the remote
+:func:`attach` pumps a :class:`~fetchsync.link.transport.Channel` until the remote
 command ends and returns its exit status:
 
 - the command's stdout and stderr go to ours, each as soon as it arrives and
@@ -27,10 +27,12 @@ import shutil
 import signal
 import threading
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fetchsync.errors import LinkLostError
-from fetchsync.transport import Channel
+
+if TYPE_CHECKING:
+    from fetchsync.link.transport import Channel
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +86,7 @@ def resizer(channel: Channel) -> Callable[[int, int], None] | None:
     """How to pass a new window size to ``channel``'s PTY, if its transport can."""
     resize = getattr(channel, "resize_pty", None)
     if resize is None:
-        # fetchsync.ssh.SSHChannel has no resize of its own yet: use paramiko's channel.
+        # fetchsync.link.ssh.SSHChannel has no resize of its own yet: use paramiko's channel.
         inner = getattr(channel, "_chan", None)
         resize = getattr(inner, "resize_pty", None)
     if resize is None:

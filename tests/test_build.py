@@ -1,4 +1,4 @@
-"""fetchsync.build without a robot: tool detection, command construction, the steps' scripts,
+"""fetchsync.chores.build without a robot: tool detection, command construction, the steps' scripts,
 and the --build option's fetch_tools semantics."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import click
 import pytest
 from click.testing import CliRunner
 
-from fetchsync import build
-from fetchsync.build import BuildRequest, build_command, detect_tool, plan
-from fetchsync.commands import build_options
-from fetchsync.commands.build_options import explicit_build_values
+from fetchsync.chores import build
+from fetchsync.chores.build import BuildRequest, build_command, detect_tool, plan
+from fetchsync.cli import build_flags as build_options
+from fetchsync.cli.build_flags import explicit_build_values
 
 CATKIN_XML = "<package format='2'><name>a</name><buildtool_depend>catkin</buildtool_depend></package>"
 AMENT_XML = ("<package format='3'><name>b</name><buildtool_depend>ament_cmake</buildtool_depend>"
@@ -239,8 +239,8 @@ def test_a_push_without_build_options_does_not_import_the_build_module():
     import subprocess
     import sys
 
-    code = ("import sys\nfrom fetchsync.commands.build_options import build_request\n"
-            "print(build_request((), 'default', 'auto', False), 'fetchsync.build' in sys.modules, "
+    code = ("import sys\nfrom fetchsync.cli.build_flags import build_request\n"
+            "print(build_request((), 'default', 'auto', False), 'fetchsync.chores.build' in sys.modules, "
             "bool(build_request((), 'default', 'auto', True)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["None", "False", "True"]

@@ -1,4 +1,4 @@
-"""Which setup file commands on the robot run under (fetchsync.ros_setup), here and over ssh:
+"""Which setup file commands on the robot run under (fetchsync.chores.ros_setup), here and over ssh:
 the workspace's, else the robot's ROS_DISTRO (never the laptop's), else the only distribution
 or the one the workspace was built on, else a one-line error listing them; -v says which."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers import fetchsync
 
-from fetchsync.ros_setup import SEVERAL_EXIT, environment
+from fetchsync.chores.ros_setup import SEVERAL_EXIT, environment
 
 
 def distro(root: Path, name: str) -> None:

@@ -1,6 +1,6 @@
 """The robot's catkin_make makes ``src/CMakeLists.txt`` a link to catkin's toplevel.cmake
 when the laptop's ``src/`` has none: push and pull leave that link alone (see
-fetchsync.plan.catkin_toplevel). A pure test of the plan and one end to end with the
+fetchsync.sync.plan.catkin_toplevel). A pure test of the plan and one end to end with the
 real catkin_make on the sshd robot."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import pytest
 from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
 from helpers import fetchsync, report
 
-from fetchsync.plan import WHOLE
+from fetchsync.sync.plan import WHOLE
 from fetchsync.protocol import messages as M
-from fetchsync.sync import reconcile
+from fetchsync.sync.engine import reconcile
 
 NOETIC = "/opt/ros/noetic/share/catkin/cmake/toplevel.cmake"
 DEBIAN = "/usr/share/catkin/cmake/toplevel.cmake"

@@ -110,7 +110,7 @@ def test_symlinked_time_directory_on_the_robot_is_not_followed(env, remote_dir, 
 
 
 def test_binary_versions_are_said_to_differ_with_their_sizes():
-    from fetchsync.commands.conflicts import Kept, diff_lines
+    from fetchsync.cli.conflicts import Kept, diff_lines
 
     kept = Kept("20260101-000000-000001", "my_pkg/blob.bin", 5, "conflicts")
     lines = diff_lines(kept, b"a\0bcd", b"xy\0", local_size=3)

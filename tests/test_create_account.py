@@ -23,8 +23,8 @@ import paramiko
 import pytest
 from click.testing import CliRunner
 
-from fetchsync import account
-from fetchsync.account import (
+from fetchsync.chores import account
+from fetchsync.chores.account import (
     AccountRequest,
     builtin_skeleton,
     find_public_key,
@@ -182,7 +182,7 @@ def test_the_robot_program_runs_on_python_36() -> None:
     if vermin is None:
         pytest.skip("vermin not installed")
     proc = subprocess.run([vermin, "-q", "--no-tips", "--violations", "--target=3.6-",
-                           str(REPO / "fetchsync" / "account_robot.py")],
+                           str(REPO / "fetchsync" / "robot" / "account_robot.py")],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
@@ -468,7 +468,7 @@ def _create_as_user(ssh_home, *args: str, env: dict[str, str],
 
 def _push_remote_workspace(ssh_home, env: dict[str, str], workspace: str | None = None) -> str:
     """What push resolves as the remote workspace in this environment."""
-    code = ("import sys; from fetchsync.commands.common import resolve; "
+    code = ("import sys; from fetchsync.cli.common import resolve; "
             "print(resolve('robot', None, sys.argv[1] or None, None).remote_workspace)")
     full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS}
     full_env.update(HOME=str(ssh_home.home), **env)
@@ -536,7 +536,7 @@ def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accoun
 
 
 def account_robot_exports(home: Path) -> dict[str, str]:
-    from fetchsync.account_robot import read_exports
+    from fetchsync.robot.account_robot import read_exports
 
     return read_exports(str(home / ".bashrc.d" / "30-workspace.sh"))
 
@@ -656,7 +656,7 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
 
 
 def test_a_workspace_file_that_is_a_link_or_fifo_is_left_to_the_user(tmp_path, monkeypatch) -> None:
-    from fetchsync import account_robot
+    from fetchsync.robot import account_robot
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / ".bashrc.d").mkdir()

@@ -402,7 +402,7 @@ def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(via, marked_
         robot = tmp_path / "lr/ws/src" if via == "local" else remote_dir / "src"
         assert tree_of(local_src(env)) == tree_of(robot)
     finally:
-        subprocess.run(["pkill", "-f", f"fetchsync.agent.mux.*{runtime}"], check=False)
+        subprocess.run(["pkill", "-f", f"fetchsync.link.mux.*{runtime}"], check=False)
         import shutil
         shutil.rmtree(runtime, ignore_errors=True)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from helpers import fetchsync, ssh_env, tree_of
 
-from fetchsync import fleet
+from fetchsync.cli import fleet
 
 pytestmark = pytest.mark.ssh
 

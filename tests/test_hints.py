@@ -11,7 +11,7 @@ import pytest
 from sshd import SSHHome
 
 from fetchsync.errors import ConnectError, HostKeyError
-from fetchsync.ssh import SSHTransport, shell_path
+from fetchsync.link.ssh import SSHTransport, shell_path
 
 pytestmark = pytest.mark.ssh
 

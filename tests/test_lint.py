@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from fetchsync.cli import cli
-from fetchsync.lint import (
+from fetchsync.chores.lint import (
     CPPLINT,
     PYCODESTYLE,
     classify,

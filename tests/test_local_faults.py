@@ -28,10 +28,10 @@ from pathlib import Path
 import pytest
 from helpers import make_workspace, report, ssh_env, tree_of
 
-from fetchsync import sync
-from fetchsync.connection import Connection
-from fetchsync.state import State
-from fetchsync.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.link.connection import Connection
+from fetchsync.sync.state import State
+from fetchsync.link.transport import LocalTransport
 
 SETPRIV = shutil.which("setpriv")
 
@@ -110,10 +110,10 @@ def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
 INCREMENTAL = """
 import json, os, sys
 from pathlib import Path
-from fetchsync import sync
-from fetchsync.connection import Connection
-from fetchsync.state import State
-from fetchsync.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.link.connection import Connection
+from fetchsync.sync.state import State
+from fetchsync.link.transport import LocalTransport
 base, src = sys.argv[1], sys.argv[1] + "/ws/src"
 conn = Connection.open(LocalTransport(Path(base) / "robot-home"))
 state = State(Path(base) / "state.sqlite")

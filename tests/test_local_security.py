@@ -24,7 +24,7 @@ from typing import Iterator
 import pytest
 from helpers import fetchsync, report, ssh_env, tree_of
 
-from fetchsync.agent import mux
+from fetchsync.link import mux
 
 needs_root = pytest.mark.skipif(os.getuid() != 0 or shutil.which("useradd") is None,
                                 reason="needs root and useradd to make a throwaway user")
@@ -69,7 +69,7 @@ def said(proc: subprocess.CompletedProcess) -> list[str]:
 
 
 def masters_under(path: Path) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"fetchsync.agent.mux.*{path}"], check=False,
+    out = subprocess.run(["pgrep", "-f", f"fetchsync.link.mux.*{path}"], check=False,
                          capture_output=True)
     return [int(x) for x in out.stdout.split()]
 

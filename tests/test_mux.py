@@ -17,7 +17,7 @@ pytestmark = pytest.mark.ssh
 
 
 def masters(runtime: Path) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"fetchsync.agent.mux.*{runtime}"], check=False,
+    out = subprocess.run(["pgrep", "-f", f"fetchsync.link.mux.*{runtime}"], check=False,
                          capture_output=True)
     return [int(x) for x in out.stdout.split()]
 
@@ -49,7 +49,7 @@ def env(ssh_home, remote_dir, tmp_path):
 
 
 def test_socket_path_falls_back_to_a_short_directory(tmp_path, monkeypatch):
-    from fetchsync.agent import mux
+    from fetchsync.link import mux
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / ("x" * 120)))
     path = mux.socket_path("robot", None)
     assert len(os.fsencode(path)) <= mux.MAX_SOCKET_PATH
@@ -81,7 +81,7 @@ def test_second_call_goes_through_the_master_and_a_dead_master_is_replaced(env, 
 
 def test_a_command_through_the_master_tells_when_output_is_waiting(env):
     """MuxChannel.ready(): not before the command writes, then at once, and at its end."""
-    from fetchsync.agent.mux import MuxTransport
+    from fetchsync.link.mux import MuxTransport
 
     runtime = Path(env["XDG_RUNTIME_DIR"])
     fetchsync("push", env=env)

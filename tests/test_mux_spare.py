@@ -26,7 +26,7 @@ pytestmark = pytest.mark.ssh
 
 def masters(runtime: Path) -> list[int]:
     out = subprocess.run(
-        ["pgrep", "-f", f"fetchsync.agent.mux.*{runtime}"], check=False, capture_output=True
+        ["pgrep", "-f", f"fetchsync.link.mux.*{runtime}"], check=False, capture_output=True
     )
     return [int(x) for x in out.stdout.split()]
 

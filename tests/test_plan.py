@@ -1,6 +1,6 @@
 """The planner is pure: trees in, operations out."""
 
-from fetchsync.plan import COPY, DELTA, WHOLE, plan
+from fetchsync.sync.plan import COPY, DELTA, WHOLE, plan
 from fetchsync.protocol import messages as M
 
 
@@ -76,7 +76,7 @@ def test_symlink_target_change():
     assert kinds(ops) == [("symlink", "l", "")]
 
 
-# reconcile (fetchsync.sync): the local scan, the last-synced state and the robot's
+# reconcile (fetchsync.sync.engine): the local scan, the last-synced state and the robot's
 # listing in, the push's operations out; no I/O
 
 
@@ -85,7 +85,7 @@ def synced_expect(state):
 
 
 def test_reconcile_expects_what_was_last_synced_not_what_the_robot_holds():
-    from fetchsync.sync import reconcile
+    from fetchsync.sync.engine import reconcile
 
     local = tree(d("a"), f("a/x", "h1", mode=0o755))
     last = tree(d("a"), f("a/x", "h1"))
@@ -95,7 +95,7 @@ def test_reconcile_expects_what_was_last_synced_not_what_the_robot_holds():
 
 
 def test_reconcile_leaves_guarded_paths_as_the_robot_has_them():
-    from fetchsync.sync import reconcile
+    from fetchsync.sync.engine import reconcile
 
     local = tree(d("a"), f("a/x", "h1"))
     robot = tree(d("a"), f("a/x", "h0"), d("build"), f("build/out", "h3"), f("a/locked", "h4"))
@@ -106,7 +106,7 @@ def test_reconcile_leaves_guarded_paths_as_the_robot_has_them():
 
 
 def test_reconcile_of_identical_trees_is_empty():
-    from fetchsync.sync import reconcile
+    from fetchsync.sync.engine import reconcile
 
     t = tree(d("a"), f("a/x", "h1"))
     assert reconcile(t, dict(t), synced_expect(t), guarded=lambda _p: False) == []

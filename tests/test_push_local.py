@@ -237,11 +237,11 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
 def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch):
     """Connection.open runs ``meanwhile`` once the endpoint's command is sent and before
     its hello is read; a first push given that scan lands the same tree."""
-    from fetchsync import sync
-    from fetchsync.connection import Connection
+    from fetchsync.sync import engine as sync
+    from fetchsync.link.connection import Connection
     from fetchsync.protocol import wire
-    from fetchsync.state import State
-    from fetchsync.transport import LocalTransport
+    from fetchsync.sync.state import State
+    from fetchsync.link.transport import LocalTransport
 
     make_workspace(tmp_path / "ws")
     src = tmp_path / "ws" / "src"
@@ -279,8 +279,8 @@ def test_the_endpoint_widens_the_pipe_it_reads(tmp_path):
     sixteenth as often. Read back from our end of that very pipe."""
     import fcntl
 
-    from fetchsync.connection import Connection
-    from fetchsync.transport import LocalTransport
+    from fetchsync.link.connection import Connection
+    from fetchsync.link.transport import LocalTransport
 
     limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
@@ -297,9 +297,9 @@ def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
     does not run before the endpoint, which could print into the protocol's stream or
     cost every start tens of ms; the site directories are still on its path, so an
     installed xxhash is used."""
-    from fetchsync.connection import Connection
+    from fetchsync.link.connection import Connection
     from fetchsync.protocol import hashing, wire
-    from fetchsync.transport import LocalTransport
+    from fetchsync.link.transport import LocalTransport
 
     hooks = tmp_path / "hooks"
     hooks.mkdir()
@@ -324,7 +324,7 @@ def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
 def test_the_local_robots_channel_tells_when_output_is_waiting(tmp_path):
     """Channel.ready() of the ``local`` robot: not before the command writes, then at
     once, and at its end."""
-    from fetchsync.transport import LocalTransport
+    from fetchsync.link.transport import LocalTransport
 
     check_ready(LocalTransport(tmp_path / "robot-home").exec("sleep 1; echo hi; sleep 0.5"))
 
@@ -333,10 +333,10 @@ def test_a_push_killed_before_its_state_is_written_sends_nothing_again(tmp_path,
     """The state is written once, at the end of a push's rounds. A push stopped just
     before leaves the state as it was: the next push lists the robot, finds it
     identical, sends nothing, and then knows every path."""
-    from fetchsync import sync
-    from fetchsync.connection import Connection
-    from fetchsync.state import State
-    from fetchsync.transport import LocalTransport
+    from fetchsync.sync import engine as sync
+    from fetchsync.link.connection import Connection
+    from fetchsync.sync.state import State
+    from fetchsync.link.transport import LocalTransport
 
     src = tmp_path / "ws" / "src"
     for d in range(12):
@@ -375,11 +375,11 @@ def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monk
     """A push of more than a batch keeps a delta signature of each text file it sent
     (and none of a binary one), so the next edit goes as a delta with no question to
     the robot."""
-    from fetchsync import sync
-    from fetchsync.connection import Connection
+    from fetchsync.sync import engine as sync
+    from fetchsync.link.connection import Connection
     from fetchsync.protocol import delta
-    from fetchsync.state import State
-    from fetchsync.transport import LocalTransport
+    from fetchsync.sync.state import State
+    from fetchsync.link.transport import LocalTransport
 
     src = make_workspace(tmp_path / "ws") / "src"
     texts = {}
@@ -427,11 +427,11 @@ def test_the_robots_command_is_sent_before_the_sync_engine_is_imported(env):
     ``meanwhile``). A new interpreter, as the test process imported it long ago."""
     code = textwrap.dedent("""
         import sys
-        from fetchsync import connection
+        from fetchsync.link import connection
         real = connection.Connection.open.__func__
 
         def spy(cls, transport, **kw):
-            print("sync imported before the connection:", "fetchsync.sync" in sys.modules,
+            print("sync imported before the connection:", "fetchsync.sync.engine" in sys.modules,
                   file=sys.stderr, flush=True)
             return real(cls, transport, **kw)
 

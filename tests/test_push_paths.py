@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from fetchsync import sync
-from fetchsync.connection import Connection
-from fetchsync.state import State
-from fetchsync.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.link.connection import Connection
+from fetchsync.sync.state import State
+from fetchsync.link.transport import LocalTransport
 from helpers import make_workspace, tree_of
 
 

@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 from helpers import fetchsync, make_workspace, report, tree_of
 
-from fetchsync import sync
-from fetchsync.connection import Connection
-from fetchsync.state import State
-from fetchsync.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.link.connection import Connection
+from fetchsync.sync.state import State
+from fetchsync.link.transport import LocalTransport
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""fetchsync.remote and fetchsync.reaper, here: the ROS environment script, quoting, and
+"""fetchsync.chores.remote and fetchsync.robot.reaper, here: the ROS environment script, quoting, and
 the reaper's process-group handling (the same code runs on the robot)."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from fetchsync import remote
+from fetchsync.chores import remote
 
-REAPER = str(Path(remote.__file__).with_name("reaper.py"))
+REAPER = str(Path(remote.__file__).parent.parent / "robot" / "reaper.py")
 
 
 def bash(script: str, *, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:

@@ -47,7 +47,7 @@ def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
 def test_state_commit_keeps_a_signature_only_while_the_hash_is_unchanged(tmp_path: Path) -> None:
     """``State.commit`` streams its rows into one upsert (no per-row lookup, no row lists):
     a row without a signature keeps the stored one for the same content, drops it for new."""
-    from fetchsync.state import State, Synced
+    from fetchsync.sync.state import State, Synced
 
     st = State(tmp_path / "s.sqlite")
     st.commit(

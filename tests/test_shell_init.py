@@ -457,14 +457,14 @@ def _robot_home(home: Path) -> Path:
 ])
 def test_robot_names_from_ssh_config_known_hosts_and_fetch_tools(
         tmp_path: Path, typed: str, expected: list[str]) -> None:
-    from fetchsync.shell import robot_names
+    from fetchsync.chores.shell import robot_names
 
     home = _robot_home(tmp_path)
     assert robot_names(typed, home=home, global_known_hosts=str(tmp_path / "none")) == expected
 
 
 def test_robot_names_without_ssh_files(tmp_path: Path) -> None:
-    from fetchsync.shell import robot_names
+    from fetchsync.chores.shell import robot_names
 
     assert robot_names("f", home=tmp_path, global_known_hosts=str(tmp_path / "none")) == (
         [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(10)])

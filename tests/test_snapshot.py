@@ -26,7 +26,7 @@ from sshd import SSHHome
 
 from fetchsync.cli import cli
 from fetchsync.errors import ConfigError, UsageError
-from fetchsync.snapshot import (
+from fetchsync.chores.snapshot import (
     DEFAULT_COLLECTORS,
     MISSING,
     OK,
@@ -289,7 +289,7 @@ def fake_ros(root: Path, distro: str, version: int) -> Path:
 
 @pytest.fixture
 def robot_transport(snap_env) -> Iterator[Any]:
-    from fetchsync.ssh import SSHTransport
+    from fetchsync.link.ssh import SSHTransport
 
     transport = SSHTransport.connect("robot", connect_timeout=5.0)
     yield transport

@@ -18,14 +18,14 @@ from helpers import check_ready
 from sshd import SSHD, SSHHome
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError
-from fetchsync.ssh import (
+from fetchsync.link.ssh import (
     SSHTransport,
     env_prefix,
     load_ssh_config,
     parse_jump,
     resolve_host,
 )
-from fetchsync.transport import Channel
+from fetchsync.link.transport import Channel
 
 pytestmark = pytest.mark.ssh
 
@@ -533,7 +533,7 @@ def test_proxy_command_close_is_safe_from_two_threads_and_twice() -> None:
     succeeded."""
     import threading
 
-    from fetchsync.ssh import _ProxyCommand
+    from fetchsync.link.ssh import _ProxyCommand
 
     proxy = _ProxyCommand("cat")
     real = proxy._stderr.close
@@ -567,7 +567,7 @@ def test_proxy_command_close_is_safe_from_two_threads_and_twice() -> None:
 def test_proxy_command_close_does_not_wait_for_it_yet_it_is_reaped_or_killed() -> None:
     """Closing returns at once, as ssh does (SIGHUP, no wait); the command is reaped in
     the background, and one that ignores SIGTERM is killed a second later."""
-    from fetchsync.ssh import _ProxyCommand
+    from fetchsync.link.ssh import _ProxyCommand
 
     stubborn = _ProxyCommand("sh -c \"trap '' TERM; exec sleep 30\"")
     polite = _ProxyCommand("cat")
@@ -629,7 +629,7 @@ def test_match_exec_in_the_ssh_config_runs_its_command(tmp_path: Path) -> None:
     config.write_text('Match host robot exec "true"\n    HostName 10.1.2.3\n'
                       'Match host robot exec "false"\n    User nobody-here\n'
                       "Host robot\n    User fetch\n")
-    code = ("from fetchsync.ssh import load_ssh_config; "
+    code = ("from fetchsync.link.ssh import load_ssh_config; "
             f"found = load_ssh_config({str(config)!r}).lookup('robot'); "
             "print(found['hostname'], found['user'])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

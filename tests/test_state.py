@@ -1,4 +1,4 @@
-"""The laptop's state (fetchsync.state): what a process that ends leaves for the next."""
+"""The laptop's state (fetchsync.sync.state): what a process that ends leaves for the next."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-from fetchsync.state import State, Synced
+from fetchsync.sync.state import State, Synced
 
 WRITER = """
 import os, sys
 from pathlib import Path
-from fetchsync.state import State, Synced
+from fetchsync.sync.state import State, Synced
 state = State(Path(sys.argv[1]))
 state.commit(upserts=[("f%d" % i, Synced("f", 0o644, "%032x" % i, "", i), None) for i in range(500)],
              meta={"gen": "7"})

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from helpers import fetchsync, tree_of, without_where
 
-from fetchsync.workspace_status import (
+from fetchsync.chores.workspace_status import (
     DIFFERS,
     IN_SYNC,
     Found,

@@ -11,7 +11,7 @@ from pathlib import Path
 from helpers import fetchsync
 
 from fetchsync.config import ROBOT_VARS
-from fetchsync.workspace_status import find_packages
+from fetchsync.chores.workspace_status import find_packages
 
 GIT_ENV = {"GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.com",
            "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@example.com"}

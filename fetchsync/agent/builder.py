@@ -4,7 +4,7 @@ After each push that changed something, the agent hands the touched paths
 to :meth:`Builder.submit`. They map to packages (the nearest ``package.xml``
 above each path, its ``<name>``); the builder thread builds those packages
 with the workspace's build tool, detected once from the remote workspace as
-``push --build`` does (:func:`fetchsync.build.detect_tool`) unless chosen:
+``push --build`` does (:func:`fetchsync.chores.build.detect_tool`) unless chosen:
 
 - catkin_make: ``catkin_make ARGS --pkg a b`` (make in those packages only;
   unlike ``--only-pkg-with-deps`` it leaves no whitelist in the CMake cache);
@@ -13,7 +13,7 @@ with the workspace's build tool, detected once from the remote workspace as
 
 A batch whose packages cannot be known (a rescan) builds the whole workspace.
 Each build runs in one channel of the builder's own connection, under the
-reaper of :mod:`fetchsync.remote`, with its output (stdout and stderr
+reaper of :mod:`fetchsync.chores.remote`, with its output (stdout and stderr
 merged) streamed line by line through ``say`` as ``build: ...``. A newer
 batch cancels a build in progress: the channel closes, the reaper stops the
 build's process group on the robot, and the next build (of the union of the
@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-from fetchsync.build import (
+from fetchsync.chores.build import (
     CATKIN_MAKE,
     CATKIN_TOOLS,
     COLCON,
@@ -47,7 +47,7 @@ from fetchsync.build import (
     split_probe,
 )
 from fetchsync.config import Target
-from fetchsync.remote import ros_environment, script
+from fetchsync.chores.remote import ros_environment, script
 
 log = logging.getLogger(__name__)
 
@@ -300,10 +300,10 @@ class Builder:
                 self.cond.notify_all()
 
     def _build(self, packages: set[str] | None) -> str:
-        from fetchsync.build import TransportRunner
-        from fetchsync.connection import remote_python
-        from fetchsync.remote import wrap
-        from fetchsync.session import open_transport
+        from fetchsync.chores.build import TransportRunner
+        from fetchsync.link.connection import remote_python
+        from fetchsync.chores.remote import wrap
+        from fetchsync.link.session import open_transport
 
         if self._transport is None:
             self._transport = open_transport(self.target, accept_fingerprint=self.accept_fingerprint,

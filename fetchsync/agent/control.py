@@ -129,7 +129,7 @@ class ControlServer:
 
 def _ours(sock: socket.socket) -> bool:
     """Whether the process at the other end of ``sock`` runs as us (SO_PEERCRED)."""
-    from fetchsync.agent.mux import peer_uid
+    from fetchsync.link.mux import peer_uid
 
     try:
         return peer_uid(sock) == os.getuid()

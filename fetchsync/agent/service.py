@@ -5,7 +5,7 @@ Three threads share one :class:`Agent`:
 - the watcher (``fetchsync.agent.watcher.batches``) turns inotify events into
   coalesced batches of touched paths and puts them in a queue;
 - the sync loop merges whatever is pending into one incremental push
-  (:meth:`fetchsync.sync.Syncer.push_paths`), or a full push after a rescan,
+  (:meth:`fetchsync.sync.engine.Syncer.push_paths`), or a full push after a rescan,
   a reconnection or a request; when the link is lost it keeps collecting
   changes, reconnects with a backoff capped at a few seconds and then pushes
   everything that changed meanwhile;
@@ -74,8 +74,8 @@ def _malloc_trim() -> Any:
 
 def agent_paths(target: Target) -> tuple[Path, Path]:
     """The lock file and the control socket of the agent for this target."""
-    from fetchsync.agent.mux import MAX_SOCKET_PATH, runtime_dir
-    from fetchsync.session import robot_id
+    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
+    from fetchsync.link.session import robot_id
 
     key = hashlib.sha256(f"{robot_id(target)}\0{target.remote_workspace}".encode(
         "utf-8", "surrogateescape")).hexdigest()[:20]
@@ -276,7 +276,7 @@ class Agent:
             self.stop()
 
     def _sync_loop(self) -> None:
-        from fetchsync.sync import MassDeletionError
+        from fetchsync.sync.engine import MassDeletionError
 
         backoff = BACKOFF_FIRST
         # connect while the watcher puts its watches in place, so the first
@@ -345,9 +345,10 @@ class Agent:
     def _ensure_connected(self) -> None:
         if self._syncer is not None:
             return
-        from fetchsync.connection import Connection
-        from fetchsync.session import open_state, open_transport
-        from fetchsync.sync import Syncer
+        from fetchsync.link.connection import Connection
+        from fetchsync.link.session import open_transport
+        from fetchsync.sync.state import open_state
+        from fetchsync.sync.engine import Syncer
 
         transport = open_transport(self.target, accept_fingerprint=self.accept_fingerprint,
                                    persistent=False)

@@ -29,7 +29,7 @@ def unit_dir() -> Path:
 
 def unit_name(target: Target) -> str:
     """``fetchsync-watch-<robot>-<workspace>-<hash>.service``, in systemd's unit name alphabet."""
-    from fetchsync.session import robot_id
+    from fetchsync.link.session import robot_id
 
     key = hashlib.sha256(f"{robot_id(target)}\0{target.remote_workspace}\0{target.workspace}".encode(
         "utf-8", "surrogateescape")).hexdigest()[:8]

@@ -1,0 +1,190 @@
+"""How bytes reach a robot: the transport interface and the ``local`` robot.
+
+A transport runs a command on the robot and hands back a :class:`Channel`, a
+plain byte stream to the command's stdin/stdout (stderr kept apart). The sync
+protocol knows nothing else of SSH: ``fetchsync.link.ssh.SSHTransport`` implements
+this over paramiko, :class:`LocalTransport` over a local subprocess, so tests
+and the quickstart can use the robot-side endpoint without an SSH server.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import shlex
+import signal
+import subprocess
+import threading
+from pathlib import Path
+from typing import Protocol
+
+from fetchsync.config import LOCAL_ROBOT
+from fetchsync.errors import ConnectError, LinkLostError
+
+
+
+class Channel(Protocol):
+    """A running remote command: its stdin, stdout and stderr as byte streams."""
+
+    def send_all(self, data: bytes | memoryview) -> None:
+        """Write all of ``data`` to the command's stdin (raises LinkLostError)."""
+
+    def recv(self, n: int) -> bytes:
+        """Up to ``n`` bytes of stdout; ``b""`` at end of stream."""
+
+    def recv_stderr(self, n: int) -> bytes:
+        """Up to ``n`` bytes of stderr; ``b""`` at end of stream."""
+
+    def ready(self) -> bool:
+        """Whether ``recv`` would return at once: stdout has bytes, or has ended."""
+
+    def shutdown_write(self) -> None:
+        """Close the command's stdin (EOF), keep reading."""
+
+    def exit_status(self, timeout: float | None = None) -> int | None:
+        """Wait up to ``timeout`` seconds for the exit status; None if still running."""
+
+    def close(self) -> None:
+        """Close the channel; the remote command gets EOF/SIGHUP."""
+
+
+class Transport(Protocol):
+    """Something that runs commands on one robot."""
+
+    name: str
+
+    def exec(self, command: str, *, env: dict[str, str] | None = None,
+             pty: bool = False) -> Channel:
+        """Start ``command`` (a shell command line) on the robot."""
+
+    def close(self) -> None:
+        """Drop the connection."""
+
+
+def local_robot_home() -> Path:
+    """The home directory of the built-in ``local`` robot.
+
+    The ``local`` robot is a directory on this machine that stands in for a
+    robot's home: ``~`` in a remote path means this directory.
+    """
+    env = os.environ.get("FETCHSYNC_LOCAL_ROBOT_HOME")
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    return Path(base) / "fetchsync" / "local-robot"
+
+
+class _ProcessChannel:
+    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+        self._proc = proc
+        self._lock = threading.Lock()
+        self._eof_sent = False
+
+    def send_all(self, data: bytes | memoryview) -> None:
+        assert self._proc.stdin is not None
+        try:
+            self._proc.stdin.write(data)
+            self._proc.stdin.flush()
+        except (BrokenPipeError, ValueError, OSError) as exc:
+            raise LinkLostError("the local robot's endpoint went away") from exc
+
+    def recv(self, n: int) -> bytes:
+        assert self._proc.stdout is not None
+        try:
+            return self._proc.stdout.read1(n)  # type: ignore[attr-defined]
+        except (ValueError, OSError) as exc:
+            raise LinkLostError("the local robot's endpoint went away") from exc
+
+    def ready(self) -> bool:
+        # a poll of the pipe: right while nothing was read yet, as when the endpoint
+        # starts; after a read, bytes may wait in the reader's buffer instead
+        assert self._proc.stdout is not None
+        try:
+            return bool(select.select([self._proc.stdout], [], [], 0)[0])
+        except (ValueError, OSError):
+            return True  # closed: recv returns at once
+
+    def recv_stderr(self, n: int) -> bytes:
+        assert self._proc.stderr is not None
+        try:
+            return self._proc.stderr.read1(n)  # type: ignore[attr-defined]
+        except (ValueError, OSError):
+            return b""
+
+    def shutdown_write(self) -> None:
+        self._eof_sent = True
+        if self._proc.stdin is not None and not self._proc.stdin.closed:
+            try:
+                self._proc.stdin.close()
+            except (OSError, ValueError):
+                pass
+
+    def exit_status(self, timeout: float | None = None) -> int | None:
+        try:
+            return self._proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            if not self._eof_sent:
+                # an abandoned session (a stalled endpoint, Ctrl-C): end the endpoint's
+                # whole group at once, even stopped; closing a pipe first would wait on
+                # the thread blocked writing it (see connection._Watchdog)
+                try:
+                    os.killpg(self._proc.pid, signal.SIGKILL)
+                except OSError:
+                    pass
+            self._proc.terminate()
+            try:
+                self._proc.wait(2)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+        self.shutdown_write()
+        for stream in (self._proc.stdout, self._proc.stderr):
+            if stream is not None:
+                try:
+                    stream.close()
+                except (OSError, ValueError):
+                    pass
+
+
+class LocalTransport:
+    """The ``local`` robot: commands run here, with HOME set to the robot's home."""
+
+    name = LOCAL_ROBOT
+
+    def __init__(self, home: Path | None = None) -> None:
+        self.home = home if home is not None else local_robot_home()
+
+    def exec(self, command: str, *, env: dict[str, str] | None = None,
+             pty: bool = False) -> Channel:
+        try:
+            self.home.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConnectError(f"cannot create the local robot's home {self.home}: {exc.strerror}") from exc
+        full_env = dict(os.environ)
+        full_env["HOME"] = str(self.home)
+        full_env.pop("XDG_CACHE_HOME", None)
+        if env:
+            full_env.update(env)
+        try:
+            proc = subprocess.Popen(
+                ["/bin/sh", "-c", command],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                env=full_env,
+                cwd=str(self.home),
+                start_new_session=True,
+            )
+        except OSError as exc:
+            raise ConnectError(f"cannot start the local robot: {exc.strerror}") from exc
+        return _ProcessChannel(proc)
+
+    def close(self) -> None:
+        pass
+
+    def __repr__(self) -> str:
+        return f"LocalTransport(home={shlex.quote(str(self.home))})"

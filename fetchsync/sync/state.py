@@ -1,0 +1,228 @@
+"""The laptop's memory of the last sync, per (robot, remote workspace).
+
+For every path it holds what the robot was left holding (kind, mode, content
+hash or link target), the local stat at that moment (so an unchanged file is
+recognised without reading it) and, for larger files, the content's delta
+signature (so an edit is sent as a delta without asking the robot). It also
+holds the robot index's epoch and generation: when they still match, the robot
+has not been written by anyone else since, and one round trip suffices.
+
+Stored in SQLite under ``$XDG_STATE_HOME/fetchsync/`` (one file per target),
+updated in one transaction per batch, so a killed push leaves it consistent.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+import sqlite3
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Iterable, Iterator, NamedTuple
+
+from fetchsync.errors import SyncError
+from fetchsync.protocol import messages as M
+
+if TYPE_CHECKING:
+    from fetchsync.config import Target
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS entries (
+    path BLOB PRIMARY KEY,
+    kind TEXT NOT NULL, mode INTEGER NOT NULL, hash TEXT NOT NULL, target TEXT NOT NULL,
+    size INTEGER NOT NULL, mtime_ns INTEGER NOT NULL, ctime_ns INTEGER NOT NULL, ino INTEGER NOT NULL,
+    sig BLOB
+);
+"""
+
+
+class Synced(NamedTuple):
+    """What was last synced at a path, and the local stat when it was (a NamedTuple: cheap
+    to build by the thousand)."""
+
+    kind: str
+    mode: int
+    hash: str
+    target: str
+    size: int = -1
+    mtime_ns: int = -1
+    ctime_ns: int = -1
+    ino: int = -1
+
+    def listed(self, path: str) -> M.Listed:
+        return M.Listed(path, self.kind, self.mode, self.size if self.kind == "f" else 0,
+                        hash=self.hash, target=self.target)
+
+    def expectation(self) -> str:
+        if self.kind == "d":
+            return M.IS_DIR
+        if self.kind == "l":
+            return M.expect_link(self.target)
+        return M.expect_file(self.hash)
+
+
+def state_dir() -> Path:
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "fetchsync"
+
+
+def state_path(robot_id: str, remote_workspace: str) -> Path:
+    key = hashlib.sha256(f"{robot_id}\0{remote_workspace}".encode("utf-8", "surrogateescape")).hexdigest()
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{robot_id}_{remote_workspace}")[:60].strip("_")
+    return state_dir() / f"{slug}-{key[:12]}.sqlite"
+
+
+class State:
+    """One target's state. A damaged database is set aside (``<name>.damaged-<time>``)
+    and an empty one takes its place: the next push then lists the robot, adopts what
+    it holds already, and rebuilds the rows. ``note`` says so, in one line."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.note = ""
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        except OSError as exc:
+            raise StateError(f"cannot make the state's directory {path.parent}: "
+                             f"{exc.strerror or exc}") from None
+        try:
+            self.db = self._open()
+        except sqlite3.OperationalError as exc:  # not damage: permissions, a full disk
+            raise StateError(f"cannot open the state {path}: {exc}") from None
+        except sqlite3.DatabaseError as exc:
+            aside = self._set_aside()
+            self.note = (f"the state {path.name} was damaged ({exc}); set aside as {aside.name}, "
+                         "rebuilt from the robot's listing")
+            self.db = self._open()
+
+    def _open(self) -> sqlite3.Connection:
+        db = sqlite3.connect(str(self.path), isolation_level=None)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            # FULL: a commit is on disk when it returns, so the state never says the robot
+            # holds less than it does after a power cut (once per push: a few ms)
+            db.execute("PRAGMA synchronous=FULL")
+            db.executescript(SCHEMA)
+            # read every page of the tables: damage shows now, not in the middle of a push
+            db.execute("SELECT count(*), sum(length(path) + length(hash) + ifnull(length(sig), 0)) "
+                       "FROM entries").fetchone()
+            db.execute("SELECT count(*) FROM meta").fetchone()
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _set_aside(self) -> Path:
+        """Move the damaged database (and its log) out of the way; the new name."""
+        aside = self.path.with_name(f"{self.path.name}.damaged-{time.strftime('%Y%m%d-%H%M%S')}")
+        for suffix in ("", "-wal", "-shm"):
+            try:
+                os.rename(f"{self.path}{suffix}", f"{aside}{suffix}")
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                raise StateError(f"the state {self.path} is damaged and cannot be set aside: "
+                                 f"{exc.strerror or exc}") from None
+        return aside
+
+    def close(self) -> None:
+        self.db.close()
+
+    # meta
+    def get(self, key: str, default: str = "") -> str:
+        row = self.db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return row[0] if row else default
+
+    @property
+    def epoch(self) -> str:
+        return self.get("epoch")
+
+    @property
+    def gen(self) -> int:
+        return int(self.get("gen", "-1"))
+
+    def entries(self) -> dict[str, Synced]:
+        out = {}
+        for row in self.db.execute(
+                "SELECT path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino FROM entries"):
+            out[_decode(row[0])] = Synced(*row[1:])
+        return out
+
+    def has_entries(self) -> bool:
+        return self.db.execute("SELECT 1 FROM entries LIMIT 1").fetchone() is not None
+
+    def signature(self, path: str) -> bytes | None:
+        row = self.db.execute("SELECT sig FROM entries WHERE path=?", (_encode(path),)).fetchone()
+        return bytes(row[0]) if row and row[0] is not None else None
+
+    def signed_paths(self) -> set[str]:
+        """Paths whose stored entry has a delta signature."""
+        return {_decode(r[0]) for r in self.db.execute("SELECT path FROM entries WHERE sig IS NOT NULL")}
+
+    def commit(self, *, upserts: Iterable[tuple[str, Synced, bytes | None]] = (),
+               deletes: Iterable[str] = (), meta: dict[str, str] | None = None,
+               replace_all: bool = False) -> None:
+        """Apply one batch of changes atomically. A ``None`` signature keeps the stored one
+        only when the content hash is unchanged."""
+        with self._transaction() as cur:
+            if replace_all:
+                cur.execute("DELETE FROM entries")
+            # rows are made as SQLite takes them: a first push of 100,000 paths
+            # would otherwise hold them all, twice, next to everything else
+            rows = ((_encode(path), s.kind, s.mode, s.hash, s.target, s.size, s.mtime_ns,
+                     s.ctime_ns, s.ino, sig) for path, s, sig in upserts)
+            cur.executemany(_UPSERT, rows)
+            cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
+            for name, value in (meta or {}).items():
+                cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Cursor]:
+        """One write transaction: committed at the end, rolled back on any exception."""
+        cur = self.db.cursor()
+        cur.execute("BEGIN IMMEDIATE")
+        try:
+            yield cur
+            cur.execute("COMMIT")
+        except BaseException:
+            cur.execute("ROLLBACK")
+            raise
+
+    def reset(self) -> None:
+        self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
+
+
+# A NULL signature keeps the stored one only while the content hash is the same.
+class StateError(SyncError):
+    """The laptop's state cannot be opened (not damage: that is set aside and rebuilt)."""
+
+
+_UPSERT = """
+INSERT INTO entries (path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino, sig)
+VALUES (?,?,?,?,?,?,?,?,?,?)
+ON CONFLICT (path) DO UPDATE SET
+    kind=excluded.kind, mode=excluded.mode, target=excluded.target, size=excluded.size,
+    mtime_ns=excluded.mtime_ns, ctime_ns=excluded.ctime_ns, ino=excluded.ino,
+    sig=CASE WHEN excluded.sig IS NOT NULL THEN excluded.sig
+             WHEN entries.hash = excluded.hash THEN entries.sig END,
+    hash=excluded.hash
+"""
+
+
+def _encode(path: str) -> bytes:
+    # raw bytes: names that are not UTF-8 (surrogate escapes) round-trip exactly
+    return path.encode("utf-8", "surrogateescape")
+
+
+def _decode(raw: bytes) -> str:
+    return bytes(raw).decode("utf-8", "surrogateescape")
+
+
+def open_state(target: Target) -> State:
+    """The state of ``target``'s robot and remote workspace."""
+    from fetchsync.link.session import robot_id
+
+    return State(state_path(robot_id(target), target.remote_workspace))
