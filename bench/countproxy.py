@@ -133,7 +133,9 @@ def parse_link(text: str) -> Link | None:
     try:
         rate, delay = (float(x) for x in text.split(":"))
     except ValueError:
-        raise ValueError(f"unknown link {text!r}: one of {', '.join(LINKS)} or RATE_MBIT:DELAY_MS")
+        raise ValueError(
+            f"unknown link {text!r}: one of {', '.join(LINKS)} or RATE_MBIT:DELAY_MS"
+        ) from None
     if rate <= 0 or delay < 0:
         raise ValueError(f"link {text!r}: the rate must be positive and the delay not negative")
     return Link(text, rate * 1e6 / 8, delay / 1000)
@@ -432,7 +434,9 @@ def proxy_command(host: str, port: int, countdir: Path, link: Link | None) -> st
 
     argv = [sys.executable, "-S", str(Path(__file__).resolve()), host, str(port), str(countdir)]
     if link is not None:
-        argv.append(link.name if link.name in LINKS else f"{link.rate * 8 / 1e6:g}:{link.delay * 1000:g}")
+        argv.append(
+            link.name if link.name in LINKS else f"{link.rate * 8 / 1e6:g}:{link.delay * 1000:g}"
+        )
     return shlex.join(argv)
 
 

@@ -108,8 +108,10 @@ int syncfs(int fd)
 }
 """
 SYNC_CALLS = "syncfs,fsync,fdatasync,sync"
-_DURATION = re.compile(r"^\d+\s+[\d.]+\s+(?:(syncfs|fsync|fdatasync|sync)\(.*|<\.\.\. (\w+) resumed>.*)"
-                       r"= 0 <([\d.]+)>$")
+_DURATION = re.compile(
+    r"^\d+\s+[\d.]+\s+(?:(syncfs|fsync|fdatasync|sync)\(.*|<\.\.\. (\w+) resumed>.*)"
+    r"= 0 <([\d.]+)>$"
+)
 
 
 @dataclasses.dataclass
@@ -152,10 +154,14 @@ def loop_disk(workdir: Path, size_mb: int) -> Iterator[Path]:
     with open(image, "wb") as fh:
         fh.truncate(size_mb << 20)
     # every table written now, so no background initialisation writes during the runs
-    subprocess.run(["mkfs.ext4", "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0",
-                    str(image)], check=True, capture_output=True)
-    device = subprocess.run(["losetup", "-f", "--show", str(image)], check=True,
-                            capture_output=True, text=True).stdout.strip()
+    subprocess.run(
+        ["mkfs.ext4", "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0", str(image)],
+        check=True,
+        capture_output=True,
+    )
+    device = subprocess.run(
+        ["losetup", "-f", "--show", str(image)], check=True, capture_output=True, text=True
+    ).stdout.strip()
     try:
         mnt.mkdir(exist_ok=True)
         subprocess.run(["mount", device, str(mnt)], check=True, capture_output=True)
@@ -169,8 +175,9 @@ def loop_disk(workdir: Path, size_mb: int) -> Iterator[Path]:
 
 
 class Runner:
-    def __init__(self, *, workdir: Path, ws: Workspace, shims: dict[str, Path], strace: bool,
-                 log: Any) -> None:
+    def __init__(
+        self, *, workdir: Path, ws: Workspace, shims: dict[str, Path], strace: bool, log: Any
+    ) -> None:
         self.workdir = workdir
         self.ws = ws
         self.shims = shims
@@ -182,16 +189,24 @@ class Runner:
         self.failures: list[str] = []
 
     def env(self, home: Path, variant: str, trace: Path) -> dict[str, str]:
-        env = {k: v for k, v in os.environ.items()
-               if not k.startswith(("FETCHSYNC_", "FETCH_", "XDG_")) and k != "ROS_MASTER_URI"}
-        env.update(FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(home),
-                   FETCHSYNC_WORKSPACE=str(self.ws.root), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-                   XDG_STATE_HOME=str(self.workdir / "state" / home.name),
-                   PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith(("FETCHSYNC_", "FETCH_", "XDG_")) and k != "ROS_MASTER_URI"
+        }
+        env.update(
+            FETCHSYNC_ROBOT="local",
+            FETCHSYNC_LOCAL_ROBOT_HOME=str(home),
+            FETCHSYNC_WORKSPACE=str(self.ws.root),
+            FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+            XDG_STATE_HOME=str(self.workdir / "state" / home.name),
+            PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
+        )
         if variant == "traced":
             strace = shutil.which("strace")
-            env["FETCHSYNC_REMOTE_PYTHON"] = (f"{strace} -f -ttt -T --seccomp-bpf -e trace={SYNC_CALLS} "
-                                              f"-o {trace} python3")
+            env["FETCHSYNC_REMOTE_PYTHON"] = (
+                f"{strace} -f -ttt -T --seccomp-bpf -e trace={SYNC_CALLS} -o {trace} python3"
+            )
         else:
             env["FETCHSYNC_REMOTE_PYTHON"] = f"env LD_PRELOAD={self.shims[variant]} python3"
             env["FETCHSYNC_SYNCFS_LOG"] = str(trace)
@@ -204,12 +219,20 @@ class Runner:
         syncfs_of(home)
         syncfs_of(self.ws.root)
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "fetchsync", "push", "--json"], env=env,
-                              capture_output=True, text=True, check=False, timeout=900)
+        proc = subprocess.run(
+            [sys.executable, "-m", "fetchsync", "push", "--json"],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=False,
+            timeout=900,
+        )
         wall = time.perf_counter() - t0
         report = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.stdout.strip() else {}
         if proc.returncode != 0 or not report.get("ok"):
-            self.failures.append(f"{disk}/{scenario}/{variant}: push failed: {proc.stderr.strip()[-500:]}")
+            self.failures.append(
+                f"{disk}/{scenario}/{variant}: push failed: {proc.stderr.strip()[-500:]}"
+            )
             return
         s = Sample(disk, scenario, variant, rep, wall, files=report.get("files", 0))
         if variant == "traced":
@@ -220,9 +243,13 @@ class Runner:
         self.samples.append(s)
         diffs = differences(snapshot(self.ws.src), snapshot(home / "robot_ws" / "src"))
         if diffs:
-            self.failures.append(f"{disk}/{scenario}/{variant}: {len(diffs)} differences, first: {diffs[0]}")
-        self.log(f"  {disk} {scenario:8} {variant:7} rep {rep}: {wall:.3f} s"
-                 + (f", {s.in_sync:.3f} s in {s.sync_calls} sync calls" if s.in_sync is not None else ""))
+            self.failures.append(
+                f"{disk}/{scenario}/{variant}: {len(diffs)} differences, first: {diffs[0]}"
+            )
+        self.log(
+            f"  {disk} {scenario:8} {variant:7} rep {rep}: {wall:.3f} s"
+            + (f", {s.in_sync:.3f} s in {s.sync_calls} sync calls" if s.in_sync is not None else "")
+        )
 
     def order(self, rep: int) -> tuple[str, ...]:
         k = rep % len(self.variants)
@@ -249,16 +276,24 @@ def summarise(samples: list[Sample]) -> list[dict[str, Any]]:
     rows = []
     keys = list(dict.fromkeys((s.disk, s.scenario) for s in samples))  # in the order measured
     for disk, scenario in keys:
+
         def pick(variant: str, disk: str = disk, scenario: str = scenario) -> list[Sample]:
-            return [s for s in samples if (s.disk, s.scenario, s.variant) == (disk, scenario, variant)]
+            return [
+                s for s in samples if (s.disk, s.scenario, s.variant) == (disk, scenario, variant)
+            ]
 
         timed, noop, traced = pick("timed"), pick("no-op"), pick("traced")
         if not (timed and noop):
             continue
         wall, noop_wall = _med([s.wall for s in timed]), _med([s.wall for s in noop])
         row: dict[str, Any] = {
-            "disk": disk, "scenario": scenario, "runs": len(timed), "files": timed[0].files,
-            "wall": wall, "wall_noop": noop_wall, "difference": wall[0] - noop_wall[0],
+            "disk": disk,
+            "scenario": scenario,
+            "runs": len(timed),
+            "files": timed[0].files,
+            "wall": wall,
+            "wall_noop": noop_wall,
+            "difference": wall[0] - noop_wall[0],
             "in_sync": _med([s.in_sync or 0.0 for s in timed]),
             "sync_calls": timed[0].sync_calls,
             # each push's own share, then the median over the pushes
@@ -280,23 +315,35 @@ def _s(x: tuple[float, float, float]) -> str:
 
 def render(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
     strace = any("in_sync_strace" in r for r in rows)
-    out = [f"Machine: {info['machine']}", "", f"Workspace: {info['workspace']}", "",
-           "| robot disk | push | wall | in syncfs | calls | share of the push | wall, syncfs a no-op "
-           "| difference |" + (" in syncfs, strace -T |" if strace else ""),
-           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |" + (" ---: |" if strace else "")]
+    out = [
+        f"Machine: {info['machine']}",
+        "",
+        f"Workspace: {info['workspace']}",
+        "",
+        "| robot disk | push | wall | in syncfs | calls | share of the push | wall, syncfs a no-op "
+        "| difference |" + (" in syncfs, strace -T |" if strace else ""),
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |" + (" ---: |" if strace else ""),
+    ]
     for r in rows:
         share = r["share"]
-        line = (f"| {r['disk']} | {r['scenario']} ({r['files']} file{'s' if r['files'] != 1 else ''}) "
-                f"| {_s(r['wall'])} | {_ms(r['in_sync'])} | {r['sync_calls']} "
-                f"| {share[0]:.1%} ({share[1]:.1%}–{share[2]:.1%}) | {_s(r['wall_noop'])} "
-                f"| {r['difference'] * 1000:+.0f} ms |")
+        line = (
+            f"| {r['disk']} | {r['scenario']} ({r['files']} file{'s' if r['files'] != 1 else ''}) "
+            f"| {_s(r['wall'])} | {_ms(r['in_sync'])} | {r['sync_calls']} "
+            f"| {share[0]:.1%} ({share[1]:.1%}–{share[2]:.1%}) | {_s(r['wall_noop'])} "
+            f"| {r['difference'] * 1000:+.0f} ms |"
+        )
         if strace:
             line += f" {_ms(r['in_sync_strace'])} |" if "in_sync_strace" in r else " — |"
         out.append(line)
-    out += ["", ("Medians (min–max) over the pushes. wall: the whole `fetchsync push` process, "
-                 "the endpoint's syncfs timed by the LD_PRELOAD shim; in syncfs: the time inside its "
-                 "calls in that push; share: in syncfs / wall of the same push; wall, syncfs a no-op: "
-                 "the same push with the no-op shim; difference: the two medians' difference.")]
+    out += [
+        "",
+        (
+            "Medians (min–max) over the pushes. wall: the whole `fetchsync push` process, "
+            "the endpoint's syncfs timed by the LD_PRELOAD shim; in syncfs: the time inside its "
+            "calls in that push; share: in syncfs / wall of the same push; wall, syncfs a no-op: "
+            "the same push with the no-op shim; difference: the two medians' difference."
+        ),
+    ]
     return "\n".join(out)
 
 
@@ -305,16 +352,29 @@ def machine_line() -> str:
     with contextlib.suppress(OSError):
         m = re.search(r"^model name\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
         cpu = m.group(1) if m else "?"
-    commit = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"],
-                            capture_output=True, text=True, check=False).stdout.strip() or "?"
-    return (f"{len(os.sched_getaffinity(0))} CPUs ({cpu}), Linux {os.uname().release}, "
-            f"Python {sys.version.split()[0]}, fetchsync at {commit}")
+    commit = (
+        subprocess.run(
+            ["git", "-C", str(REPO), "describe", "--always", "--dirty"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.strip()
+        or "?"
+    )
+    return (
+        f"{len(os.sched_getaffinity(0))} CPUs ({cpu}), Linux {os.uname().release}, "
+        f"Python {sys.version.split()[0]}, fetchsync at {commit}"
+    )
 
 
 def fs_line(path: Path) -> str:
     try:
-        res = subprocess.run(["findmnt", "-n", "-o", "SOURCE,FSTYPE,OPTIONS", "-T", str(path)],
-                             capture_output=True, text=True, check=False)
+        res = subprocess.run(
+            ["findmnt", "-n", "-o", "SOURCE,FSTYPE,OPTIONS", "-T", str(path)],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
     except OSError:
         return "?"
     return res.stdout.strip() or "?"
@@ -325,16 +385,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--files", type=int, help="files in the workspace (default 7000; --quick 300)")
     ap.add_argument("--size-mb", type=float, help="workspace size in MiB (default 150; --quick 5)")
     ap.add_argument("--reps", type=int, help="one-edit pushes per variant (default 5; --quick 2)")
-    ap.add_argument("--reps-initial", type=int, help="initial pushes per variant (default 3; --quick 1)")
-    ap.add_argument("--disk", default="same,loop",
-                    help="robot home: same (the work dir's disk), loop (an ext4 loop device; root), "
-                         "comma-separated (default: same,loop; loop is skipped when not root)")
-    ap.add_argument("--strace", action="store_true",
-                    help="also time the syncfs calls with strace -T (a cross-check; slow)")
-    ap.add_argument("--quick", action="store_true", help="a smoke run: 300 files, 5 MiB, few repetitions")
+    ap.add_argument(
+        "--reps-initial", type=int, help="initial pushes per variant (default 3; --quick 1)"
+    )
+    ap.add_argument(
+        "--disk",
+        default="same,loop",
+        help="robot home: same (the work dir's disk), loop (an ext4 loop device; root), "
+        "comma-separated (default: same,loop; loop is skipped when not root)",
+    )
+    ap.add_argument(
+        "--strace",
+        action="store_true",
+        help="also time the syncfs calls with strace -T (a cross-check; slow)",
+    )
+    ap.add_argument(
+        "--quick", action="store_true", help="a smoke run: 300 files, 5 MiB, few repetitions"
+    )
     ap.add_argument("--json", help="also write every sample here")
     ap.add_argument("--workdir", help="keep everything here (default: a temporary directory)")
-    ap.add_argument("--report", metavar="JSON", help="print the tables of an earlier --json run and exit")
+    ap.add_argument(
+        "--report", metavar="JSON", help="print the tables of an earlier --json run and exit"
+    )
     args = ap.parse_args(argv)
     if args.report:
         saved = json.loads(Path(args.report).read_text())
@@ -364,8 +436,20 @@ def main(argv: list[str] | None = None) -> int:
             c_file = workdir / f"syncfs-{variant}.c"
             c_file.write_text(code)
             shims[variant] = c_file.with_suffix(".so")
-            subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-Wall", "-o", str(shims[variant]),
-                            str(c_file), "-ldl"], check=True)
+            subprocess.run(
+                [
+                    "gcc",
+                    "-shared",
+                    "-fPIC",
+                    "-O2",
+                    "-Wall",
+                    "-o",
+                    str(shims[variant]),
+                    str(c_file),
+                    "-ldl",
+                ],
+                check=True,
+            )
         log(f"generating {files} files, {size_mb} MiB ...")
         ws = generate(workdir / "laptop", files=files, size_mb=size_mb)
         runner = Runner(workdir=workdir, ws=ws, shims=shims, strace=args.strace, log=log)
@@ -383,17 +467,27 @@ def main(argv: list[str] | None = None) -> int:
                     fs[disk] = fs_line(home)
                     runner.run(disk, home, reps_initial=reps_initial, reps=reps)
         rows = summarise(runner.samples)
-        info = {"machine": machine_line(),
-                "workspace": f"{ws.files} files + {ws.symlinks} symlink, {ws.bytes / 2**20:.1f} MiB "
-                             f"(seed 1); initial push {reps_initial}x, one edit {reps}x per variant; "
-                             f"robot disks: " + "; ".join(f"{d}: {fs[d]}" for d in disks)}
+        info = {
+            "machine": machine_line(),
+            "workspace": f"{ws.files} files + {ws.symlinks} symlink, {ws.bytes / 2**20:.1f} MiB "
+            f"(seed 1); initial push {reps_initial}x, one edit {reps}x per variant; "
+            f"robot disks: " + "; ".join(f"{d}: {fs[d]}" for d in disks),
+        }
         print(render(rows, info))
         if runner.failures:
             print("\nFAILED:\n" + "\n".join(f"- {f}" for f in runner.failures))
         if args.json:
-            Path(args.json).write_text(json.dumps({
-                "info": info, "rows": rows, "failures": runner.failures,
-                "samples": [dataclasses.asdict(s) for s in runner.samples]}, indent=1))
+            Path(args.json).write_text(
+                json.dumps(
+                    {
+                        "info": info,
+                        "rows": rows,
+                        "failures": runner.failures,
+                        "samples": [dataclasses.asdict(s) for s in runner.samples],
+                    },
+                    indent=1,
+                )
+            )
     return 1 if runner.failures else 0
 
 

@@ -181,11 +181,16 @@ class History:
             self.push_all("switch", j, f"to {version}")
 
     def verified_ok(self) -> bool:
-        return not self.bench.failures and bool(self.steps) and all(not d for st in self.steps for d in st["verified"].values())
+        return (
+            not self.bench.failures
+            and bool(self.steps)
+            and all(not d for st in self.steps for d in st["verified"].values())
+        )
 
     # ---------------------------------------------------------------------- results
     def summary(self, ours: str, theirs: str, *, targets: bool = True) -> dict[str, Any]:
         samples = self.bench.samples
+
         def noop_median(tool: str, key: str) -> float:
             xs = [getattr(s, key) for s in samples if s.tool == tool and s.scenario == "noop"]
             return statistics.median(xs) if xs else 0.0
@@ -307,7 +312,9 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
     for base in bench.tools:
         if isinstance(base, FetchsyncPush) and base.name.startswith("fetchsync@"):
             out += ["", f"A/B: this checkout against {base.name}", ""]
-            out += _tables(hist.summary("fetchsync", base.name, targets=False), "fetchsync", base.name)
+            out += _tables(
+                hist.summary("fetchsync", base.name, targets=False), "fetchsync", base.name
+            )
             out += ["", f"{base.name} against rsync", ""]
             out += _tables(hist.summary(base.name, "rsync"), base.name, "rsync")
     out.append("")
@@ -319,8 +326,10 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
     else:
         out.append("verification: FAIL")
         for f in bench.failures:
-            out.append(f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
-                       + " ".join(f["error"].split())[-400:])
+            out.append(
+                f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
+                + " ".join(f["error"].split())[-400:]
+            )
         for st in hist.steps:
             for tool, diffs in st["verified"].items():
                 if diffs:
@@ -334,10 +343,14 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="fetchsync push vs rsync on ros2/rclcpp's history.")
     ap.add_argument("--bundle", type=Path, default=BUNDLE, help=f"git bundle (default {BUNDLE})")
-    ap.add_argument("--commits", type=int, help="first-parent commits replayed (default 30; --quick 2)")
+    ap.add_argument(
+        "--commits", type=int, help="first-parent commits replayed (default 30; --quick 2)"
+    )
     ap.add_argument("--switches", type=int, help="release switches (default 4; --quick 1)")
     ap.add_argument("--noops", type=int, help="no-op pushes per tool (default 3; --quick 1)")
-    ap.add_argument("--quick", action="store_true", help="a smoke run: 2 commits, 1 switch, 1 no-op")
+    ap.add_argument(
+        "--quick", action="store_true", help="a smoke run: 2 commits, 1 switch, 1 no-op"
+    )
     ap.add_argument("--link", choices=sorted(LINKS), default="loopback", help="as run.py's")
     ap.add_argument("--baseline-rev", metavar="REV", help="as run.py's: an A/B of two fetchsyncs")
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
@@ -393,7 +406,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         with running_sshd(workdir / "sshd") as sshd:
             baseline = baseline_checkout(a.baseline_rev, workdir) if a.baseline_rev else None
-            bench = Bench(workdir=workdir, ws=ws, sshd=sshd, params=params, log=log, baseline=baseline)
+            bench = Bench(
+                workdir=workdir, ws=ws, sshd=sshd, params=params, log=log, baseline=baseline
+            )
             hist = History(bench, repo, log)
             try:
                 hist.run(commits, switches, noops)
@@ -410,7 +425,9 @@ def main(argv: list[str] | None = None) -> int:
                         "load_end": load_average(),
                         "params": dataclasses.asdict(params),
                         "repository": info,
-                        "samples": [dataclasses.asdict(s) | {"bytes": s.bytes} for s in bench.samples],
+                        "samples": [
+                            dataclasses.asdict(s) | {"bytes": s.bytes} for s in bench.samples
+                        ],
                         "steps": hist.steps,
                         "summary": {t: hist.summary(t, "rsync") for t in names},
                         "ab": {

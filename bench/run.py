@@ -311,7 +311,9 @@ class FetchsyncPush(Tool):
             XDG_STATE_HOME=str(self.state_home),
             XDG_CACHE_HOME=str(self.bench.workdir / f"{self.name}-cache"),
             PYTHONPATH=str(self.checkout),
-            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot" / f"{self.name}-cache"),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(
+                self.bench.workdir / "robot" / f"{self.name}-cache"
+            ),
         )
         if self.name != "fetchsync":
             env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / "b")
@@ -492,7 +494,10 @@ class Bench:
             rev, checkout = baseline
             self.tools.append(
                 FetchsyncPush(
-                    bench=self, remote=robot / "baseline-ws", checkout=checkout, name=f"fetchsync@{rev}"
+                    bench=self,
+                    remote=robot / "baseline-ws",
+                    checkout=checkout,
+                    name=f"fetchsync@{rev}",
                 )
             )
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
@@ -656,8 +661,9 @@ class Bench:
 
     def run(self) -> None:
         p = self.params
-        self.allocator = settle_allocator(self.workdir / "robot", self.graveyard, self.log,
-                                          wait=p.settle)
+        self.allocator = settle_allocator(
+            self.workdir / "robot", self.graveyard, self.log, wait=p.settle
+        )
         for tool in self.tools:
             tool.reset()
 
@@ -683,9 +689,14 @@ class Bench:
             times = []
             for _ in range(reps):
                 t0 = time.perf_counter()
-                subprocess.run([argv[0], "-m", "fetchsync", "--version"], env=env,
-                               cwd=self.workdir, stdin=subprocess.DEVNULL,
-                               capture_output=True, check=False)
+                subprocess.run(
+                    [argv[0], "-m", "fetchsync", "--version"],
+                    env=env,
+                    cwd=self.workdir,
+                    stdin=subprocess.DEVNULL,
+                    capture_output=True,
+                    check=False,
+                )
                 times.append(time.perf_counter() - t0)
             self.startup[tool.name] = statistics.median(times)
             self.log(f"  startup {tool.name}: fetchsync --version {self.startup[tool.name]:.3f} s")
@@ -697,8 +708,10 @@ class Bench:
         )
 
     def verified_ok(self) -> bool:
-        return not self.failures and set(self.verified) == {sc for sc, _ in SCENARIOS} and all(
-            not d for r in self.verified.values() for d in r.values()
+        return (
+            not self.failures
+            and set(self.verified) == {sc for sc, _ in SCENARIOS}
+            and all(not d for r in self.verified.values() for d in r.values())
         )
 
     def summary(
@@ -714,7 +727,8 @@ class Bench:
             if not any(s.scenario == scenario for s in self.samples):
                 continue
             if not all(
-                any(s.tool == t and s.scenario == scenario for s in self.samples) for t in (ours, theirs)
+                any(s.tool == t and s.scenario == scenario for s in self.samples)
+                for t in (ours, theirs)
             ):
                 continue  # every push of one of them failed (see the failures)
             row: dict[str, Any] = {"title": title}
@@ -739,8 +753,14 @@ class Bench:
             # each round's push over the other tool's in the same round: the ratio of the
             # medians pairs a fast push of one tool with a slow one of the other when the
             # machine's speed drifts, as it does here over minutes
-            mine = {s.rep: s.seconds for s in self.samples if s.tool == ours and s.scenario == scenario}
-            other = {s.rep: s.seconds for s in self.samples if s.tool == theirs and s.scenario == scenario}
+            mine = {
+                s.rep: s.seconds for s in self.samples if s.tool == ours and s.scenario == scenario
+            }
+            other = {
+                s.rep: s.seconds
+                for s in self.samples
+                if s.tool == theirs and s.scenario == scenario
+            }
             rounds = [mine[k] / other[k] for k in sorted(mine) if k in other and other[k]]
             row["round_ratios"] = rounds
             row["round_ratio"] = statistics.median(rounds) if rounds else None
@@ -800,8 +820,9 @@ def _create_time(where: Path, shape: tuple[int, int] = CREATE_PROBE) -> tuple[fl
     return (time.perf_counter() - start) / (dirs * (files + 1)), top
 
 
-def settle_allocator(where: Path, graveyard: Path, log: Callable[[str], None], *,
-                     wait: float = CREATE_WAIT) -> dict[str, float]:
+def settle_allocator(
+    where: Path, graveyard: Path, log: Callable[[str], None], *, wait: float = CREATE_WAIT
+) -> dict[str, float]:
     """Wait (at most ``wait`` seconds) until files are created in ``where`` at a usual speed,
     against tmpfs's on this machine. The probes' files go to ``graveyard``: deleting
     them would slow the next creates down again. Returns what was measured."""
@@ -818,15 +839,25 @@ def settle_allocator(where: Path, graveyard: Path, log: Callable[[str], None], *
         ratio = took / base if base else 0.0
         if base is None or ratio <= CREATE_SLOW or waited >= wait:
             break
-        log(f"creating files in {where} takes {took * 1e6:.0f} us an inode, {ratio:.0f}x tmpfs's: files were "
-            f"deleted near it lately (ext4 skips inodes freed in the last minutes); waiting")
+        log(
+            f"creating files in {where} takes {took * 1e6:.0f} us an inode, {ratio:.0f}x tmpfs's: files were "
+            f"deleted near it lately (ext4 skips inodes freed in the last minutes); waiting"
+        )
         time.sleep(CREATE_POLL)
         waited += CREATE_POLL
-    log(f"file creation where the robot's trees go: {took * 1e6:.0f} us an inode"
-        + (f", {ratio:.1f}x tmpfs's" if base else ""))
+    log(
+        f"file creation where the robot's trees go: {took * 1e6:.0f} us an inode"
+        + (f", {ratio:.1f}x tmpfs's" if base else "")
+    )
     if base is not None and ratio > CREATE_SLOW:
-        log(f"warning: file creation is still {ratio:.0f}x slower than on tmpfs: this run's times are noisy")
-    return {"create_us": round(took * 1e6, 1), "create_vs_tmpfs": round(ratio, 1), "waited_s": waited}
+        log(
+            f"warning: file creation is still {ratio:.0f}x slower than on tmpfs: this run's times are noisy"
+        )
+    return {
+        "create_us": round(took * 1e6, 1),
+        "create_vs_tmpfs": round(ratio, 1),
+        "waited_s": waited,
+    }
 
 
 def machine_info() -> dict[str, str]:
@@ -964,7 +995,9 @@ def _allocator_line(probe: dict[str, float] | None) -> str:
     if not probe:
         return "File creation on the robot's disk was not probed."
     vs = f", {probe['create_vs_tmpfs']:.1f}x tmpfs's" if probe["create_vs_tmpfs"] else ""
-    waited = f", after waiting {probe['waited_s']:.0f} s for it to settle" if probe["waited_s"] else ""
+    waited = (
+        f", after waiting {probe['waited_s']:.0f} s for it to settle" if probe["waited_s"] else ""
+    )
     return f"File creation on the robot's disk at the start: {probe['create_us']:.0f} us an inode{vs}{waited}."
 
 
@@ -1038,8 +1071,10 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
         out.append("verification: FAIL")
         out.append("")
         for f in bench.failures:
-            out.append(f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
-                       + " ".join(f["error"].split())[-400:])
+            out.append(
+                f"- {f['tool']}'s {f['scenario']} push #{f['rep']} failed: "
+                + " ".join(f["error"].split())[-400:]
+            )
         for sc, res in bench.verified.items():
             for tool, diffs in res.items():
                 if diffs:
@@ -1175,7 +1210,10 @@ def baseline_checkout(rev: str, workdir: Path) -> tuple[str, Path]:
     written. Returns (the short commit, the tree)."""
     git = ["git", "-C", str(REPO)]
     proc = subprocess.run(
-        [*git, "rev-parse", "--short", f"{rev}^{{commit}}"], capture_output=True, text=True, check=False
+        [*git, "rev-parse", "--short", f"{rev}^{{commit}}"],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     if proc.returncode != 0:
         raise SystemExit(f"--baseline-rev {rev}: not a commit of {REPO}")

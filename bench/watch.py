@@ -86,11 +86,15 @@ ALIAS = "robot"
 RSYNC_FLAGS = "-phErtzl"
 LATENCY_TARGET = 0.050  # seconds, fetchsync's median save -> on the robot, on loopback
 SHAPED_LATENCY_SLACK = 0.005  # on a shaped link: at most one round trip plus this (issue 24)
-BURST_FACTOR = 1.5  # on a shaped link: a burst complete within this times its bytes' time at the rate
+BURST_FACTOR = (
+    1.5  # on a shaped link: a burst complete within this times its bytes' time at the rate
+)
 
 
 def latency_target(link: Link | None) -> float:
     return LATENCY_TARGET if link is None else 2 * link.delay + SHAPED_LATENCY_SLACK
+
+
 RATIO_TARGET = 10.0  # lsyncd's median / fetchsync's median at least this
 POLL = 0.0005
 ARRIVAL_TIMEOUT = 15.0
@@ -408,7 +412,11 @@ RECOVERY_TARGET = 1.0  # seconds, link back -> robot identical, median (issue 24
 
 
 def measure_recovery(
-    tool: WatchTool, targets: list[Path], cycles: int, outages: tuple[tuple[str, float], ...], tag: str
+    tool: WatchTool,
+    targets: list[Path],
+    cycles: int,
+    outages: tuple[tuple[str, float], ...],
+    tag: str,
 ) -> list[dict[str, Any]]:
     """Per cycle and outage: seconds from the link coming back to the save made during
     the outage being on the robot (None: not within 60 s), and the tree's differences then."""
@@ -433,11 +441,20 @@ def measure_recovery(
             t_arrived = wait_arrival(tool.remote_src / rel, data, timeout=60)
             after = None if t_arrived is None else t_arrived - t_up
             diffs = differences(snapshot(tool.ws.src), snapshot(tool.remote_src))
-            out.append({"cycle": cycle, "outage": kind, "seconds": seconds, "after_up": after,
-                        "differences": diffs[:10]})
-            log(f"{tool.name}: {kind} {seconds:.0f} s, cycle {cycle}: on the robot "
+            out.append(
+                {
+                    "cycle": cycle,
+                    "outage": kind,
+                    "seconds": seconds,
+                    "after_up": after,
+                    "differences": diffs[:10],
+                }
+            )
+            log(
+                f"{tool.name}: {kind} {seconds:.0f} s, cycle {cycle}: on the robot "
                 f"{_ms(after)} after the link came back; tree "
-                + ("identical" if not diffs else f"{len(diffs)} difference(s)"))
+                + ("identical" if not diffs else f"{len(diffs)} difference(s)")
+            )
             time.sleep(1.0)
     return out
 
@@ -682,7 +699,11 @@ def render(res: dict[str, Any]) -> str:
                 ok = sum(1 for r in sel if not r["differences"])
                 target = "—"
                 if kind == "all" and name == "fetchsync":
-                    met = bool(allx) and len(allx) == len(rows) and statistics.median(allx) <= RECOVERY_TARGET
+                    met = (
+                        bool(allx)
+                        and len(allx) == len(rows)
+                        and statistics.median(allx) <= RECOVERY_TARGET
+                    )
                     target = f"≤ {RECOVERY_TARGET:g} s {'**PASS**' if met else '**MISS**'}"
                 secs = sel[0]["seconds"] if kind != "all" else None
                 label = kind if secs is None else f"{kind} {secs:.0f} s"
@@ -826,7 +847,9 @@ def main(argv: list[str] | None = None) -> int:
         if a.baseline_rev:
             rev, checkout = baseline_checkout(a.baseline_rev, workdir)
             classes[f"fetchsync@{rev}"] = baseline_watch(rev, checkout)
-            tools.insert(tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}")
+            tools.insert(
+                tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}"
+            )
         with running_sshd(workdir / "sshd") as sshd:
             bench = WatchBench(workdir, sshd, LINKS[a.link])
             try:

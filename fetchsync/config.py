@@ -89,6 +89,7 @@ def resolve_target(
     is_local = robot_name == LOCAL_ROBOT
     if remote_workspace is None:  # robots.toml's [robots.NAME] counts as its option
         from fetchsync.robots import robot_settings
+
         remote_workspace = robot_settings(robot_name, environ=environ).get("remote_workspace")
     if is_local or defer_ssh_user and _first(user, "--user", environ, USER_VARS)[1] is None:
         login = None
@@ -111,8 +112,9 @@ def resolve_robot(robot: str | None = None, *, environ: Mapping[str, str] = os.e
     return robot_with_source(robot, environ=environ)[0]
 
 
-def robot_with_source(robot: str | None = None, *,
-                      environ: Mapping[str, str] = os.environ) -> tuple[str, str]:
+def robot_with_source(
+    robot: str | None = None, *, environ: Mapping[str, str] = os.environ
+) -> tuple[str, str]:
     """:func:`resolve_robot`, and where the name came from (``--robot``, a variable's name)."""
     source, value = _first(robot, "--robot", environ, ROBOT_VARS)
     if value is None:
@@ -125,6 +127,7 @@ def robot_with_source(robot: str | None = None, *,
         source, value = f"ROS_MASTER_URI={uri}", ros_master_host(uri)
     if "," in value or value.startswith("@"):  # a list or a group: one robot, or refused
         from fetchsync.robots import one_robot
+
         value = one_robot(value, source, environ=environ)
     if value == LOCAL_ROBOT:
         return value, source
@@ -252,8 +255,11 @@ def login_name(target: Target, *, environ: Mapping[str, str] = os.environ) -> st
     found: str | None
     if content is None:
         found = None
-    elif any(line.strip().lower().startswith(word) for line in content.splitlines()
-             for word in _NOT_NOTED):
+    elif any(
+        line.strip().lower().startswith(word)
+        for line in content.splitlines()
+        for word in _NOT_NOTED
+    ):
         found = ssh_config_user(target.host, ssh_config=path, environ=environ)
     else:
         found = _noted_user(target.host, path, content, environ)
@@ -267,8 +273,9 @@ def _noted_user(host: str, path: Path, content: bytes, environ: Mapping[str, str
 
     from fetchsync.protocol.loader import cache_dir
 
-    key = json.dumps([host, hashlib.sha256(content).hexdigest(), str(_home(environ)),
-                      getpass.getuser()])
+    key = json.dumps(
+        [host, hashlib.sha256(content).hexdigest(), str(_home(environ)), getpass.getuser()]
+    )
     note = os.path.join(cache_dir(), "user-" + hashlib.sha256(key.encode()).hexdigest()[:32])
     try:
         fd = os.open(note, os.O_RDONLY | os.O_NOFOLLOW)
@@ -334,15 +341,23 @@ def workspace_with_source(
     return Path(os.path.abspath(_expand_home(value, environ))), source
 
 
-WORKSPACE_MARKERS = (".catkin_workspace", ".catkin_tools", "devel", "install", "build",
-                     "log/COLCON_IGNORE", "src/CMakeLists.txt")
+WORKSPACE_MARKERS = (
+    ".catkin_workspace",
+    ".catkin_tools",
+    "devel",
+    "install",
+    "build",
+    "log/COLCON_IGNORE",
+    "src/CMakeLists.txt",
+)
 """What, beside ``src/``, makes a directory a workspace: catkin_make's and catkin_tools'
 marks (``src/CMakeLists.txt`` is catkin_init_workspace's link), the result spaces of
 catkin (``devel/``) and colcon (``build/``, ``install/``), and colcon's log directory."""
 
 
-def workspace_around(directory: str | os.PathLike[str], *,
-                     home: str | os.PathLike[str] | None = None) -> Path | None:
+def workspace_around(
+    directory: str | os.PathLike[str], *, home: str | os.PathLike[str] | None = None
+) -> Path | None:
     """The nearest directory at or above ``directory`` that is a workspace, or None.
 
     A directory holding a ``package.xml`` is a package (which may have ``src/``
@@ -357,8 +372,11 @@ def workspace_around(directory: str | os.PathLike[str], *,
             break
         if candidate in skip:
             continue
-        if (candidate / "src").is_dir() and not os.path.lexists(candidate / "package.xml") \
-                and any(os.path.lexists(candidate / mark) for mark in WORKSPACE_MARKERS):
+        if (
+            (candidate / "src").is_dir()
+            and not os.path.lexists(candidate / "package.xml")
+            and any(os.path.lexists(candidate / mark) for mark in WORKSPACE_MARKERS)
+        ):
             return candidate
     return None
 
@@ -404,7 +422,10 @@ def remote_workspace_with_source(
             raise ConfigError("no remote workspace given: pass --remote-workspace DIR")
         source, value = f"the workspace {workspace}", home_relative(workspace, environ=environ)
     return check_remote_workspace(value, source=source), (
-        source if not source.startswith("the workspace ") else "the local workspace, with ~ for home")
+        source
+        if not source.startswith("the workspace ")
+        else "the local workspace, with ~ for home"
+    )
 
 
 def home_relative(path: Path, *, environ: Mapping[str, str] = os.environ) -> str:
@@ -460,8 +481,9 @@ def _check_robot_name(name: str, source: str) -> None:
         )
 
 
-def first_given(given: str | None, names: tuple[str, ...], *,
-                environ: Mapping[str, str] = os.environ) -> bool:
+def first_given(
+    given: str | None, names: tuple[str, ...], *, environ: Mapping[str, str] = os.environ
+) -> bool:
     """Whether the option or one of the variables ``names`` gives a value."""
     return _first(given, "", environ, names)[1] is not None
 

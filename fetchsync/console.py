@@ -38,8 +38,7 @@ log = logging.getLogger(__name__)
 
 # C0 and C1 controls, DEL, the bidirectional overrides and isolates (they reorder
 # what a line shows), and undecodable bytes (surrogate escapes of os.fsdecode)
-_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069"
-                          "\udc80-\udcff]")
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069\udc80-\udcff]")
 
 
 def _escape(match: re.Match[str]) -> str:
@@ -202,8 +201,9 @@ def _window_changes(resize: Callable[[int, int], None] | None) -> Iterator[None]
         signal.signal(signal.SIGWINCH, previous)
 
 
-def attach(channel: Channel, *, pty: bool = False, stdin: int | None = 0, stdout: int = 1,
-           stderr: int = 2) -> int:
+def attach(
+    channel: Channel, *, pty: bool = False, stdin: int | None = 0, stdout: int = 1, stderr: int = 2
+) -> int:
     """Pump ``channel`` to and from our streams until the command ends; its exit status.
 
     ``stdin=None`` gives the command an empty stdin. ``stdout``/``stderr``

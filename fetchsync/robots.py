@@ -52,8 +52,9 @@ def _load(environ: Mapping[str, str]) -> dict[str, Any]:
         try:
             import tomli as tomllib  # type: ignore[no-redef]
         except ModuleNotFoundError:
-            raise ConfigError(f"reading {path} needs Python 3.11 or the tomli package",
-                              hint="pip install tomli") from None
+            raise ConfigError(
+                f"reading {path} needs Python 3.11 or the tomli package", hint="pip install tomli"
+            ) from None
     try:
         return tomllib.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
@@ -85,13 +86,16 @@ def robot_settings(robot: str, *, environ: Mapping[str, str] = os.environ) -> di
         raise ConfigError(f"{path}: [{SETTINGS_TABLE}.{robot}] must be a table")
     unknown = set(mine) - ROBOT_KEYS
     if unknown or not all(isinstance(v, str) and v.strip() for v in mine.values()):
-        raise ConfigError(f"{path}: [{SETTINGS_TABLE}.{robot}] takes {', '.join(sorted(ROBOT_KEYS))} "
-                          "(a string)" + (f", not {', '.join(sorted(unknown))}" if unknown else ""))
+        raise ConfigError(
+            f"{path}: [{SETTINGS_TABLE}.{robot}] takes {', '.join(sorted(ROBOT_KEYS))} "
+            "(a string)" + (f", not {', '.join(sorted(unknown))}" if unknown else "")
+        )
     return {k: v.strip() for k, v in mine.items()}
 
 
-def expand(value: str, *, source: str = "--robot",
-           environ: Mapping[str, str] = os.environ) -> list[str]:
+def expand(
+    value: str, *, source: str = "--robot", environ: Mapping[str, str] = os.environ
+) -> list[str]:
     """The robots ``value`` names: comma-separated names and ``@group``s, in order, each once."""
     names: list[str] = []
     known: dict[str, list[str]] | None = None
@@ -104,8 +108,10 @@ def expand(value: str, *, source: str = "--robot",
             members = known.get(word[1:])
             if members is None:
                 listed = ", ".join("@" + g for g in sorted(known)) or "none"
-                raise ConfigError(f"unknown group {word} (from {source}); known groups in "
-                                  f"{groups_file(environ)}: {listed}")
+                raise ConfigError(
+                    f"unknown group {word} (from {source}); known groups in "
+                    f"{groups_file(environ)}: {listed}"
+                )
             names.extend(members)
         else:
             names.append(word)
@@ -119,6 +125,8 @@ def one_robot(value: str, source: str, *, environ: Mapping[str, str] = os.enviro
     """For verbs that take one robot: the one ``value`` names, or a one-line refusal (exit 2)."""
     names = expand(value, source=source, environ=environ)
     if len(names) > 1:
-        raise UsageError(f"several robots ({', '.join(names)}, from {source}): only push and run "
-                         "take several; give one robot")
+        raise UsageError(
+            f"several robots ({', '.join(names)}, from {source}): only push and run "
+            "take several; give one robot"
+        )
     return names[0]

@@ -79,8 +79,9 @@ def _laptop_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(autouse=True)
-def _no_lingering_masters(tmp_path_factory: pytest.TempPathFactory, _laptop_cache: Path,
-                          monkeypatch: pytest.MonkeyPatch) -> None:
+def _no_lingering_masters(
+    tmp_path_factory: pytest.TempPathFactory, _laptop_cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Tests open fresh SSH connections unless they ask for a connection master, and keep
     the laptop's cache (the robots' interpreters, the connections noted) in one directory
     of the session: not in the user's ~/.cache, where each test's own local robot left a

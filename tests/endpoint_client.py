@@ -18,7 +18,11 @@ class Endpoint:
         e = dict(os.environ, HOME=home, **env)
         self.proc = subprocess.Popen(
             [sys.executable, "-c", "from fetchsync.protocol.server import main; main()"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=e)
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=e,
+        )
         assert self.proc.stdout is not None and self.proc.stdin is not None
         self.reader = wire.Reader(self.proc.stdout.read1)  # type: ignore[attr-defined]
         self.hello = self.reader.read_hello()

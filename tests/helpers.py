@@ -8,7 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-
 # a minimal catkin package.xml, for the build tests
 CATKIN_PACKAGE_XML = """<?xml version="1.0"?>
 <package format="2">
@@ -35,8 +34,13 @@ def make_workspace(root: Path) -> Path:
     script.write_text("#!/usr/bin/env python3\nprint('hi')\n")
     script.chmod(0o755)
     (pkg / "launch").mkdir()  # empty directory
-    big = "\n".join(f"line {i}: the quick brown fox jumps over the lazy dog {i * 7919 % 10007}"
-                    for i in range(40000)) + "\n"
+    big = (
+        "\n".join(
+            f"line {i}: the quick brown fox jumps over the lazy dog {i * 7919 % 10007}"
+            for i in range(40000)
+        )
+        + "\n"
+    )
     (pkg / "data.txt").write_text(big)
     # catkin's absolute toplevel link, which rsync -phErtz silently skips
     (src / "CMakeLists.txt").symlink_to("/opt/ros/noetic/share/catkin/cmake/toplevel.cmake")
@@ -60,22 +64,37 @@ def tree_of(root: Path) -> dict[str, tuple]:
     return out
 
 
-def fetchsync(*args: str, env: dict | None = None, check: bool = True,
-              input: bytes | None = None) -> subprocess.CompletedProcess:
+def fetchsync(
+    *args: str, env: dict | None = None, check: bool = True, input: bytes | None = None
+) -> subprocess.CompletedProcess:
     """Run the real CLI in a subprocess."""
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", *args], capture_output=True,
-                          env=env, input=input, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", *args],
+        capture_output=True,
+        env=env,
+        input=input,
+        timeout=120,
+    )
     if check and proc.returncode != 0:
-        raise AssertionError(f"fetchsync {' '.join(args)} failed ({proc.returncode}):\n"
-                             f"{proc.stdout.decode()}\n{proc.stderr.decode()}")
+        raise AssertionError(
+            f"fetchsync {' '.join(args)} failed ({proc.returncode}):\n"
+            f"{proc.stdout.decode()}\n{proc.stderr.decode()}"
+        )
     return proc
 
 
 def without_where(text: str) -> list[str]:
     """The non-empty lines of a verb's stderr but the line saying where its answer goes
     (``push ~/ws/src → user@robot:~/ws/src``), which precedes a one-line error."""
-    return [line for line in text.strip().splitlines() if line.strip() and not (
-        line.startswith(("push ", "pull ", "workspace-status ")) and ("\u2192" in line or "\u2194" in line))]
+    return [
+        line
+        for line in text.strip().splitlines()
+        if line.strip()
+        and not (
+            line.startswith(("push ", "pull ", "workspace-status "))
+            and ("\u2192" in line or "\u2194" in line)
+        )
+    ]
 
 
 def report(proc: subprocess.CompletedProcess) -> dict:
@@ -88,14 +107,21 @@ def ssh_env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
         e.pop(k, None)
-    e.update(HOME=str(home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"), **extra)
+    e.update(
+        HOME=str(home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        **extra,
+    )
     make_workspace(tmp_path / "ws")
     return e
 
 
-def run_bench(script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = ()) -> tuple[str, dict]:
+def run_bench(
+    script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = ()
+) -> tuple[str, dict]:
     """Run ``bench/SCRIPT`` with ``args`` plus ``--json`` and ``--workdir`` under ``tmp_path``;
     its stdout (the report) and the raw JSON. Skips (fails under CI) without sshd or ``needs``."""
     import shutil
@@ -103,7 +129,9 @@ def run_bench(script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = 
     import pytest
     from sshd import find_sshd
 
-    missing = [t for t in needs if shutil.which(t) is None] + (["sshd"] if find_sshd() is None else [])
+    missing = [t for t in needs if shutil.which(t) is None] + (
+        ["sshd"] if find_sshd() is None else []
+    )
     if missing:
         if os.environ.get("CI"):
             pytest.fail(f"{', '.join(missing)} should have been installed by .ci/run")
@@ -111,10 +139,22 @@ def run_bench(script: str, *args: str, tmp_path: Path, needs: tuple[str, ...] = 
     repo = Path(__file__).resolve().parent.parent
     out_json = tmp_path / "bench.json"
     proc = subprocess.run(
-        [sys.executable, str(repo / "bench" / script), *args, "--json", str(out_json),
-         "--workdir", str(tmp_path / "work")],
-        cwd=repo, check=False, stdin=subprocess.DEVNULL, capture_output=True, text=True,
-        timeout=180)
+        [
+            sys.executable,
+            str(repo / "bench" / script),
+            *args,
+            "--json",
+            str(out_json),
+            "--workdir",
+            str(tmp_path / "work"),
+        ],
+        cwd=repo,
+        check=False,
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-5000:]}"
     return proc.stdout, json.loads(out_json.read_text())
 

@@ -17,8 +17,18 @@ from typing import Any, Dict, List, Tuple
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol.server import Server
 
-MODES = ("dotdot", "absolute", "nul", "slash", "empty_name", "symlink_escape",
-         "wrong_content", "oversized_frame", "garbage_after_hello", "huge_header")
+MODES = (
+    "dotdot",
+    "absolute",
+    "nul",
+    "slash",
+    "empty_name",
+    "symlink_escape",
+    "wrong_content",
+    "oversized_frame",
+    "garbage_after_hello",
+    "huge_header",
+)
 
 
 class HostileServer(Server):
@@ -48,8 +58,12 @@ class HostileServer(Server):
             return [["", "f", 0o644, n, h]]
         if self.mode == "symlink_escape":
             # a link out of the workspace, then files "inside" it
-            return [["escape", "l", 0, 0, self.canary], ["escape/evil.txt", "f", 0o644, n, h],
-                    ["escape/sub", "d", 0o755, 0, ""], ["escape/sub/evil.txt", "f", 0o644, n, h]]
+            return [
+                ["escape", "l", 0, 0, self.canary],
+                ["escape/evil.txt", "f", 0o644, n, h],
+                ["escape/sub", "d", 0o755, 0, ""],
+                ["escape/sub/evil.txt", "f", 0o644, n, h],
+            ]
         if self.mode == "wrong_content":
             return [["my_pkg/lie.txt", "f", 0o644, n, self._hash(b"something else entirely\n")]]
         return []
@@ -65,14 +79,16 @@ class HostileServer(Server):
         answers, parts, pos = [], [], 0
         items = h.get("items") or []
         real = [i for i in items if i.get("p") not in forged]
-        real_out, real_blob = super().do_read(dict(h, items=real), blob) if real else ({"items": []}, b"")
+        real_out, real_blob = (
+            super().do_read(dict(h, items=real), blob) if real else ({"items": []}, b"")
+        )
         real_answers = iter(real_out["items"])
         for item in items:
             entry = forged.get(item.get("p"))
             if entry is None:
                 ans = dict(next(real_answers))
                 off, length = ans["bl"]
-                data = real_blob[off:off + length]
+                data = real_blob[off : off + length]
             else:
                 data = self.payload
                 ans = {"c": "ok", "l": entry, "src": "data"}
@@ -85,7 +101,9 @@ class HostileServer(Server):
     def _send(self, frame: wire.Frame) -> None:
         if self.mode == "oversized_frame" and frame.header.get("entries") is not None:
             # announce a frame far over the cap, then keep sending
-            self.out.write(struct.pack(">IBBI", wire.MAX_FRAME + 1, wire.T_RESPONSE, 0, frame.req_id))
+            self.out.write(
+                struct.pack(">IBBI", wire.MAX_FRAME + 1, wire.T_RESPONSE, 0, frame.req_id)
+            )
             self.out.write(b"\0" * 4096)
             self.out.flush()
             return

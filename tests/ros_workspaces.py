@@ -94,8 +94,9 @@ def _write(root: Path, *, xml: str, alpha: str, beta: str) -> Path:
     (src / "alpha/include/alpha").mkdir(parents=True)
     (src / "beta/src").mkdir(parents=True)
     (src / "alpha/package.xml").write_text(xml.format(name="alpha", depends=""))
-    (src / "beta/package.xml").write_text(xml.format(name="beta",
-                                                     depends="  <depend>alpha</depend>\n"))
+    (src / "beta/package.xml").write_text(
+        xml.format(name="beta", depends="  <depend>alpha</depend>\n")
+    )
     (src / "alpha/CMakeLists.txt").write_text(alpha)
     (src / "beta/CMakeLists.txt").write_text(beta)
     (src / "beta/src/hello.cpp").write_text(_HELLO)

@@ -20,14 +20,22 @@ class Terminal:
         self.master, slave = pty.openpty()
         self.resize(rows, cols, fd=slave)
         # setsid -c: a session of its own whose controlling terminal is ours
-        self.proc = subprocess.Popen(["setsid", "-c", sys.executable, "-m", "fetchsync", *args],
-                                     env=env, stdin=slave, stdout=slave, stderr=slave)
+        self.proc = subprocess.Popen(
+            ["setsid", "-c", sys.executable, "-m", "fetchsync", *args],
+            env=env,
+            stdin=slave,
+            stdout=slave,
+            stderr=slave,
+        )
         os.close(slave)
         self.output = b""
 
     def resize(self, rows: int, cols: int, *, fd: int | None = None) -> None:
-        fcntl.ioctl(self.master if fd is None else fd, termios.TIOCSWINSZ,
-                    struct.pack("HHHH", rows, cols, 0, 0))
+        fcntl.ioctl(
+            self.master if fd is None else fd,
+            termios.TIOCSWINSZ,
+            struct.pack("HHHH", rows, cols, 0, 0),
+        )
 
     def read_until(self, needle: bytes, timeout: float = 30.0) -> bytes:
         deadline = time.monotonic() + timeout

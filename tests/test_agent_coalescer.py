@@ -23,8 +23,11 @@ CAP = 1.0
 
 
 def make(**kw: float) -> Coalescer:
-    return Coalescer(quiet=kw.get("quiet", QUIET), cap=kw.get("cap", CAP),
-                     max_paths=int(kw.get("max_paths", 1000)))
+    return Coalescer(
+        quiet=kw.get("quiet", QUIET),
+        cap=kw.get("cap", CAP),
+        max_paths=int(kw.get("max_paths", 1000)),
+    )
 
 
 def feed(c: Coalescer, *script: tuple[float, Change | Rescan]) -> None:
@@ -94,7 +97,7 @@ def test_each_new_item_restarts_the_quiet_window() -> None:
     c = make()
     feed(c, (10.0, f("a")), (10.125, f("b")))
     assert c.due(10.125) == QUIET
-    assert c.take(10.25) is None      # 0.25 after the first, but only 0.125 after the second
+    assert c.take(10.25) is None  # 0.25 after the first, but only 0.125 after the second
     batch = c.take(10.375)
     assert batch is not None and batch.paths == {"a", "b"}
 
@@ -104,9 +107,9 @@ def test_the_cap_bounds_the_latency_of_a_continuous_stream() -> None:
     t = 10.0
     while t < 10.875:
         c.add(f(f"p{t}"), t)
-        t += 0.125                     # always inside the quiet window
-    c.add(f("last"), 10.875)          # quiet would make it due at 11.125
-    assert c.due(10.875) == pytest.approx(0.125)   # first (10.0) + cap (1.0)
+        t += 0.125  # always inside the quiet window
+    c.add(f("last"), 10.875)  # quiet would make it due at 11.125
+    assert c.due(10.875) == pytest.approx(0.125)  # first (10.0) + cap (1.0)
     assert c.take(10.9375) is None
     batch = c.take(11.0)
     assert batch is not None
@@ -116,10 +119,10 @@ def test_the_cap_bounds_the_latency_of_a_continuous_stream() -> None:
 def test_a_burst_widens_the_quiet_window() -> None:
     c = Coalescer(quiet=0.25, cap=4.0, burst=4, burst_quiet=0.5)
     feed(c, (10.0, f("a")), (10.0, f("b")), (10.0, f("c")))
-    assert c.due(10.0) == 0.25                 # a save: the short window
+    assert c.due(10.0) == 0.25  # a save: the short window
     c.add(f("d"), 10.0)
-    assert c.due(10.0) == 0.5                  # the fourth item makes it a burst
-    assert c.take(10.25) is None               # a hiccup does not end it
+    assert c.due(10.0) == 0.5  # the fourth item makes it a burst
+    assert c.take(10.25) is None  # a hiccup does not end it
     c.add(f("e"), 10.375)
     assert c.take(10.75) is None
     batch = c.take(10.875)
@@ -128,10 +131,10 @@ def test_a_burst_widens_the_quiet_window() -> None:
 
 def test_a_burst_cut_by_the_cap_goes_on_in_the_next_batch() -> None:
     c = Coalescer(quiet=0.25, cap=1.0, burst=4, burst_quiet=0.5)
-    feed(c, *[(10.0 + k / 8, f(f"p{k}")) for k in range(8)])   # 10.0 .. 10.875
-    assert c.take(11.0) is not None                             # cut by the cap
-    c.add(f("next"), 11.125)                                    # 0.25 after the last
-    assert c.due(11.125) == 0.5                                 # still a burst
+    feed(c, *[(10.0 + k / 8, f(f"p{k}")) for k in range(8)])  # 10.0 .. 10.875
+    assert c.take(11.0) is not None  # cut by the cap
+    c.add(f("next"), 11.125)  # 0.25 after the last
+    assert c.due(11.125) == 0.5  # still a burst
     assert c.take(11.5) is None and c.take(11.625) is not None
 
 
@@ -139,7 +142,7 @@ def test_after_a_pause_the_next_batch_is_not_a_burst() -> None:
     c = Coalescer(quiet=0.25, cap=1.0, burst=4, burst_quiet=0.5)
     feed(c, *[(10.0 + k / 8, f(f"p{k}")) for k in range(8)])
     assert c.take(11.0) is not None
-    c.add(f("save"), 12.0)                                      # 1.125 after the burst
+    c.add(f("save"), 12.0)  # 1.125 after the burst
     assert c.due(12.0) == 0.25
 
 
@@ -205,16 +208,21 @@ def test_a_path_touched_many_times_appears_once() -> None:
 
 def test_created_then_deleted_cancels_out() -> None:
     c = make()
-    feed(c, (10.0, f("tmp", CREATED)), (10.0, f("tmp")), (10.0, f("tmp", DELETED)),
-         (10.0, f("kept")))
+    feed(
+        c, (10.0, f("tmp", CREATED)), (10.0, f("tmp")), (10.0, f("tmp", DELETED)), (10.0, f("kept"))
+    )
     assert take_due(c).paths == {"kept"}
 
 
 def test_created_then_moved_away_cancels_out() -> None:
     # a safe-write temporary the ignore rules do not know: written, renamed over the file
     c = make()
-    feed(c, (10.0, f("file.c.x7Gq", CREATED)), (10.0, f("file.c.x7Gq", MOVED)),
-         (10.0, f("file.c", CREATED)))
+    feed(
+        c,
+        (10.0, f("file.c.x7Gq", CREATED)),
+        (10.0, f("file.c.x7Gq", MOVED)),
+        (10.0, f("file.c", CREATED)),
+    )
     assert take_due(c).paths == {"file.c"}
 
 
@@ -257,8 +265,14 @@ def test_a_directory_change_is_reported_as_a_directory() -> None:
 
 def test_a_directory_subsumes_later_changes_below_it() -> None:
     c = make()
-    feed(c, (10.0, d("new")), (10.0, f("new/a", CREATED)), (10.0, d("new/sub")),
-         (10.0, f("new/sub/b", CREATED)), (10.0, f("newer", CREATED)))
+    feed(
+        c,
+        (10.0, d("new")),
+        (10.0, f("new/a", CREATED)),
+        (10.0, d("new/sub")),
+        (10.0, f("new/sub/b", CREATED)),
+        (10.0, f("newer", CREATED)),
+    )
     batch = take_due(c)
     assert batch.dirs == {"new"} and batch.paths == {"newer"}
 
@@ -266,8 +280,14 @@ def test_a_directory_subsumes_later_changes_below_it() -> None:
 def test_a_directory_subsumes_earlier_changes_below_it() -> None:
     # rm -r deletes bottom-up: the files first, then their directories
     c = make()
-    feed(c, (10.0, f("pkg/src/a.cpp", DELETED)), (10.0, d("pkg/src", DELETED)),
-         (10.0, f("pkg/b", DELETED)), (10.0, d("pkg", DELETED)), (10.0, f("pkgx")))
+    feed(
+        c,
+        (10.0, f("pkg/src/a.cpp", DELETED)),
+        (10.0, d("pkg/src", DELETED)),
+        (10.0, f("pkg/b", DELETED)),
+        (10.0, d("pkg", DELETED)),
+        (10.0, f("pkgx")),
+    )
     batch = take_due(c)
     assert batch.dirs == {"pkg"} and batch.paths == {"pkgx"}
 
@@ -281,23 +301,40 @@ def test_a_directory_does_not_subsume_a_sibling_with_its_name_as_prefix() -> Non
 
 def test_a_moved_directory_is_two_directory_changes() -> None:
     c = make()
-    feed(c, (10.0, d("old", MOVED)), (10.0, d("new", CREATED)),
-         (10.0, f("old/a", MOVED)), (10.0, f("new/a", CREATED)))
+    feed(
+        c,
+        (10.0, d("old", MOVED)),
+        (10.0, d("new", CREATED)),
+        (10.0, f("old/a", MOVED)),
+        (10.0, f("new/a", CREATED)),
+    )
     batch = take_due(c)
     assert batch.dirs == {"old", "new"} and batch.paths == frozenset()
 
 
 def test_a_directory_created_and_removed_within_the_batch_cancels_out() -> None:
     c = make()
-    feed(c, (10.0, d("tmpdir")), (10.0, f("tmpdir/x", CREATED)),
-         (10.0, f("tmpdir/x", DELETED)), (10.0, d("tmpdir", DELETED)))
+    feed(
+        c,
+        (10.0, d("tmpdir")),
+        (10.0, f("tmpdir/x", CREATED)),
+        (10.0, f("tmpdir/x", DELETED)),
+        (10.0, d("tmpdir", DELETED)),
+    )
     assert c.take(10.25) is None
 
 
 def test_a_directory_staged_then_moved_into_place_is_one_directory() -> None:
     c = make()
-    feed(c, (10.0, d("stage")), (10.0, f("stage/a", CREATED)), (10.0, d("stage", MOVED)),
-         (10.0, d("final")), (10.0, f("stage/a", MOVED)), (10.0, f("final/a", CREATED)))
+    feed(
+        c,
+        (10.0, d("stage")),
+        (10.0, f("stage/a", CREATED)),
+        (10.0, d("stage", MOVED)),
+        (10.0, d("final")),
+        (10.0, f("stage/a", MOVED)),
+        (10.0, f("final/a", CREATED)),
+    )
     batch = take_due(c)
     assert batch.dirs == {"final"} and batch.paths == frozenset()
 

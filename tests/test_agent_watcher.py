@@ -48,8 +48,8 @@ pytestmark = [
 ]
 
 REPO = str(Path(__file__).resolve().parent.parent)
-WAIT = 5.0       # how long an expected batch may take before the test fails
-SETTLE = 0.15    # no batch for this long: the action's batches are all in
+WAIT = 5.0  # how long an expected batch may take before the test fails
+SETTLE = 0.15  # no batch for this long: the action's batches are all in
 
 
 class Feed:
@@ -81,8 +81,9 @@ class Feed:
         with self.cond:
             return len(self.batches)
 
-    def wait_for(self, pred: Callable[[Batch], bool], *, since: int,
-                 timeout: float = WAIT) -> Batch:
+    def wait_for(
+        self, pred: Callable[[Batch], bool], *, since: int, timeout: float = WAIT
+    ) -> Batch:
         deadline = time.monotonic() + timeout
         k = since
         with self.cond:
@@ -93,8 +94,9 @@ class Feed:
                     k += 1
                 left = deadline - time.monotonic()
                 if left <= 0 or self.error is not None:
-                    raise AssertionError(f"no such batch; got {self.batches[since:]}, "
-                                         f"error {self.error!r}")
+                    raise AssertionError(
+                        f"no such batch; got {self.batches[since:]}, error {self.error!r}"
+                    )
                 self.cond.wait(left)
 
     def wait_path(self, path: str, *, since: int) -> Batch:
@@ -195,7 +197,7 @@ def test_jetbrains_safe_write(src: Path, feed: Feed) -> None:
 def test_vim_save(src: Path, feed: Feed) -> None:
     m = feed.mark()
     pkg = src / "pkg"
-    probe = pkg / "4913"              # vim checks that it may create files here
+    probe = pkg / "4913"  # vim checks that it may create files here
     probe.write_text("")
     probe.unlink()
     os.rename(pkg / "node.cpp", pkg / "node.cpp~")
@@ -209,7 +211,7 @@ def test_vim_save(src: Path, feed: Feed) -> None:
 def test_emacs_lock_file_and_autosave(src: Path, feed: Feed) -> None:
     m = feed.mark()
     pkg = src / "pkg"
-    os.symlink("user@host.1234:1700000000", pkg / ".#node.cpp")   # dangling on purpose
+    os.symlink("user@host.1234:1700000000", pkg / ".#node.cpp")  # dangling on purpose
     (pkg / "#node.cpp#").write_text("autosave")
     (pkg / "node.cpp").write_text("int main() { return 5; }\n")
     os.unlink(pkg / "#node.cpp#")
@@ -272,7 +274,7 @@ def test_directory_deleted(src: Path, feed: Feed) -> None:
 
 def test_directory_moved_out_of_and_into_the_tree(src: Path, feed: Feed, tmp_path: Path) -> None:
     m = feed.mark()
-    os.rename(src / "pkg" / "src", tmp_path / "away")     # unpaired: watchdog waits 0.5 s
+    os.rename(src / "pkg" / "src", tmp_path / "away")  # unpaired: watchdog waits 0.5 s
     feed.wait_path("pkg/src", since=m)
     assert only(feed, m) == {"pkg/src/"}
     m = feed.mark()
@@ -304,13 +306,13 @@ def test_symlink_created(src: Path, feed: Feed) -> None:
 def test_symlinks_are_not_followed_out_of_the_root(src: Path, tmp_path: Path) -> None:
     outside = tmp_path / "outside"
     outside.mkdir()
-    os.symlink(outside, src / "pkg" / "before")       # there when the watch starts
+    os.symlink(outside, src / "pkg" / "before")  # there when the watch starts
     f = Feed(src)
     try:
         m = f.mark()
-        os.symlink(outside, src / "pkg" / "after")    # made while watching
+        os.symlink(outside, src / "pkg" / "after")  # made while watching
         f.wait_path("pkg/after", since=m)
-        assert only(f, m) == {"pkg/after"}            # a link, not a directory to rescan
+        assert only(f, m) == {"pkg/after"}  # a link, not a directory to rescan
         m = f.mark()
         (outside / "secret.txt").write_text("not ours")
         (src / "pkg" / "node.cpp").write_text("// marker\n")
@@ -320,8 +322,7 @@ def test_symlinks_are_not_followed_out_of_the_root(src: Path, tmp_path: Path) ->
         f.close()
 
 
-def test_a_root_given_through_a_symlink_is_watched_at_its_target(src: Path,
-                                                                  tmp_path: Path) -> None:
+def test_a_root_given_through_a_symlink_is_watched_at_its_target(src: Path, tmp_path: Path) -> None:
     link = tmp_path / "ws_src"
     os.symlink(src, link)
     f = Feed(link)
@@ -420,35 +421,39 @@ def test_excluded_directories_cost_no_watch(src: Path) -> None:
     w = Watcher(str(src), sink=lambda item, at: sink.append((item, at)))
     w.start()
     try:
-        assert _watches_held() - before == 3        # src, pkg, pkg/src
+        assert _watches_held() - before == 3  # src, pkg, pkg/src
     finally:
         w.stop()
     assert _watches_held() == before
 
 
 def test_filter_reads_nested_ignore_files_lazily_and_forgets_moved_directories(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     (tmp_path / "a" / "b").mkdir(parents=True)
     (tmp_path / "a" / ".fetchsyncignore").write_text("*.o\n")
     flt = IgnoreFilter(str(tmp_path))
     assert not flt("a/b/x.o", False)
-    assert flt("x.o", False)                         # the file applies below a/ only
+    assert flt("x.o", False)  # the file applies below a/ only
     (tmp_path / "a" / ".fetchsyncignore").write_text("*.a\n")
     assert flt.note(Change("a/.fetchsyncignore", "modified"))
     assert flt("a/b/x.o", False) and not flt("a/b/x.a", False)
-    assert not flt.note(Change("a/.fetchsyncignore", "modified"))   # same text: no change
+    assert not flt.note(Change("a/.fetchsyncignore", "modified"))  # same text: no change
     shutil.rmtree(tmp_path / "a")
     (tmp_path / "a").mkdir()
     assert not flt.note(Change("a", "created", is_dir=True))
-    assert flt("a/x.a", False)                       # the new a/ has no ignore file
+    assert flt("a/x.a", False)  # the new a/ has no ignore file
 
 
 # -- bursts, latency, stopping -----------------------------------------------------------------
 
 
 def _git(repo: Path, *args: str) -> None:
-    subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t",
-                    *args], check=True, capture_output=True)
+    subprocess.run(
+        ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+        check=True,
+        capture_output=True,
+    )
 
 
 def _two_branches(repo: Path) -> set[str]:
@@ -459,7 +464,7 @@ def _two_branches(repo: Path) -> set[str]:
         (repo / name).parent.mkdir(parents=True, exist_ok=True)
         (repo / name).write_text(f"// {k}\n")
     for d in range(20):
-        (repo / f"d{d:02d}" / "keep").write_text("")   # so that the directories stay
+        (repo / f"d{d:02d}" / "keep").write_text("")  # so that the directories stay
     _git(repo, "init", "-q", "-b", "one")
     _git(repo, "add", ".")
     _git(repo, "commit", "-qm", "one")
@@ -493,8 +498,10 @@ def test_every_path_of_a_git_checkout_of_2000_files_arrives_without_a_rescan(src
             f.close()
         paths, dirs_seen, rescans = union(got)
         assert paths == expected and not dirs_seen and not rescans
-        print(f"\ncheckout {branch}: {len(got)} batches of {[len(b.paths) for b in got]} paths "
-              f"({sum(b.items for b in got)} events)")
+        print(
+            f"\ncheckout {branch}: {len(got)} batches of {[len(b.paths) for b in got]} paths "
+            f"({sum(b.items for b in got)} events)"
+        )
 
 
 def _replay(events: list[Item], *, gaps: Callable[[int], float], cap: float) -> list[Batch]:
@@ -545,7 +552,9 @@ def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path, p
     finally:
         w.stop()
     with lock:
-        events = [e for e in events if not isinstance(e, Rescan) or not e.reason.startswith("started")]
+        events = [
+            e for e in events if not isinstance(e, Rescan) or not e.reason.startswith("started")
+        ]
     assert len(events) >= len(expected)
 
     def gaps(k: int) -> float:
@@ -559,8 +568,9 @@ def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path, p
         assert len(got) <= span / cap + 2, (cap, len(got), [len(b.paths) for b in got])
         # cut by the cap only, never by a stall or the pace: each batch but the last
         # holds (nearly) cap seconds of the burst
-        assert all(b.last_at - b.first_at >= cap - 0.021 - pace for b in got[:-1]), \
-            [round(b.last_at - b.first_at, 4) for b in got]
+        assert all(b.last_at - b.first_at >= cap - 0.021 - pace for b in got[:-1]), [
+            round(b.last_at - b.first_at, 4) for b in got
+        ]
 
 
 def test_latency_is_measured(src: Path, feed: Feed) -> None:
@@ -574,14 +584,16 @@ def test_latency_is_measured(src: Path, feed: Feed) -> None:
         feed.wait_path("pkg/node.cpp", since=m)
         latencies.append(time.monotonic() - t0)
         if k % 10 == 9:
-            feed.settle(m)   # now and then, let everything drain
+            feed.settle(m)  # now and then, let everything drain
         else:
             time.sleep(0.01)
     latencies.sort()
     median = statistics.median(latencies) * 1000
     p90 = latencies[89] * 1000
-    print(f"\nwrite -> batch over 100 saves: median {median:.1f} ms, p90 {p90:.1f} ms, "
-          f"max {latencies[-1] * 1000:.1f} ms")
+    print(
+        f"\nwrite -> batch over 100 saves: median {median:.1f} ms, p90 {p90:.1f} ms, "
+        f"max {latencies[-1] * 1000:.1f} ms"
+    )
 
 
 def test_stops_promptly(src: Path) -> None:
@@ -649,7 +661,9 @@ class Sink:
             self.items.append(item)
             self.cond.notify_all()
 
-    def wait_for(self, pred: Callable[[Item], bool], timeout: float = WAIT, *, since: int = 0) -> Item:
+    def wait_for(
+        self, pred: Callable[[Item], bool], timeout: float = WAIT, *, since: int = 0
+    ) -> Item:
         deadline = time.monotonic() + timeout
         with self.cond:
             while True:
@@ -662,7 +676,8 @@ class Sink:
 
 
 def test_overflow_injected_at_the_watchdog_boundary_is_a_rescan(
-        src: Path, caplog: pytest.LogCaptureFixture) -> None:
+    src: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     from watchdog.observers.inotify_c import InotifyConstants, InotifyEvent
 
     sink = Sink()
@@ -690,8 +705,10 @@ def _writable(path: Path) -> bool:
     return os.geteuid() == 0 and os.access(path, os.W_OK)
 
 
-@pytest.mark.skipif(not _writable(SYSCTL / "max_queued_events"),
-                    reason="needs root to lower fs.inotify.max_queued_events")
+@pytest.mark.skipif(
+    not _writable(SYSCTL / "max_queued_events"),
+    reason="needs root to lower fs.inotify.max_queued_events",
+)
 def test_a_real_queue_overflow_is_a_rescan(src: Path, caplog: pytest.LogCaptureFixture) -> None:
     sink = Sink()
     w = Watcher(str(src), sink=sink)
@@ -707,7 +724,7 @@ def test_a_real_queue_overflow_is_a_rescan(src: Path, caplog: pytest.LogCaptureF
             knob.write_text(saved)
         with caplog.at_level(logging.WARNING, logger="fetchsync.agent.watcher"):
             assert w._fd is not None
-            with w._fd._lock:        # the reader waits: nothing leaves the kernel's queue
+            with w._fd._lock:  # the reader waits: nothing leaves the kernel's queue
                 for k in range(100):
                     (src / "pkg" / f"burst{k}.txt").write_text("x")
             item = sink.wait_for(lambda i: isinstance(i, Rescan))
@@ -717,8 +734,10 @@ def test_a_real_queue_overflow_is_a_rescan(src: Path, caplog: pytest.LogCaptureF
         # watches may overflow it again; a rescan then includes the change)
         before = len(sink.items)
         (src / "pkg" / "src" / "after.cpp").write_text("//\n")
-        sink.wait_for(lambda i: i == Change("pkg/src/after.cpp", "created") or isinstance(i, Rescan),
-                      since=before)
+        sink.wait_for(
+            lambda i: i == Change("pkg/src/after.cpp", "created") or isinstance(i, Rescan),
+            since=before,
+        )
     finally:
         w.stop()
         assert knob.read_text() == saved
@@ -726,7 +745,7 @@ def test_a_real_queue_overflow_is_a_rescan(src: Path, caplog: pytest.LogCaptureF
 
 # The watch-limit scenario runs in a child process: in a user namespace of
 # its own when possible (its limit is private), else with the global knob.
-_LIMIT_SCRIPT = textwrap.dedent('''
+_LIMIT_SCRIPT = textwrap.dedent("""
     import json, logging, os, sys, threading, time
     sys.path.insert(0, REPO)
     root, mode = sys.argv[1], sys.argv[2]
@@ -799,7 +818,7 @@ _LIMIT_SCRIPT = textwrap.dedent('''
         pass
     out["logs"] = logs
     print(json.dumps(out))
-''').replace("REPO", repr(REPO))
+""").replace("REPO", repr(REPO))
 
 
 def _run_limit_script(root: Path, tmp_path: Path) -> dict[str, object]:
@@ -808,8 +827,20 @@ def _run_limit_script(root: Path, tmp_path: Path) -> dict[str, object]:
     unshare = shutil.which("unshare")
     attempts = []
     if unshare:
-        attempts.append(([unshare, "--user", "--map-root-user", sys.executable, str(script),
-                          str(root), "userns"], "userns"))
+        attempts.append(
+            (
+                [
+                    unshare,
+                    "--user",
+                    "--map-root-user",
+                    sys.executable,
+                    str(script),
+                    str(root),
+                    "userns",
+                ],
+                "userns",
+            )
+        )
     if _writable(SYSCTL / "max_user_watches"):
         attempts.append(([sys.executable, str(script), str(root), "global"], "global"))
     errors = []
@@ -818,25 +849,31 @@ def _run_limit_script(root: Path, tmp_path: Path) -> dict[str, object]:
         if proc.returncode == 0:
             return json.loads(proc.stdout.strip().splitlines()[-1])  # type: ignore[no-any-return]
         errors.append(proc.stderr[-2000:])
-    pytest.skip("cannot lower an inotify watch limit here: " + " | ".join(errors)[-500:]
-                if attempts else "no unshare and not root")
+    pytest.skip(
+        "cannot lower an inotify watch limit here: " + " | ".join(errors)[-500:]
+        if attempts
+        else "no unshare and not root"
+    )
 
 
 def test_watch_limit_is_a_rescan_with_a_clear_warning_until_watches_are_back(
-        tmp_path: Path) -> None:
+    tmp_path: Path,
+) -> None:
     root = tmp_path / "src"
     for i in range(10):
         (root / f"d{i}").mkdir(parents=True)
     for i in range(10):
-        (root / "d0" / ".git" / f"o{i}").mkdir(parents=True)   # excluded: costs no watch
+        (root / "d0" / ".git" / f"o{i}").mkdir(parents=True)  # excluded: costs no watch
     out = _run_limit_script(root, tmp_path)
     first = str(out["first"])
     assert first.startswith("inotify watch limit reached")
     assert "fs.inotify.max_user_watches" in first
     assert "sudo sysctl fs.inotify.max_user_watches=" in first
     logs = [str(x) for x in out["logs"]]  # type: ignore[attr-defined]
-    assert any(x.startswith("WARNING inotify watch limit reached (fs.inotify.max_user_watches = ")
-               for x in logs)
+    assert any(
+        x.startswith("WARNING inotify watch limit reached (fs.inotify.max_user_watches = ")
+        for x in logs
+    )
     if out["mode"] == "userns":
         assert "user.max_inotify_watches = 4" in first
         assert str(out["retry"]).startswith("inotify watch limit reached")

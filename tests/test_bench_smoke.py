@@ -47,8 +47,18 @@ class _Echo:
 
 def _proxy(port: int, countdir: Path, link: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-S", str(BENCH / "countproxy.py"), "127.0.0.1", str(port), str(countdir), link],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        [
+            sys.executable,
+            "-S",
+            str(BENCH / "countproxy.py"),
+            "127.0.0.1",
+            str(port),
+            str(countdir),
+            link,
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
 
 
 def _read_exactly(proc: subprocess.Popen[bytes], n: int) -> bytes:
@@ -146,12 +156,15 @@ def test_link_profiles_and_custom_links() -> None:
         with pytest.raises(ValueError):
             parse_link(bad)
 
+
 @pytest.mark.ssh
 def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     stdout, raw = run_bench("run.py", "--quick", tmp_path=tmp_path, needs=("rsync",))
     assert "| scenario | fetchsync | rsync | ratio (fetchsync/rsync) | target |" in stdout
-    assert ("| scenario | fetchsync | rsync | ratio of the medians | median of the rounds' ratios "
-            "| target |") in stdout
+    assert (
+        "| scenario | fetchsync | rsync | ratio of the medians | median of the rounds' ratios "
+        "| target |"
+    ) in stdout
     assert "verification: PASS" in stdout
     assert raw["verified"] is True
     scenarios = {s["scenario"] for s in raw["samples"]}
@@ -159,7 +172,8 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert {s["tool"] for s in raw["samples"]} == {"fetchsync", "rsync"}
     initial = raw["summary"]["fetchsync"]["initial"]
     assert len(initial["round_ratios"]) == sum(
-        1 for s in raw["samples"] if s["scenario"] == "initial" and s["tool"] == "fetchsync")
+        1 for s in raw["samples"] if s["scenario"] == "initial" and s["tool"] == "fetchsync"
+    )
     assert initial["round_ratio"] > 0
     # both went through the counting proxy
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
@@ -186,11 +200,17 @@ def test_bench_history_quick_replays_real_commits_and_verifies(tmp_path: Path) -
     bundle = Path("/work/shared/data/rclcpp.bundle")
     if not bundle.is_file():
         pytest.skip(f"{bundle} is not here")
-    stdout, raw = run_bench("history.py", "--quick", "--link", "wifi", tmp_path=tmp_path,
-                            needs=("rsync", "git"))
+    stdout, raw = run_bench(
+        "history.py", "--quick", "--link", "wifi", tmp_path=tmp_path, needs=("rsync", "git")
+    )
     assert "verification: PASS" in stdout and raw["verified"] is True
     assert [(s["kind"], s["index"]) for s in raw["steps"]] == [
-        ("initial", 0), ("noop", 0), ("commit", 0), ("commit", 1), ("switch", 0)]
+        ("initial", 0),
+        ("noop", 0),
+        ("commit", 0),
+        ("commit", 1),
+        ("switch", 0),
+    ]
     for step in raw["steps"]:
         assert set(step["verified"]) == {"fetchsync", "rsync"}
         assert not any(step["verified"].values())

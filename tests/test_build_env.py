@@ -19,14 +19,30 @@ def distro(root: Path, name: str) -> None:
     (root / name / "setup.bash").write_text(f"export FROM=/opt/ros/{name}\n")
 
 
-def sourced(workspace: Path | None, ros_root: Path, *, spaces=("devel", "install"),
-            env: dict[str, str] | None = None, announce: bool = False) -> subprocess.CompletedProcess:
-    lines = environment(None if workspace is None else str(workspace), spaces=spaces,
-                        ros_root=str(ros_root), announce=announce)
+def sourced(
+    workspace: Path | None,
+    ros_root: Path,
+    *,
+    spaces=("devel", "install"),
+    env: dict[str, str] | None = None,
+    announce: bool = False,
+) -> subprocess.CompletedProcess:
+    lines = environment(
+        None if workspace is None else str(workspace),
+        spaces=spaces,
+        ros_root=str(ros_root),
+        announce=announce,
+    )
     full = {k: v for k, v in os.environ.items() if k != "ROS_DISTRO"}
     full.update(env or {})
-    return subprocess.run(["bash", "-c", lines + '\nprintf "%s|%s" "${FROM:-none}" "$#"'],
-                          capture_output=True, text=True, env=full, timeout=30, check=False)
+    return subprocess.run(
+        ["bash", "-c", lines + '\nprintf "%s|%s" "${FROM:-none}" "$#"'],
+        capture_output=True,
+        text=True,
+        env=full,
+        timeout=30,
+        check=False,
+    )
 
 
 def test_several_distributions_pick_the_one_the_workspace_was_built_on(tmp_path):
@@ -38,7 +54,8 @@ def test_several_distributions_pick_the_one_the_workspace_was_built_on(tmp_path)
     # workspace's own setup (spaces=()) but still follow it
     (ws / "install").mkdir(parents=True)
     (ws / "install/setup.bash").write_text(
-        f'COLCON_CURRENT_PREFIX="{ros}/jazzy"\n_colcon_prefix_chain_bash_source_script\n')
+        f'COLCON_CURRENT_PREFIX="{ros}/jazzy"\n_colcon_prefix_chain_bash_source_script\n'
+    )
     assert sourced(ws, ros, spaces=()).stdout == "/opt/ros/jazzy|0"
     # catkin's devel/_setup_util.py holds the CMAKE_PREFIX_PATH it was built with
     (ws / "install/setup.bash").unlink()
@@ -83,12 +100,21 @@ def test_announce_names_the_file(tmp_path):
 
 # --------------------------------------------------------------------------- over ssh
 @pytest.mark.ssh
-def test_run_v_says_what_it_sourced_and_the_laptops_ros_distro_stays_here(ssh_home, remote_dir,
-                                                                          tmp_path):
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER")}
-    env.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", ROS_DISTRO="laptops-distro",
-               FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir), XDG_STATE_HOME=str(tmp_path / "state"))
+def test_run_v_says_what_it_sourced_and_the_laptops_ros_distro_stays_here(
+    ssh_home, remote_dir, tmp_path
+):
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER")
+    }
+    env.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        ROS_DISTRO="laptops-distro",
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     (remote_dir / "install").mkdir()
     (remote_dir / "install/setup.bash").write_text("export FROM_WS=install\n")
     proc = fetchsync("-v", "run", "--", "sh", "-c", 'echo "${ROS_DISTRO:-unset} $FROM_WS"', env=env)

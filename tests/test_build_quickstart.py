@@ -21,8 +21,10 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [pytest.mark.ssh,
-              pytest.mark.skipif(shutil.which("colcon") is None, reason="colcon not installed")]
+pytestmark = [
+    pytest.mark.ssh,
+    pytest.mark.skipif(shutil.which("colcon") is None, reason="colcon not installed"),
+]
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 REPO = README.parent
@@ -38,8 +40,15 @@ def quickstart() -> list[str]:
 
 def _bash(script: str, env: dict[str, str], **kwargs) -> subprocess.CompletedProcess[str]:
     prelude = f'fetchsync() {{ "{sys.executable}" -m fetchsync "$@"; }}\n'
-    return subprocess.run(["bash", "-ec", prelude + script], env=env, capture_output=True,
-                          text=True, timeout=300, check=False, **kwargs)
+    return subprocess.run(
+        ["bash", "-ec", prelude + script],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        **kwargs,
+    )
 
 
 def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_path):
@@ -47,16 +56,31 @@ def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_pa
     assert lines[-1].startswith("fetchsync watch --build")
     setup, watch_line = "\n".join(lines[:-1]), lines[-1]
     exports = "\n".join(ln for ln in lines if ln.startswith("export "))
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER",
-                        "ROS_DISTRO", "FETCHSYNC_WORKSPACE", "FETCH_WORKSPACE")}
-    env.update(HOME=str(ssh_home.home), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-               XDG_STATE_HOME=str(tmp_path / "state"),
-               PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")])))
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k
+        not in (
+            "FETCH_ROBOT",
+            "FETCH_USER",
+            "ROS_MASTER_URI",
+            "FETCHSYNC_USER",
+            "ROS_DISTRO",
+            "FETCHSYNC_WORKSPACE",
+            "FETCH_WORKSPACE",
+        )
+    }
+    env.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")])),
+    )
     proc = _bash(setup, env)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "fetchsync: build tool: colcon (talker is a ROS 2 package (build type cmake)" \
-        in proc.stderr, proc.stderr
+    assert (
+        "fetchsync: build tool: colcon (talker is a ROS 2 package (build type cmake)" in proc.stderr
+    ), proc.stderr
     assert proc.stdout.endswith("hello from the robot\n"), proc.stdout
     assert (remote_dir / "install/talker/bin/talker").is_file()
 
@@ -64,10 +88,17 @@ def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_pa
     runtime.chmod(0o700)
     log = tmp_path / "watch.log"
     watch = subprocess.Popen(
-        ["bash", "-c", f'fetchsync() {{ exec "{sys.executable}" -m fetchsync "$@"; }}\n'
-                       f"{exports}\n{watch_line}"],
-        env=dict(env, XDG_RUNTIME_DIR=str(runtime)), stdout=open(log, "wb"),
-        stderr=subprocess.STDOUT, start_new_session=True)
+        [
+            "bash",
+            "-c",
+            f'fetchsync() {{ exec "{sys.executable}" -m fetchsync "$@"; }}\n'
+            f"{exports}\n{watch_line}",
+        ],
+        env=dict(env, XDG_RUNTIME_DIR=str(runtime)),
+        stdout=open(log, "wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     text = lambda: log.read_text(errors="replace")  # noqa: E731
     try:
         end = time.monotonic() + 30
@@ -77,8 +108,11 @@ def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_pa
         source = ssh_home.home / "ros2_ws/src/talker/src/talker.cpp"
         source.write_text(source.read_text().replace("hello from the robot", "hello again"))
         end = time.monotonic() + 60
-        while "build: ok: talker" not in text() and "build failed" not in text() \
-                and time.monotonic() < end:
+        while (
+            "build: ok: talker" not in text()
+            and "build failed" not in text()
+            and time.monotonic() < end
+        ):
             time.sleep(0.05)
         assert "build: colcon build --packages-above talker (on robot)" in text(), text()
         assert "build: ok: talker" in text(), text()

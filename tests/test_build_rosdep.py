@@ -18,8 +18,8 @@ import secrets
 import shutil
 import subprocess
 import threading
-from pathlib import Path
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from helpers import fetchsync
@@ -27,9 +27,10 @@ from helpers import fetchsync
 pytestmark = [
     pytest.mark.ssh,
     pytest.mark.skipif(shutil.which("rosdep") is None, reason="rosdep not installed"),
-    pytest.mark.skipif(os.geteuid() != 0 or shutil.which("dpkg-deb") is None
-                       or shutil.which("apt-get") is None,
-                       reason="installing a Debian package needs root, dpkg-deb and apt-get"),
+    pytest.mark.skipif(
+        os.geteuid() != 0 or shutil.which("dpkg-deb") is None or shutil.which("apt-get") is None,
+        reason="installing a Debian package needs root, dpkg-deb and apt-get",
+    ),
 ]
 
 DEB = "fetchsync-test-dep"
@@ -47,8 +48,9 @@ PACKAGE_XML = """<?xml version="1.0"?>
 
 
 def _installed() -> bool:
-    out = subprocess.run(["dpkg-query", "-W", "-f=${Status}", DEB], capture_output=True, text=True,
-                         check=False)
+    out = subprocess.run(
+        ["dpkg-query", "-W", "-f=${Status}", DEB], capture_output=True, text=True, check=False
+    )
     return out.returncode == 0 and out.stdout.endswith(" installed")
 
 
@@ -58,7 +60,8 @@ def _apt_repo(root: Path) -> Path:
     (pkg / "DEBIAN").mkdir(parents=True)
     (pkg / "DEBIAN/control").write_text(
         f"Package: {DEB}\nVersion: 1.0\nArchitecture: all\nMaintainer: dev <dev@example.com>\n"
-        "Description: a package for fetchsync's rosdep test\n")
+        "Description: a package for fetchsync's rosdep test\n"
+    )
     (pkg / f"usr/share/doc/{DEB}").mkdir(parents=True)
     (pkg / f"usr/share/doc/{DEB}/README").write_text("installed by fetchsync's tests\n")
     repo = root / "repo"
@@ -69,17 +72,24 @@ def _apt_repo(root: Path) -> Path:
     control = (pkg / "DEBIAN/control").read_text()
     (repo / "Packages").write_text(
         control + f"Filename: ./{deb.name}\nSize: {len(data)}\n"
-        f"SHA256: {hashlib.sha256(data).hexdigest()}\n\n")
+        f"SHA256: {hashlib.sha256(data).hexdigest()}\n\n"
+    )
     apt = root / "apt"
     for d in ("lists/partial", "cache/archives/partial", "parts"):
         (apt / d).mkdir(parents=True)
     (apt / "sources.list").write_text(f"deb [trusted=yes] file:{repo} ./\n")
     conf = apt / "apt.conf"
-    conf.write_text(f'Dir::Etc::SourceList "{apt}/sources.list";\n'
-                    f'Dir::Etc::SourceParts "{apt}/parts";\n'
-                    f'Dir::State::Lists "{apt}/lists";\nDir::Cache "{apt}/cache";\n')
-    subprocess.run(["apt-get", "update", "-q"], env=dict(os.environ, APT_CONFIG=str(conf)),
-                   check=True, capture_output=True)
+    conf.write_text(
+        f'Dir::Etc::SourceList "{apt}/sources.list";\n'
+        f'Dir::Etc::SourceParts "{apt}/parts";\n'
+        f'Dir::State::Lists "{apt}/lists";\nDir::Cache "{apt}/cache";\n'
+    )
+    subprocess.run(
+        ["apt-get", "update", "-q"],
+        env=dict(os.environ, APT_CONFIG=str(conf)),
+        check=True,
+        capture_output=True,
+    )
     return conf
 
 
@@ -90,23 +100,43 @@ def _rosdep_sources(root: Path) -> dict[str, str]:
     (root / "sources").mkdir()
     (root / "sources/10-local.list").write_text(f"yaml file://{root}/rules.yaml\n")
     (root / "index.yaml").write_text("%YAML 1.1\n---\ndistributions: {}\ntype: index\nversion: 4\n")
-    return {"ROSDEP_SOURCE_PATH": str(root / "sources"), "ROS_HOME": str(root / "ros-home"),
-            "ROSDISTRO_INDEX_URL": f"file://{root}/index.yaml", "ROS_DISTRO": "noetic",
-            "ROS_PYTHON_VERSION": "3"}
+    return {
+        "ROSDEP_SOURCE_PATH": str(root / "sources"),
+        "ROS_HOME": str(root / "ros-home"),
+        "ROSDISTRO_INDEX_URL": f"file://{root}/index.yaml",
+        "ROS_DISTRO": "noetic",
+        "ROS_PYTHON_VERSION": "3",
+    }
 
 
 def _robot_environment(remote_ws: Path, variables: dict[str, str]) -> None:
     (remote_ws / "install").mkdir(parents=True, exist_ok=True)
     (remote_ws / "install/setup.bash").write_text(
-        "".join(f"export {k}='{v}'\n" for k, v in variables.items()))
+        "".join(f"export {k}='{v}'\n" for k, v in variables.items())
+    )
 
 
 def _env(ssh_home, local_ws: Path, remote_ws: Path, tmp_path: Path) -> dict[str, str]:
-    e = {k: v for k, v in os.environ.items()
-         if k not in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO",
-                      "FETCHSYNC_SUDO_PASSWORD")}
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_WORKSPACE=str(local_ws),
-             FETCHSYNC_REMOTE_WORKSPACE=str(remote_ws), XDG_STATE_HOME=str(tmp_path / "state"))
+    e = {
+        k: v
+        for k, v in os.environ.items()
+        if k
+        not in (
+            "FETCH_ROBOT",
+            "FETCH_USER",
+            "ROS_MASTER_URI",
+            "FETCHSYNC_USER",
+            "ROS_DISTRO",
+            "FETCHSYNC_SUDO_PASSWORD",
+        )
+    }
+    e.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(local_ws),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_ws),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     return e
 
 
@@ -126,8 +156,9 @@ def _workspace(root: Path) -> Path:
     return root
 
 
-def test_install_deps_installs_the_debian_package_with_the_real_rosdep(ssh_home, remote_dir,
-                                                                       tmp_path, deps):
+def test_install_deps_installs_the_debian_package_with_the_real_rosdep(
+    ssh_home, remote_dir, tmp_path, deps
+):
     assert not _installed()
     local = _workspace(tmp_path / "ws")
     _robot_environment(remote_dir, deps)
@@ -148,8 +179,9 @@ def test_a_robot_without_rosdep_is_one_clear_line(ssh_home, remote_dir, tmp_path
     for program in ("id", "sudo"):
         (bin_dir / program).symlink_to(shutil.which(program, path="/usr/bin:/bin") or "/bin/false")
     _robot_environment(remote_dir, {"PATH": str(bin_dir)})
-    proc = fetchsync("push", "--install-deps", env=_env(ssh_home, local, remote_dir, tmp_path),
-                     check=False)
+    proc = fetchsync(
+        "push", "--install-deps", env=_env(ssh_home, local, remote_dir, tmp_path), check=False
+    )
     err = proc.stderr.decode()
     assert proc.returncode == 127
     assert "fetchsync: error: rosdep is not installed on robot" in err, err
@@ -167,8 +199,9 @@ def sudo_user(ssh_home) -> Iterator[tuple[str, str]]:
     sudoers = Path(f"/etc/sudoers.d/fetchsync-test-{name}")
     subprocess.run(["useradd", "-m", "-s", "/bin/bash", name], check=True, capture_output=True)
     try:
-        subprocess.run(["chpasswd"], input=f"{name}:{password}\n", text=True, check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["chpasswd"], input=f"{name}:{password}\n", text=True, check=True, capture_output=True
+        )
         sudoers.write_text(f"{name} ALL=(ALL:ALL) ALL\n")
         sudoers.chmod(0o440)
         ssh_dir = Path(os.path.expanduser(f"~{name}")) / ".ssh"
@@ -189,7 +222,8 @@ def test_sudo_gets_the_password_on_stdin_only(ssh_home, tmp_path, sudo_user):
     (remote / "bin").mkdir(parents=True)
     log = remote / "rosdep.log"
     (remote / "bin/rosdep").write_text(
-        f'#!/bin/sh\necho "rosdep $1 as $(id -u) home=$ROS_HOME stdin=$(cat)" >> {log}\n')
+        f'#!/bin/sh\necho "rosdep $1 as $(id -u) home=$ROS_HOME stdin=$(cat)" >> {log}\n'
+    )
     (remote / "bin/rosdep").chmod(0o755)
     _robot_environment(remote, {"PATH": f"{remote}/bin:/usr/bin:/bin"})
     subprocess.run(["chown", "-R", f"{name}:{name}", str(remote)], check=True)
@@ -208,20 +242,24 @@ def test_sudo_gets_the_password_on_stdin_only(ssh_home, tmp_path, sudo_user):
 
         def watch() -> None:
             while not stop.is_set():
-                ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True,
-                                    check=False).stdout
+                ps = subprocess.run(
+                    ["ps", "-eo", "args"], capture_output=True, text=True, check=False
+                ).stdout
                 seen.extend(line for line in ps.splitlines() if password in line)
                 stop.wait(0.02)
 
         watcher = threading.Thread(target=watch, daemon=True)
         watcher.start()
         try:
-            proc = fetchsync("push", "--install-deps", env=dict(env, FETCHSYNC_SUDO_PASSWORD=password))
+            proc = fetchsync(
+                "push", "--install-deps", env=dict(env, FETCHSYNC_SUDO_PASSWORD=password)
+            )
         finally:
             stop.set()
             watcher.join()
-        uid = subprocess.run(["id", "-u", name], capture_output=True, text=True,
-                             check=True).stdout.strip()
+        uid = subprocess.run(
+            ["id", "-u", name], capture_output=True, text=True, check=True
+        ).stdout.strip()
         home = Path(os.path.expanduser(f"~{name}"))
         assert log.read_text().splitlines() == [
             f"rosdep update as {uid} home= stdin=",
@@ -230,8 +268,9 @@ def test_sudo_gets_the_password_on_stdin_only(ssh_home, tmp_path, sudo_user):
         assert seen == []
         assert password.encode() not in proc.stdout + proc.stderr
         # a wrong password: sudo's refusal and its exit status reach the user
-        proc = fetchsync("push", "--install-deps", env=dict(env, FETCHSYNC_SUDO_PASSWORD="nope"),
-                         check=False)
+        proc = fetchsync(
+            "push", "--install-deps", env=dict(env, FETCHSYNC_SUDO_PASSWORD="nope"), check=False
+        )
         assert proc.returncode != 0 and b"failed on robot" in proc.stderr
         assert len(log.read_text().splitlines()) == 3
     finally:

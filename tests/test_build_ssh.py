@@ -9,7 +9,8 @@ import stat
 from pathlib import Path
 
 import pytest
-from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML, fetchsync, report
+from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
+from helpers import fetchsync, report
 from terminal import Terminal
 
 pytestmark = [
@@ -43,9 +44,13 @@ def env(ssh_home, remote_dir, tmp_path):
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
         e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     return e
 
 
@@ -74,8 +79,9 @@ def test_push_build_runs_catkin_make_on_the_robot(env, remote_dir, tmp_path):
 
 def test_each_build_option_is_one_build_in_order(env, remote_dir, tmp_path):
     catkin_workspace(tmp_path / "ws")
-    proc = fetchsync("push", SYSTEM_PYTHON, "--build", "install", "--build-type", "Debug",
-                     "--json", env=env)
+    proc = fetchsync(
+        "push", SYSTEM_PYTHON, "--build", "install", "--build-type", "Debug", "--json", env=env
+    )
     assert report(proc)["ok"]  # with --json, stdout holds the report only
     err = proc.stderr.decode()
     first = err.index("catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCMAKE_BUILD_TYPE=Debug")
@@ -89,8 +95,10 @@ def test_a_failing_build_fails_push_with_the_builds_exit_code(env, remote_dir, t
     proc = fetchsync("push", SYSTEM_PYTHON, env=env, check=False)
     assert b"broken on purpose" in proc.stderr
     assert proc.returncode == 1  # catkin_make's, whatever failed under it
-    assert b"catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 failed on robot with exit status 1" \
+    assert (
+        b"catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 failed on robot with exit status 1"
         in proc.stderr
+    )
     assert b"Traceback" not in proc.stderr
 
 
@@ -115,8 +123,11 @@ def _fake_tool(bin_dir: Path, name: str, *, log: Path, fail_on: str | None = Non
     """A stand-in for ``name`` that records its argv and working directory."""
     bin_dir.mkdir(parents=True, exist_ok=True)
     tool = bin_dir / name
-    fail = f'[ "$1" = {fail_on} ] && {{ echo "{name}: cannot {fail_on}" >&2; exit 4; }}\n' \
-        if fail_on else ""
+    fail = (
+        f'[ "$1" = {fail_on} ] && {{ echo "{name}: cannot {fail_on}" >&2; exit 4; }}\n'
+        if fail_on
+        else ""
+    )
     tool.write_text(f'#!/bin/sh\necho "{name} $* in $PWD" >> {log}\n{fail}exit 0\n')
     tool.chmod(tool.stat().st_mode | stat.S_IXUSR)
 
@@ -147,7 +158,9 @@ def test_a_failing_rosdep_fails_push_clearly_and_builds_nothing(env, remote_dir,
     assert proc.returncode == 4
     err = proc.stderr.decode()
     assert "rosdep: cannot install" in err
-    assert "rosdep install --from-paths src --ignore-src -y failed on robot with exit status 4" in err
+    assert (
+        "rosdep install --from-paths src --ignore-src -y failed on robot with exit status 4" in err
+    )
     assert len(log.read_text().splitlines()) == 2
     assert not (remote_dir / "build").exists()
 
@@ -157,10 +170,20 @@ def test_pull_with_a_chosen_tool_runs_it_here(env, remote_dir, tmp_path):
     log = tmp_path / "colcon.log"
     _fake_tool(tmp_path / "bin", "colcon", log=log)
     env = dict(env, PATH=f"{tmp_path / 'bin'}:{env['PATH']}")
-    fetchsync("pull", "--yes", "--build-tool", "colcon", "--build=--symlink-install",
-              "--build-type", "Release", env=env)
-    assert log.read_text() == (f"colcon build --symlink-install --cmake-args "
-                               f"-DCMAKE_BUILD_TYPE=Release in {tmp_path / 'ws'}\n")
+    fetchsync(
+        "pull",
+        "--yes",
+        "--build-tool",
+        "colcon",
+        "--build=--symlink-install",
+        "--build-type",
+        "Release",
+        env=env,
+    )
+    assert log.read_text() == (
+        f"colcon build --symlink-install --cmake-args "
+        f"-DCMAKE_BUILD_TYPE=Release in {tmp_path / 'ws'}\n"
+    )
 
 
 def test_a_failing_build_here_fails_pull_with_its_exit_code(env, remote_dir, tmp_path):

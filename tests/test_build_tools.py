@@ -34,19 +34,31 @@ pytestmark = pytest.mark.ssh
 
 @dataclass(frozen=True)
 class Tool:
-    name: str           # --build-tool's
-    program: str        # what must be on PATH
-    make: object        # the workspace builder
-    args: str           # the build's arguments
-    hello: str          # how `run` reaches the built program ({ws}: the remote workspace)
-    detected: str       # the command auto detection runs after the first build
+    name: str  # --build-tool's
+    program: str  # what must be on PATH
+    make: object  # the workspace builder
+    args: str  # the build's arguments
+    hello: str  # how `run` reaches the built program ({ws}: the remote workspace)
+    detected: str  # the command auto detection runs after the first build
 
 
 TOOLS = [
-    Tool("catkin_make", "catkin_make", catkin_workspace, SYSTEM_PYTHON_DEFINE,
-         "{ws}/devel/lib/beta/beta_hello", "catkin_make " + SYSTEM_PYTHON_DEFINE),
-    Tool("catkin", "catkin", catkin_workspace, "--cmake-args " + SYSTEM_PYTHON_DEFINE,
-         "{ws}/devel/lib/beta/beta_hello", "catkin build --cmake-args " + SYSTEM_PYTHON_DEFINE),
+    Tool(
+        "catkin_make",
+        "catkin_make",
+        catkin_workspace,
+        SYSTEM_PYTHON_DEFINE,
+        "{ws}/devel/lib/beta/beta_hello",
+        "catkin_make " + SYSTEM_PYTHON_DEFINE,
+    ),
+    Tool(
+        "catkin",
+        "catkin",
+        catkin_workspace,
+        "--cmake-args " + SYSTEM_PYTHON_DEFINE,
+        "{ws}/devel/lib/beta/beta_hello",
+        "catkin build --cmake-args " + SYSTEM_PYTHON_DEFINE,
+    ),
     Tool("colcon", "colcon", colcon_workspace, "", "beta_hello", "colcon build"),
 ]
 
@@ -55,9 +67,13 @@ def _env(ssh_home, remote_dir: Path, tmp_path: Path) -> dict[str, str]:
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
         e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     return e
 
 
@@ -109,22 +125,35 @@ def test_build_run_fail_and_watch_with_the_real_tool(tool, ssh_home, remote_dir,
     log = tmp_path / "watch.log"
     runtime = _short_dir()
     watch_env = dict(env, XDG_RUNTIME_DIR=str(runtime))
-    watch = subprocess.Popen([sys.executable, "-m", "fetchsync", "watch",
-                              f"--build-args={tool.args}" if tool.args else "--build"],
-                             env=watch_env, stdout=open(log, "wb"), stderr=subprocess.STDOUT)
+    watch = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fetchsync",
+            "watch",
+            f"--build-args={tool.args}" if tool.args else "--build",
+        ],
+        env=watch_env,
+        stdout=open(log, "wb"),
+        stderr=subprocess.STDOUT,
+    )
     text = lambda: log.read_text(errors="replace")  # noqa: E731
     try:
         _wait_for(lambda: " live: " in text(), 30, "watch to be live")
         # the broken hello.cpp of the failed push is on the robot: watch's first sync fixes
         # it, and a first sync is built whole
-        _wait_for(lambda: "build: ok: " in text() or "build failed" in text(), 60,
-                  "the first build")
+        _wait_for(
+            lambda: "build: ok: " in text() or "build failed" in text(), 60, "the first build"
+        )
         assert "build: ok: everything" in text(), text()
         assert _hello(tool, remote_dir, env) == GREETING
         mark = len(text())
         set_greeting(src, "hello again")
-        _wait_for(lambda: "build: ok: alpha" in text()[mark:] or "build failed" in text()[mark:],
-                  60, "the build of alpha")
+        _wait_for(
+            lambda: "build: ok: alpha" in text()[mark:] or "build failed" in text()[mark:],
+            60,
+            "the build of alpha",
+        )
         after = text()[mark:]
         assert "build: ok: alpha" in after, after
         if tool.name == "colcon":

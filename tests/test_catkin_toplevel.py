@@ -12,9 +12,9 @@ import pytest
 from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
 from helpers import fetchsync, report
 
-from fetchsync.sync.plan import WHOLE
 from fetchsync.protocol import messages as M
 from fetchsync.sync.engine import reconcile
+from fetchsync.sync.plan import WHOLE
 
 NOETIC = "/opt/ros/noetic/share/catkin/cmake/toplevel.cmake"
 DEBIAN = "/usr/share/catkin/cmake/toplevel.cmake"
@@ -61,25 +61,36 @@ def test_a_laptops_own_toplevel_cmakelists_is_pushed_over_the_robots_link():
     robot = tree(d("pkg"), link("CMakeLists.txt", NOETIC))
     (p,) = reconcile(laptop, robot, absent, guarded=never)
     assert (p.op.kind, p.op.path, p.how) == (M.WRITE, "CMakeLists.txt", WHOLE)
-    laptop_link = tree(d("pkg"), link("CMakeLists.txt", "/opt/ros/melodic/share/catkin/cmake/toplevel.cmake"))
-    assert ops(reconcile(laptop_link, robot, absent, guarded=never)) == [(M.SYMLINK, "CMakeLists.txt")]
+    laptop_link = tree(
+        d("pkg"), link("CMakeLists.txt", "/opt/ros/melodic/share/catkin/cmake/toplevel.cmake")
+    )
+    assert ops(reconcile(laptop_link, robot, absent, guarded=never)) == [
+        (M.SYMLINK, "CMakeLists.txt")
+    ]
 
 
 def test_a_link_this_laptop_pushed_and_deleted_since_is_deleted_on_the_robot():
     robot = tree(d("pkg"), link("CMakeLists.txt", NOETIC))
     last_synced = {"CMakeLists.txt": M.expect_link(NOETIC)}.get
-    assert ops(reconcile(tree(d("pkg")), robot, lambda p: last_synced(p, M.ABSENT), guarded=never)) == [
-        (M.DELETE, "CMakeLists.txt")]
+    assert ops(
+        reconcile(tree(d("pkg")), robot, lambda p: last_synced(p, M.ABSENT), guarded=never)
+    ) == [(M.DELETE, "CMakeLists.txt")]
 
 
 def test_only_the_toplevel_link_to_catkins_toplevel_cmake_is_left_alone():
     laptop = tree(d("pkg"))
-    robot = tree(d("pkg"), link("pkg/CMakeLists.txt", NOETIC),       # not the toplevel one
-                 link("CMakeLists.txt", "/opt/elsewhere/toplevel.cmake"))  # not catkin's
+    robot = tree(
+        d("pkg"),
+        link("pkg/CMakeLists.txt", NOETIC),  # not the toplevel one
+        link("CMakeLists.txt", "/opt/elsewhere/toplevel.cmake"),
+    )  # not catkin's
     assert ops(reconcile(laptop, robot, absent, guarded=never)) == [
-        (M.DELETE, "CMakeLists.txt"), (M.DELETE, "pkg/CMakeLists.txt")]
-    assert ops(reconcile(laptop, tree(d("pkg"), f("CMakeLists.txt", "h")), absent, guarded=never)) == [
-        (M.DELETE, "CMakeLists.txt")]  # a file, not catkin_make's link
+        (M.DELETE, "CMakeLists.txt"),
+        (M.DELETE, "pkg/CMakeLists.txt"),
+    ]
+    assert ops(
+        reconcile(laptop, tree(d("pkg"), f("CMakeLists.txt", "h")), absent, guarded=never)
+    ) == [(M.DELETE, "CMakeLists.txt")]  # a file, not catkin_make's link
 
 
 CMAKELISTS = """cmake_minimum_required(VERSION 3.0.2)
@@ -91,12 +102,19 @@ catkin_package()
 
 @pytest.mark.ssh
 @pytest.mark.skipif(shutil.which("catkin_make") is None, reason="catkin not installed")
-def test_push_build_twice_with_the_robots_catkin_make_meets_no_conflict(ssh_home, remote_dir, tmp_path):
+def test_push_build_twice_with_the_robots_catkin_make_meets_no_conflict(
+    ssh_home, remote_dir, tmp_path
+):
     env = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
         env.pop(k, None)
-    env.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-               FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir), XDG_STATE_HOME=str(tmp_path / "state"))
+    env.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     pkg = tmp_path / "ws" / "src" / "tiny"
     pkg.mkdir(parents=True)
     (pkg / "package.xml").write_text(PACKAGE_XML.format(name="tiny"))
@@ -105,7 +123,9 @@ def test_push_build_twice_with_the_robots_catkin_make_meets_no_conflict(ssh_home
     build = "--build=-DPYTHON_EXECUTABLE=/usr/bin/python3"
     fetchsync("push", build, env=env)
     toplevel = remote_dir / "src" / "CMakeLists.txt"
-    assert toplevel.is_symlink() and str(toplevel.readlink()).endswith("catkin/cmake/toplevel.cmake")
+    assert toplevel.is_symlink() and str(toplevel.readlink()).endswith(
+        "catkin/cmake/toplevel.cmake"
+    )
     for _ in range(2):
         out = report(fetchsync("push", build, "--json", env=env))
         assert out["conflicts"] == [], out

@@ -33,8 +33,7 @@ HOME = "/home/alice"
 
 def clean_env(**values: str) -> dict[str, str]:
     """The process environment without any of fetchsync's settings, plus ``values``."""
-    e = {k: v for k, v in os.environ.items()
-         if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))}
+    e = {k: v for k, v in os.environ.items() if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))}
     e.update(values)
     return e
 
@@ -96,7 +95,9 @@ def test_order_variables_then_current_directory_then_ros_distro(tmp_path: Path) 
     here = str(ws / "src")
     e = {"HOME": HOME, "ROS_DISTRO": "noetic"}
     assert workspace_with_source(None, environ=e, cwd=here) == (
-        ws, "the current directory, inside that workspace")
+        ws,
+        "the current directory, inside that workspace",
+    )
     assert resolve_workspace(None, environ={**e, "FETCH_WORKSPACE": "/x"}, cwd=here) == Path("/x")
     assert resolve_workspace("/opt", environ=e, cwd=here) == Path("/opt")
     assert resolve_workspace(None, environ=e, cwd=str(tmp_path)) == Path(HOME, "noetic")
@@ -117,10 +118,17 @@ def test_push_inside_a_workspace_pushes_it(tmp_path: Path) -> None:
     ws = make_workspace(tmp_path / "ws")
     (ws / "devel").mkdir()
     robot = tmp_path / "robot-home"
-    env = clean_env(FETCHSYNC_LOCAL_ROBOT_HOME=str(robot), XDG_STATE_HOME=str(tmp_path / "state"),
-                    HOME=str(tmp_path), ROS_DISTRO="noetic")
-    result = invoke(["push", "--robot", "local", "--remote-workspace", "~/robot_ws"], env,
-                    cwd=ws / "src" / "my_pkg")
+    env = clean_env(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        HOME=str(tmp_path),
+        ROS_DISTRO="noetic",
+    )
+    result = invoke(
+        ["push", "--robot", "local", "--remote-workspace", "~/robot_ws"],
+        env,
+        cwd=ws / "src" / "my_pkg",
+    )
     assert result.exit_code == 0, result.output
     assert f"push ~/ws/src {ARROW} local:~/robot_ws/src" in result.output
     assert (robot / "robot_ws" / "src" / "my_pkg" / "package.xml").exists()
@@ -131,8 +139,9 @@ def test_push_inside_a_workspace_pushes_it(tmp_path: Path) -> None:
 
 def test_config_names_each_setting_and_its_source(tmp_path: Path) -> None:
     ws = catkin_ws(tmp_path / "ws", "devel")
-    env = clean_env(HOME=str(tmp_path), FETCH_ROBOT="freight0", ROS_DISTRO="noetic",
-                    FETCHSYNC_PERSIST="30")
+    env = clean_env(
+        HOME=str(tmp_path), FETCH_ROBOT="freight0", ROS_DISTRO="noetic", FETCHSYNC_PERSIST="30"
+    )
     result = invoke(["config", "--user", "fetch", "--json"], env, cwd=ws / "src")
     assert result.exit_code == 0, result.output
     rows = {r["name"]: r for r in json.loads(result.output)}
@@ -145,7 +154,11 @@ def test_config_names_each_setting_and_its_source(tmp_path: Path) -> None:
     assert rows["build tool"]["value"].startswith("auto")
     assert rows["a push goes"]["value"] == f"~/ws/src {ARROW} fetch@freight0:~/ws/src"
     order = rows["workspace"]["order"]
-    assert order.index("FETCH_WORKSPACE") < order.index("current directory") < order.index("ROS_DISTRO")
+    assert (
+        order.index("FETCH_WORKSPACE")
+        < order.index("current directory")
+        < order.index("ROS_DISTRO")
+    )
 
 
 def test_config_text_shows_the_order_and_what_is_missing(tmp_path: Path) -> None:
@@ -153,11 +166,13 @@ def test_config_text_shows_the_order_and_what_is_missing(tmp_path: Path) -> None
     result = invoke(["config", "--remote-workspace", "~/noetic"], env, cwd=tmp_path)
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert any(line.split()[:2] == ["robot", "fetch7.local"] and "ROS_MASTER_URI" in line
-               for line in lines)
+    assert any(
+        line.split()[:2] == ["robot", "fetch7.local"] and "ROS_MASTER_URI" in line for line in lines
+    )
     assert any(line.startswith("workspace ") and "not set" in line for line in lines)
-    assert any(line.startswith("remote workspace") and "from --remote-workspace" in line
-               for line in lines)
+    assert any(
+        line.startswith("remote workspace") and "from --remote-workspace" in line for line in lines
+    )
     assert "Each is the first of these that is set:" in result.output
 
 
@@ -166,22 +181,50 @@ def test_the_ssh_configs_user_is_named_and_noted(tmp_path: Path) -> None:
     (home / ".ssh").mkdir(parents=True)
     config = home / ".ssh" / "config"
     config.write_text("Host freight0\n    User fetch\n")
-    target = Target(robot="freight0", host="freight0", user=None, workspace=Path("/w"),
-                    remote_workspace="~/w", is_local=False)
+    target = Target(
+        robot="freight0",
+        host="freight0",
+        user=None,
+        workspace=Path("/w"),
+        remote_workspace="~/w",
+        is_local=False,
+    )
     env = {"HOME": str(home), "USER": "alice", "XDG_CACHE_HOME": str(tmp_path / "cache")}
-    code = ("import sys; from pathlib import Path; from fetchsync.config import Target, login_name; "
-            "t = Target(robot='freight0', host='freight0', user=None, workspace=Path('/w'), "
-            "remote_workspace='~/w', is_local=False); "
-            "print(login_name(t), 'paramiko' in sys.modules)")
-    run = lambda: subprocess.run([sys.executable, "-c", code], env={**os.environ, **env},  # noqa: E731
-                                 capture_output=True, text=True, check=True).stdout.split()
-    assert run() == ["fetch", "True"]    # read by paramiko once
-    assert run() == ["fetch", "False"]   # then from the note
+    code = (
+        "import sys; from pathlib import Path; from fetchsync.config import Target, login_name; "
+        "t = Target(robot='freight0', host='freight0', user=None, workspace=Path('/w'), "
+        "remote_workspace='~/w', is_local=False); "
+        "print(login_name(t), 'paramiko' in sys.modules)"
+    )
+
+    def run() -> list[str]:
+        return subprocess.run(
+            [sys.executable, "-c", code],
+            env={**os.environ, **env},
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split()
+
+    assert run() == ["fetch", "True"]  # read by paramiko once
+    assert run() == ["fetch", "False"]  # then from the note
     config.write_text("Host freight0\n    User robot\n")  # an edited config is read again
     assert run() == ["robot", "True"]
     assert login_name(target, environ={**env, "FETCHSYNC_X": ""}) == "robot"
-    assert login_name(Target(robot="local", host="local", user=None, workspace=Path("/w"),
-                             remote_workspace="~/w", is_local=True), environ=env) is None
+    assert (
+        login_name(
+            Target(
+                robot="local",
+                host="local",
+                user=None,
+                workspace=Path("/w"),
+                remote_workspace="~/w",
+                is_local=True,
+            ),
+            environ=env,
+        )
+        is None
+    )
 
 
 # -- one robot at a time, but for push and run (tests/test_fleet.py) ------------------
@@ -194,16 +237,23 @@ def test_several_robots_are_refused_in_one_line(args: list[str], tmp_path: Path)
         result = invoke(verb, env)
         assert result.exit_code == 2, (verb, result.output)
         [line] = result.output.splitlines()
-        assert line == ("fetchsync: error: several robots (a, b, from --robot): only push and run "
-                        "take several; give one robot")
+        assert line == (
+            "fetchsync: error: several robots (a, b, from --robot): only push and run "
+            "take several; give one robot"
+        )
 
 
 def test_several_robots_in_a_variable_are_refused(tmp_path: Path) -> None:
-    env = clean_env(HOME=str(tmp_path), FETCH_ROBOT="a,b",
-                    FETCHSYNC_WORKSPACE=str(make_workspace(tmp_path / "ws")))
+    env = clean_env(
+        HOME=str(tmp_path),
+        FETCH_ROBOT="a,b",
+        FETCHSYNC_WORKSPACE=str(make_workspace(tmp_path / "ws")),
+    )
     result = invoke(["pull", "--yes"], env)
     assert result.exit_code == 2
-    assert "several robots (a, b, from FETCH_ROBOT): only push and run take several" in result.output
+    assert (
+        "several robots (a, b, from FETCH_ROBOT): only push and run take several" in result.output
+    )
 
 
 # -- push: a missing src/ ---------------------------------------------------------
@@ -211,8 +261,18 @@ def test_several_robots_in_a_variable_are_refused(tmp_path: Path) -> None:
 
 def test_a_missing_src_is_a_configuration_error_without_force(tmp_path: Path) -> None:
     env = clean_env(HOME=str(tmp_path), FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"))
-    result = invoke(["push", "--robot", "local", "--workspace", str(tmp_path / "nowhere"),
-                     "--remote-workspace", "~/ws"], env)
+    result = invoke(
+        [
+            "push",
+            "--robot",
+            "local",
+            "--workspace",
+            str(tmp_path / "nowhere"),
+            "--remote-workspace",
+            "~/ws",
+        ],
+        env,
+    )
     assert result.exit_code == 2, result.output
     [line] = result.output.splitlines()
     assert "nowhere/src does not exist" in line and "--force" not in line
@@ -232,7 +292,10 @@ def test_push_and_pull_say_where_they_go(ssh_home, remote_dir, tmp_path: Path) -
     err = proc.stderr.decode().splitlines()
     assert err == [f"push {ws}/src {ARROW} {user}@robot:{remote_dir}/src"]
     proc = fetchsync("pull", "--yes", env=env)
-    assert proc.stderr.decode().splitlines()[0] == f"pull {user}@robot:{remote_dir}/src {ARROW} {ws}/src"
+    assert (
+        proc.stderr.decode().splitlines()[0]
+        == f"pull {user}@robot:{remote_dir}/src {ARROW} {ws}/src"
+    )
     # -q, before or after the verb, silences it
     for args in (["-q", "push"], ["push", "-q"]):
         assert fetchsync(*args, env=env).stderr == b""
@@ -253,21 +316,41 @@ def test_a_failed_push_said_where_it_went_first(ssh_home, remote_dir, tmp_path: 
 
 @pytest.mark.ssh
 def test_run_needs_no_local_workspace(ssh_home, remote_dir, tmp_path: Path) -> None:
-    env = clean_env(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-                    XDG_STATE_HOME=str(tmp_path / "state"))
+    env = clean_env(
+        HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", XDG_STATE_HOME=str(tmp_path / "state")
+    )
     (remote_dir / "devel").mkdir()
     (remote_dir / "devel" / "setup.bash").write_text("export FROM_THE_WORKSPACE=yes\n")
     nowhere = tmp_path / "not-a-workspace"
     nowhere.mkdir()
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "--remote-workspace",
-                           str(remote_dir), "--", "printenv", "FROM_THE_WORKSPACE"],
-                          cwd=nowhere, env=env, capture_output=True, timeout=120,
-                          stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fetchsync",
+            "run",
+            "--remote-workspace",
+            str(remote_dir),
+            "--",
+            "printenv",
+            "FROM_THE_WORKSPACE",
+        ],
+        cwd=nowhere,
+        env=env,
+        capture_output=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
     assert (proc.returncode, proc.stdout, proc.stderr) == (0, b"yes\n", b""), proc.stderr
     # and with no workspace at all: only the distribution's setup
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "--", "echo", "ok"],
-                          cwd=nowhere, env=env, capture_output=True, timeout=120,
-                          stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", "run", "--", "echo", "ok"],
+        cwd=nowhere,
+        env=env,
+        capture_output=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
     assert (proc.returncode, proc.stdout) == (0, b"ok\n"), proc.stderr
 
 
@@ -279,8 +362,11 @@ def test_the_command_list_has_whole_summaries_and_no_alias() -> None:
     assert result.exit_code == 0
     listing = result.output.split("Commands:")[1]
     assert "..." not in listing
-    names = [line.split()[0] for line in listing.splitlines() if line.startswith("  ") and
-             not line.startswith("   ")]
+    names = [
+        line.split()[0]
+        for line in listing.splitlines()
+        if line.startswith("  ") and not line.startswith("   ")
+    ]
     assert "debug-snapshot" not in names and "snapshot" in names and "config" in names
     assert "debug-snapshot" in " ".join(listing.split())  # named on snapshot's line
     # each summary is a whole sentence
@@ -300,8 +386,9 @@ def test_watch_spells_build_arguments_as_push_does(tmp_path: Path) -> None:
     assert "--build [ARGS]" in watch_help and "--build [ARGS]" in push_help
     assert "--build-args" not in watch_help
     ws = make_workspace(tmp_path / "ws")
-    env = clean_env(HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "config"),
-                    FETCHSYNC_WORKSPACE=str(ws))
+    env = clean_env(
+        HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "config"), FETCHSYNC_WORKSPACE=str(ws)
+    )
     base = ["watch", "--robot", "local", "--remote-workspace", "~/r", "--install-service"]
 
     def exec_start(*args: str) -> str:
@@ -321,9 +408,14 @@ def test_watch_spells_build_arguments_as_push_does(tmp_path: Path) -> None:
 
 def test_verbose_works_after_the_verb(tmp_path: Path) -> None:
     ws = make_workspace(tmp_path / "ws")
-    env = clean_env(HOME=str(tmp_path), FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "r"),
-                    XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_WORKSPACE=str(ws),
-                    FETCHSYNC_ROBOT="local", FETCHSYNC_REMOTE_WORKSPACE="~/r")
+    env = clean_env(
+        HOME=str(tmp_path),
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "r"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_WORKSPACE=str(ws),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_REMOTE_WORKSPACE="~/r",
+    )
 
     def log_of(*args: str) -> list[str]:
         proc = fetchsync(*args, env=env)
@@ -334,27 +426,41 @@ def test_verbose_works_after_the_verb(tmp_path: Path) -> None:
     assert log_of("push", "-vv") != []
     assert log_of("push", "-v", "-v") != []
     # after run's COMMAND, -v is the command's
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "-v", "--", "echo", "-v"],
-                          env=env, capture_output=True, timeout=60, stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", "run", "-v", "--", "echo", "-v"],
+        env=env,
+        capture_output=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
     assert (proc.returncode, proc.stdout) == (0, b"-v\n"), proc.stderr
 
 
 # -- hints ----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("args", "hint"), [
-    (["push", "--build", "--pkg", "my_pkg"],
-     'to pass it to the build tool, quote it with its value: --build "--pkg my_pkg"'),
-    (["pull", "--yes", "--build", "--pkg", "a", "b", "--json"],
-     'quote it with its value: --build "--pkg a b"'),
-    (["watch", "--build", "--pkg", "a$b"], "quote it with its value: --build '--pkg a$b'"),
-    (["push", "--build", "--cmake-args"], "write --build=--cmake-args"),
-])
+@pytest.mark.parametrize(
+    ("args", "hint"),
+    [
+        (
+            ["push", "--build", "--pkg", "my_pkg"],
+            'to pass it to the build tool, quote it with its value: --build "--pkg my_pkg"',
+        ),
+        (
+            ["pull", "--yes", "--build", "--pkg", "a", "b", "--json"],
+            'quote it with its value: --build "--pkg a b"',
+        ),
+        (["watch", "--build", "--pkg", "a$b"], "quote it with its value: --build '--pkg a$b'"),
+        (["push", "--build", "--cmake-args"], "write --build=--cmake-args"),
+    ],
+)
 def test_an_unquoted_build_argument_gets_a_quoting_hint(args: list[str], hint: str) -> None:
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 2
     error = result.output.split("Error: ")[1]
-    assert error.startswith(f"No such option '{args[args.index('--build') + 1]}'; ") and hint in error
+    assert (
+        error.startswith(f"No such option '{args[args.index('--build') + 1]}'; ") and hint in error
+    )
 
 
 def test_an_unknown_option_elsewhere_gets_no_build_hint() -> None:
@@ -363,24 +469,34 @@ def test_an_unknown_option_elsewhere_gets_no_build_hint() -> None:
     assert "--build" not in result.output.split("Error:")[1]
 
 
-@pytest.mark.parametrize(("robot", "hint"), [
-    ("nosuchrobot", "on its network it may be nosuchrobot.local (zeroconf)"),
-    ("nosuchrobot.local", "avahi-daemon (zeroconf)"),
-])
-def test_an_unresolvable_robot_names_zeroconf_and_the_ssh_config(tmp_path: Path, robot: str,
-                                                                   hint: str) -> None:
+@pytest.mark.parametrize(
+    ("robot", "hint"),
+    [
+        ("nosuchrobot", "on its network it may be nosuchrobot.local (zeroconf)"),
+        ("nosuchrobot.local", "avahi-daemon (zeroconf)"),
+    ],
+)
+def test_an_unresolvable_robot_names_zeroconf_and_the_ssh_config(
+    tmp_path: Path, robot: str, hint: str
+) -> None:
     (tmp_path / ".ssh").mkdir()
     env = clean_env(HOME=str(tmp_path), FETCHSYNC_REMOTE_WORKSPACE="~/ws")
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "run", "--robot", robot, "true"],
-                          env=env, capture_output=True, timeout=60, stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", "run", "--robot", robot, "true"],
+        env=env,
+        capture_output=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
     [line] = proc.stderr.decode().splitlines()
     assert proc.returncode == 255 and line.startswith("fetchsync: error: cannot resolve host name")
     assert hint in line and f"'Host {robot}' entry with its HostName in ~/.ssh/config" in line
 
 
 @pytest.mark.ssh
-def test_a_refused_login_suggests_create_account_and_ssh_copy_id(ssh_home, remote_dir,
-                                                                 tmp_path: Path) -> None:
+def test_a_refused_login_suggests_create_account_and_ssh_copy_id(
+    ssh_home, remote_dir, tmp_path: Path
+) -> None:
     env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_USER="nosuchuser")
     proc = fetchsync("push", env=env, check=False)
     [line] = without_where(proc.stderr.decode())
@@ -395,7 +511,8 @@ def test_a_snapshot_says_whom_it_asks(ssh_home, remote_dir, tmp_path: Path) -> N
     env.update(USER="not-the-ssh-configs-user")
     proc = fetchsync("snapshot", "--only", "date", "--no-sudo", "--output", str(tmp_path), env=env)
     assert proc.stderr.decode().splitlines()[0] == (
-        f"snapshot {ssh_home.sshd.user}@robot:{remote_dir} {ARROW} {tmp_path}")
+        f"snapshot {ssh_home.sshd.user}@robot:{remote_dir} {ARROW} {tmp_path}"
+    )
 
 
 def test_home_is_never_the_workspace_around(tmp_path: Path) -> None:
@@ -409,10 +526,14 @@ def test_home_is_never_the_workspace_around(tmp_path: Path) -> None:
 
 def test_the_where_line_prints_no_escape_sequence(tmp_path: Path) -> None:
     ws = make_workspace(tmp_path / "ws\x1b]0;owned\x07")
-    env = clean_env(HOME=str(tmp_path), FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
-                    XDG_STATE_HOME=str(tmp_path / "state"))
-    result = invoke(["push", "--robot", "local", "--workspace", str(ws), "--remote-workspace",
-                     "~/r"], env)
+    env = clean_env(
+        HOME=str(tmp_path),
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
+    result = invoke(
+        ["push", "--robot", "local", "--workspace", str(ws), "--remote-workspace", "~/r"], env
+    )
     assert result.exit_code == 0, result.output
     [line] = [x for x in result.output.splitlines() if x.startswith("push ")]
     assert "\x1b" not in line and "\x07" not in line and "\\x1b" in line

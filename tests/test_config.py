@@ -383,7 +383,11 @@ def test_resolve_target_errors_propagate() -> None:
 
 
 def test_deferred_ssh_user_is_left_to_the_transport(tmp_path):
-    env = {"HOME": str(tmp_path), "FETCHSYNC_ROBOT": "fetch1", "FETCHSYNC_WORKSPACE": str(tmp_path / "ws")}
+    env = {
+        "HOME": str(tmp_path),
+        "FETCHSYNC_ROBOT": "fetch1",
+        "FETCHSYNC_WORKSPACE": str(tmp_path / "ws"),
+    }
     assert resolve_target(environ=env, defer_ssh_user=True).user is None
     assert resolve_target(environ=dict(env, FETCH_USER="bob"), defer_ssh_user=True).user == "bob"
     assert resolve_target(user="amy", environ=env, defer_ssh_user=True).user == "amy"

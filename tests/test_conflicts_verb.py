@@ -103,8 +103,15 @@ def test_symlinked_time_directory_on_the_robot_is_not_followed(env, remote_dir, 
     (remote_dir / ".fetchsync" / "conflicts" / "20990101-000000-000001").symlink_to(outside)
     listed = json.loads(fetchsync("conflicts", "--json", env=env).stdout)
     assert [e["path"] for e in listed] == [NODE]
-    proc = fetchsync("conflicts", "restore", "my_pkg/secret.txt", "--at", "20990101-000000-000001",
-                     env=env, check=False)
+    proc = fetchsync(
+        "conflicts",
+        "restore",
+        "my_pkg/secret.txt",
+        "--at",
+        "20990101-000000-000001",
+        env=env,
+        check=False,
+    )
     assert proc.returncode != 0
     assert not (Path(env["FETCHSYNC_WORKSPACE"]) / "src/my_pkg/secret.txt").exists()
 
@@ -115,5 +122,7 @@ def test_binary_versions_are_said_to_differ_with_their_sizes():
     kept = Kept("20260101-000000-000001", "my_pkg/blob.bin", 5, "conflicts")
     lines = diff_lines(kept, b"a\0bcd", b"xy\0", local_size=3)
     assert lines == ["my_pkg/blob.bin: binary or large files differ: robot 5 bytes, local 3 bytes"]
-    assert diff_lines(kept, b"same\n", b"same\n", local_size=5)[0].endswith("same as the local file")
+    assert diff_lines(kept, b"same\n", b"same\n", local_size=5)[0].endswith(
+        "same as the local file"
+    )
     assert "+robot" in diff_lines(kept, b"robot\n", None, local_size=-1)

@@ -23,9 +23,13 @@ def local_env(tmp_path: Path) -> dict:
     env = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER"):
         env.pop(k, None)
-    env.update(FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
-               FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/ws",
-               XDG_STATE_HOME=str(tmp_path / "state"))
+    env.update(
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     make_workspace(tmp_path / "ws")
     return env
 
@@ -37,8 +41,10 @@ def test_names_from_the_robot_reach_the_terminal_escaped(tmp_path):
     (robot / EVIL).write_text("from the robot\n")
     (tmp_path / "ws/src/my_pkg" / ("local-" + EVIL)).write_text("laptop\n")
     (robot / ("local-" + EVIL)).write_text("the robot's own\n")  # a conflict on push
-    outputs = [fetchsync("pull", "--dry-run", env=env, check=False),
-               fetchsync("push", env=env, check=False)]
+    outputs = [
+        fetchsync("pull", "--dry-run", env=env, check=False),
+        fetchsync("push", env=env, check=False),
+    ]
     for proc in outputs:
         text = proc.stdout + proc.stderr
         assert b"\x1b" not in text and b"\x07" not in text and "\u202e".encode() not in text, text

@@ -43,6 +43,7 @@ PY36 = "/root/.pyenv/versions/3.6.15/bin/python3.6"  # Ubuntu 18.04's, Fetch's M
 
 # --- without a robot ------------------------------------------------------------------------
 
+
 def _skeleton_dir(path: Path, marker: str) -> Path:
     path.mkdir(parents=True)
     (path / "initialize.sh").write_text(f"echo {marker}\n")
@@ -73,7 +74,8 @@ def test_builtin_skeleton_has_bashrc_d_and_initialize() -> None:
 
 
 def test_installed_skeleton_is_found_under_the_data_prefix(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # A non-editable install: the package sits in site-packages, no checkout
     # around it, and the wheel's data files went to <prefix>/share/fetchsync/.
     site_packages = tmp_path / "lib" / "site-packages"
@@ -106,8 +108,9 @@ def test_setuptools_installs_the_skeleton() -> None:
             dist = apply_configuration(Distribution(), REPO / "pyproject.toml")
     finally:
         os.chdir(cwd)
-    installed = {f"{target}/{Path(src).name}" for target, sources in dist.data_files
-                 for src in sources}
+    installed = {
+        f"{target}/{Path(src).name}" for target, sources in dist.data_files for src in sources
+    }
     expected = {f"share/fetchsync/skeleton/{p}" for p in BUILTIN_FILES | {"initialize.sh"}}
     assert installed == expected
 
@@ -115,8 +118,10 @@ def test_setuptools_installs_the_skeleton() -> None:
 def test_wheel_ships_the_skeleton(tmp_path: Path) -> None:
     import importlib.util
 
-    if importlib.util.find_spec("wheel") is None and \
-            importlib.util.find_spec("setuptools.command.bdist_wheel") is None:
+    if (
+        importlib.util.find_spec("wheel") is None
+        and importlib.util.find_spec("setuptools.command.bdist_wheel") is None
+    ):
         pytest.skip("no bdist_wheel here without fetching build dependencies")
     # Built from a copy, so the build leaves nothing in the working tree.
     src = tmp_path / "src"
@@ -124,12 +129,28 @@ def test_wheel_ships_the_skeleton(tmp_path: Path) -> None:
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(REPO / name, src / name)
     for name in ("fetchsync", "skeleton"):
-        shutil.copytree(REPO / name, src / name,
-                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        shutil.copytree(
+            REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc")
+        )
     proc = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
-         "--disable-pip-version-check", "-w", str(tmp_path / "dist"), str(src)],
-        capture_output=True, text=True, timeout=120, check=False)
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "--disable-pip-version-check",
+            "-w",
+            str(tmp_path / "dist"),
+            str(src),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     (wheel,) = (tmp_path / "dist").glob("fetchsync-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
@@ -165,15 +186,23 @@ def test_bad_user_names_are_refused(name: str) -> None:
 
 @pytest.mark.parametrize("option", ["--password", "--fetch-password"])
 def test_password_options_are_refused(option: str) -> None:
-    result = CliRunner().invoke(cli, ["create-account", "--robot", "fetch7", "--user", "alice",
-                                      option, "hunter2"])
+    result = CliRunner().invoke(
+        cli, ["create-account", "--robot", "fetch7", "--user", "alice", option, "hunter2"]
+    )
     assert result.exit_code == 2
     assert "command line" in result.output
 
 
 def test_request_repr_hides_the_password() -> None:
-    request = AccountRequest(user="alice", fullname="Alice", groups=(), key=None, skeleton=None,
-                             env={}, password="hunter2")
+    request = AccountRequest(
+        user="alice",
+        fullname="Alice",
+        groups=(),
+        key=None,
+        skeleton=None,
+        env={},
+        password="hunter2",
+    )
     assert "hunter2" not in repr(request)
 
 
@@ -181,9 +210,19 @@ def test_the_robot_program_runs_on_python_36() -> None:
     vermin = shutil.which("vermin")
     if vermin is None:
         pytest.skip("vermin not installed")
-    proc = subprocess.run([vermin, "-q", "--no-tips", "--violations", "--target=3.6-",
-                           str(REPO / "fetchsync" / "robot" / "account_robot.py")],
-                          capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [
+            vermin,
+            "-q",
+            "--no-tips",
+            "--violations",
+            "--target=3.6-",
+            str(REPO / "fetchsync" / "robot" / "account_robot.py"),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
@@ -213,15 +252,30 @@ def _password() -> str:
 
 
 def _create(ssh_home, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-    full_env = dict(os.environ, HOME=str(ssh_home.home), ROS_DISTRO="noetic",
-                    FETCHSYNC_REMOTE_WORKSPACE="~/fs_ws")
-    for name in ("SSH_AUTH_SOCK", "FETCHSYNC_NEW_PASSWORD", "FETCHSYNC_ADMIN_PASSWORD",
-                 "FETCHSYNC_ADMIN_USER"):
+    full_env = dict(
+        os.environ,
+        HOME=str(ssh_home.home),
+        ROS_DISTRO="noetic",
+        FETCHSYNC_REMOTE_WORKSPACE="~/fs_ws",
+    )
+    for name in (
+        "SSH_AUTH_SOCK",
+        "FETCHSYNC_NEW_PASSWORD",
+        "FETCHSYNC_ADMIN_PASSWORD",
+        "FETCHSYNC_ADMIN_USER",
+    ):
         full_env.pop(name, None)
     full_env.update(env or {})
-    return subprocess.run([sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot",
-                           "--json", *args], capture_output=True, text=True, env=full_env,
-                          stdin=subprocess.DEVNULL, timeout=60, cwd=REPO, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot", "--json", *args],
+        capture_output=True,
+        text=True,
+        env=full_env,
+        stdin=subprocess.DEVNULL,
+        timeout=60,
+        cwd=REPO,
+        check=False,
+    )
 
 
 def _report(proc: subprocess.CompletedProcess) -> dict:
@@ -232,8 +286,15 @@ def _report(proc: subprocess.CompletedProcess) -> dict:
 def _password_login(sshd, user: str, password: str, command: str) -> str:
     client = paramiko.SSHClient()
     client.set_missing_host_key_policy(paramiko.AutoAddPolicy())
-    client.connect(sshd.host, port=sshd.port, username=user, password=password,
-                   look_for_keys=False, allow_agent=False, timeout=10)
+    client.connect(
+        sshd.host,
+        port=sshd.port,
+        username=user,
+        password=password,
+        look_for_keys=False,
+        allow_agent=False,
+        timeout=10,
+    )
     try:
         _stdin, stdout, _stderr = client.exec_command(command)
         return stdout.read().decode()
@@ -243,6 +304,7 @@ def _password_login(sshd, user: str, password: str, command: str) -> str:
 
 def _existing_groups() -> set[str]:
     import grp
+
     present = set()
     for name in account.GROUPS:
         try:
@@ -253,8 +315,9 @@ def _existing_groups() -> set[str]:
     return present
 
 
-def _make_admin(accounts: Callable[[str], str], password: str, ssh_home, *,
-                rule: str = "ALL=(ALL:ALL) ALL") -> str:
+def _make_admin(
+    accounts: Callable[[str], str], password: str, ssh_home, *, rule: str = "ALL=(ALL:ALL) ALL"
+) -> str:
     """A user with sudo rights (that need its password); our key logs it in."""
     if shutil.which("sudo") is None:
         if os.environ.get("CI"):
@@ -282,8 +345,18 @@ def _make_admin(accounts: Callable[[str], str], password: str, ssh_home, *,
 def test_create_through_root_then_repair(sshd, ssh_home, accounts) -> None:
     name = accounts("fstest")
     password = _password()
-    report = _report(_create(ssh_home, "--user", name, "--admin-user", "root",
-                             "--fullname", "Test User", env={"FETCHSYNC_NEW_PASSWORD": password}))
+    report = _report(
+        _create(
+            ssh_home,
+            "--user",
+            name,
+            "--admin-user",
+            "root",
+            "--fullname",
+            "Test User",
+            env={"FETCHSYNC_NEW_PASSWORD": password},
+        )
+    )
     assert report["created"] and report["password_set"]
     assert report["initialize"] == "ran"
     entry = pwd.getpwnam(name)
@@ -329,8 +402,17 @@ def test_create_through_root_then_repair(sshd, ssh_home, accounts) -> None:
 
     # --reset-password sets a new one
     new = _password()
-    report = _report(_create(ssh_home, "--user", name, "--admin-user", "root", "--reset-password",
-                             env={"FETCHSYNC_NEW_PASSWORD": new}))
+    report = _report(
+        _create(
+            ssh_home,
+            "--user",
+            name,
+            "--admin-user",
+            "root",
+            "--reset-password",
+            env={"FETCHSYNC_NEW_PASSWORD": new},
+        )
+    )
     assert report["password_set"]
     assert _password_login(sshd, name, new, "echo ok").strip() == "ok"
 
@@ -351,9 +433,17 @@ def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
     name = accounts("fstest")
 
     # a wrong admin password stops before anything is changed
-    proc = _create(ssh_home, "--user", name, "--admin-user", admin,
-                   env={"FETCHSYNC_NEW_PASSWORD": _password(),
-                        "FETCHSYNC_ADMIN_PASSWORD": "wrong-" + admin_password})
+    proc = _create(
+        ssh_home,
+        "--user",
+        name,
+        "--admin-user",
+        admin,
+        env={
+            "FETCHSYNC_NEW_PASSWORD": _password(),
+            "FETCHSYNC_ADMIN_PASSWORD": "wrong-" + admin_password,
+        },
+    )
     assert proc.returncode == 3, proc.stderr
     assert "sudo refused the password" in proc.stderr
     with pytest.raises(KeyError):
@@ -365,13 +455,17 @@ def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
     (skeleton / "bin" / "hello").write_text("#!/bin/sh\necho hello\n")
     (skeleton / "bin" / "hello").chmod(0o755)
     (skeleton / "initialize.sh").write_text(
-        'printf "%s %s %s\\n" "$(id -un)" "$PWD" "$FETCH_WORKSPACE" > init-marker\n')
+        'printf "%s %s %s\\n" "$(id -un)" "$PWD" "$FETCH_WORKSPACE" > init-marker\n'
+    )
     password = _password()
     env = {"FETCHSYNC_NEW_PASSWORD": password, "FETCHSYNC_ADMIN_PASSWORD": admin_password}
     if os.path.exists(PY38):  # the robot side runs on an Ubuntu 20.04 robot's Python too
         env["FETCHSYNC_REMOTE_PYTHON"] = PY38
-    report = _report(_create(ssh_home, "--user", name, "--admin-user", admin,
-                             "--skeleton", str(skeleton), env=env))
+    report = _report(
+        _create(
+            ssh_home, "--user", name, "--admin-user", admin, "--skeleton", str(skeleton), env=env
+        )
+    )
     assert report["created"] and report["initialize"] == "ran"
     home = Path(pwd.getpwnam(name).pw_dir)
     # FETCH_WORKSPACE expanded, as fetch_tools handed it (its scripts use it unquoted)
@@ -384,8 +478,11 @@ def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
     Path(pwd.getpwnam(admin).pw_dir, ".ssh", "authorized_keys").unlink()
     other, other_password = accounts("fstest"), _password()
     env["FETCHSYNC_NEW_PASSWORD"] = other_password
-    report = _report(_create(ssh_home, "--user", other, "--admin-user", admin,
-                             "--skeleton", str(skeleton), env=env))
+    report = _report(
+        _create(
+            ssh_home, "--user", other, "--admin-user", admin, "--skeleton", str(skeleton), env=env
+        )
+    )
     assert report["created"]
     assert _password_login(sshd, other, other_password, "echo ok").strip() == "ok"
 
@@ -396,8 +493,16 @@ def test_create_through_sudo_without_password(sshd, ssh_home, accounts) -> None:
     # NOPASSWD sudo and a key login: no admin password is asked for at all
     admin = _make_admin(accounts, _password(), ssh_home, rule="ALL=(ALL:ALL) NOPASSWD: ALL")
     name, password = accounts("fstest"), _password()
-    report = _report(_create(ssh_home, "--user", name, "--admin-user", admin,
-                             env={"FETCHSYNC_NEW_PASSWORD": password}))
+    report = _report(
+        _create(
+            ssh_home,
+            "--user",
+            name,
+            "--admin-user",
+            admin,
+            env={"FETCHSYNC_NEW_PASSWORD": password},
+        )
+    )
     assert report["created"] and report["initialize"] == "ran"
     assert _password_login(sshd, name, password, "echo ok").strip() == "ok"
 
@@ -419,16 +524,24 @@ def test_passwords_never_on_a_command_line(sshd, ssh_home, accounts, tmp_path) -
 
     def poll() -> None:
         while not done.is_set():
-            out = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True,
-                                 check=False).stdout
+            out = subprocess.run(
+                ["ps", "-eo", "args"], capture_output=True, text=True, check=False
+            ).stdout
             seen.update(out.splitlines())
 
     poller = threading.Thread(target=poll, daemon=True)
     poller.start()
     try:
-        proc = _create(ssh_home, "--user", name, "--admin-user", admin, "--skeleton", str(skeleton),
-                       env={"FETCHSYNC_NEW_PASSWORD": password,
-                            "FETCHSYNC_ADMIN_PASSWORD": admin_password})
+        proc = _create(
+            ssh_home,
+            "--user",
+            name,
+            "--admin-user",
+            admin,
+            "--skeleton",
+            str(skeleton),
+            env={"FETCHSYNC_NEW_PASSWORD": password, "FETCHSYNC_ADMIN_PASSWORD": admin_password},
+        )
     finally:
         done.set()
         poller.join(timeout=10)
@@ -443,23 +556,57 @@ def test_passwords_never_on_a_command_line(sshd, ssh_home, accounts, tmp_path) -
 
 # --- fetch_tools' defaults and push's workspace -----------------------------------------------
 
-_TARGET_VARS = ("FETCHSYNC_USER", "FETCH_USER", "ROS_DISTRO", "FETCHSYNC_WORKSPACE",
-                "FETCH_WORKSPACE", "FETCHSYNC_REMOTE_WORKSPACE", "FETCH_REMOTE_WORKSPACE",
-                "ROS_MASTER_URI", "FETCHSYNC_ROBOT", "FETCH_ROBOT")
+_TARGET_VARS = (
+    "FETCHSYNC_USER",
+    "FETCH_USER",
+    "ROS_DISTRO",
+    "FETCHSYNC_WORKSPACE",
+    "FETCH_WORKSPACE",
+    "FETCHSYNC_REMOTE_WORKSPACE",
+    "FETCH_REMOTE_WORKSPACE",
+    "ROS_MASTER_URI",
+    "FETCHSYNC_ROBOT",
+    "FETCH_ROBOT",
+)
 
 
-def _create_as_user(ssh_home, *args: str, env: dict[str, str],
-                    started: Callable[[int], None] | None = None) -> subprocess.CompletedProcess:
+def _create_as_user(
+    ssh_home, *args: str, env: dict[str, str], started: Callable[[int], None] | None = None
+) -> subprocess.CompletedProcess:
     """create-account as a fetch_tools user runs it: no --user, the environment decides.
     ``started`` is given the laptop process's pid."""
-    full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS
-                and k not in ("SSH_AUTH_SOCK", "FETCHSYNC_NEW_PASSWORD",
-                              "FETCHSYNC_ADMIN_PASSWORD", "FETCHSYNC_ADMIN_USER")}
+    full_env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in _TARGET_VARS
+        and k
+        not in (
+            "SSH_AUTH_SOCK",
+            "FETCHSYNC_NEW_PASSWORD",
+            "FETCHSYNC_ADMIN_PASSWORD",
+            "FETCHSYNC_ADMIN_USER",
+        )
+    }
     full_env.update(HOME=str(ssh_home.home), FETCHSYNC_ADMIN_USER="root", **env)
-    argv = [sys.executable, "-m", "fetchsync", "create-account", "--robot", "robot", "--json",
-            *args]
-    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          env=full_env, stdin=subprocess.DEVNULL, cwd=REPO) as proc:
+    argv = [
+        sys.executable,
+        "-m",
+        "fetchsync",
+        "create-account",
+        "--robot",
+        "robot",
+        "--json",
+        *args,
+    ]
+    with subprocess.Popen(
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=full_env,
+        stdin=subprocess.DEVNULL,
+        cwd=REPO,
+    ) as proc:
         if started is not None:
             started(proc.pid)
         out, err = proc.communicate(timeout=60)
@@ -468,12 +615,20 @@ def _create_as_user(ssh_home, *args: str, env: dict[str, str],
 
 def _push_remote_workspace(ssh_home, env: dict[str, str], workspace: str | None = None) -> str:
     """What push resolves as the remote workspace in this environment."""
-    code = ("import sys; from fetchsync.cli.common import resolve; "
-            "print(resolve('robot', None, sys.argv[1] or None, None).remote_workspace)")
+    code = (
+        "import sys; from fetchsync.cli.common import resolve; "
+        "print(resolve('robot', None, sys.argv[1] or None, None).remote_workspace)"
+    )
     full_env = {k: v for k, v in os.environ.items() if k not in _TARGET_VARS}
     full_env.update(HOME=str(ssh_home.home), **env)
-    proc = subprocess.run([sys.executable, "-c", code, workspace or ""], capture_output=True,
-                          text=True, env=full_env, cwd=REPO, check=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, workspace or ""],
+        capture_output=True,
+        text=True,
+        env=full_env,
+        cwd=REPO,
+        check=True,
+    )
     return proc.stdout.strip()
 
 
@@ -481,13 +636,19 @@ def _push_remote_workspace(ssh_home, env: dict[str, str], workspace: str | None 
 @needs_root
 def test_user_defaults_to_fetch_user_then_user(sshd, ssh_home, accounts) -> None:
     name, other = accounts("fstest"), accounts("fstest")
-    report = _report(_create_as_user(ssh_home, "--fullname", "Not A. Robot",
-                                     env={"FETCH_USER": name, "USER": "nobody-else",
-                                          "FETCHSYNC_NEW_PASSWORD": _password()}))
+    report = _report(
+        _create_as_user(
+            ssh_home,
+            "--fullname",
+            "Not A. Robot",
+            env={"FETCH_USER": name, "USER": "nobody-else", "FETCHSYNC_NEW_PASSWORD": _password()},
+        )
+    )
     assert report["user"] == name and report["created"]
     assert pwd.getpwnam(name).pw_gecos.split(",")[0] == "Not A. Robot"
-    report = _report(_create_as_user(ssh_home, env={"USER": other,
-                                                    "FETCHSYNC_NEW_PASSWORD": _password()}))
+    report = _report(
+        _create_as_user(ssh_home, env={"USER": other, "FETCHSYNC_NEW_PASSWORD": _password()})
+    )
     assert report["user"] == other and report["created"]
 
 
@@ -500,8 +661,9 @@ def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accoun
         return account_robot_exports(Path(pwd.getpwnam(name).pw_dir))
 
     # Before ROS is sourced nothing resolves here: initialize.sh picks (~/catkin_ws, no ROS)
-    report = _report(_create_as_user(ssh_home, env={"FETCH_USER": name,
-                                                    "FETCHSYNC_NEW_PASSWORD": _password()}))
+    report = _report(
+        _create_as_user(ssh_home, env={"FETCH_USER": name, "FETCHSYNC_NEW_PASSWORD": _password()})
+    )
     home = Path(pwd.getpwnam(name).pw_dir)
     assert report["workspace_record"] == "initialize.sh"
     assert saved()["FETCH_WORKSPACE"] == f"{home}/catkin_ws"
@@ -516,15 +678,22 @@ def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accoun
     assert report["workspace_was"] == f"{home}/catkin_ws"
     assert saved() == {"ROS_DISTRO": "noetic", "FETCH_WORKSPACE": f"{home}/noetic"}
     # ... and the account's shells see it
-    shell = subprocess.run(["su", "-", name, "-c", "bash -ic 'echo \"$FETCH_WORKSPACE\"' 2>/dev/null"],
-                           capture_output=True, text=True, timeout=30, check=False)
+    shell = subprocess.run(
+        ["su", "-", name, "-c", "bash -ic 'echo \"$FETCH_WORKSPACE\"' 2>/dev/null"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
     assert shell.stdout.strip().splitlines()[-1] == f"{home}/noetic"
 
     # fetch_tools' --workspace, resolved as push resolves it; the same again keeps it
     laptop_ws = str(ssh_home.home / "robots_ws")
     assert _push_remote_workspace(ssh_home, env, laptop_ws) == "~/robots_ws"
     report = _report(_create_as_user(ssh_home, "--workspace", laptop_ws, env=env))
-    assert report["workspace"] == "~/robots_ws" and saved()["FETCH_WORKSPACE"] == f"{home}/robots_ws"
+    assert (
+        report["workspace"] == "~/robots_ws" and saved()["FETCH_WORKSPACE"] == f"{home}/robots_ws"
+    )
     report = _report(_create_as_user(ssh_home, "--workspace", laptop_ws, env=env))
     assert report["workspace_record"] == "kept"
 
@@ -567,8 +736,9 @@ sudo sh -c 'id -u; sleep 1' > ~/sudo-slow
 """
 
 
-def _watch_proc(secret: bytes, done: threading.Event, seen: list[str], looked: list[int],
-                allowed: set[int]) -> None:
+def _watch_proc(
+    secret: bytes, done: threading.Event, seen: list[str], looked: list[int], allowed: set[int]
+) -> None:
     """Read every process's cmdline and environ until ``done``; note where ``secret`` is.
     Processes in ``allowed`` are skipped (the test's own, given the secret in its environment)."""
     while not done.is_set():
@@ -589,8 +759,9 @@ def _watch_proc(secret: bytes, done: threading.Event, seen: list[str], looked: l
 @pytest.mark.ssh
 @needs_root
 @pytest.mark.parametrize("remote_python", [None, PY36], ids=["python3", "python3.6"])
-def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_home, accounts,
-                                                                    remote_python) -> None:
+def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(
+    sshd, ssh_home, accounts, remote_python
+) -> None:
     # On Python 3.6 (no os.memfd_create) the password goes in an unlinked temporary file.
     if remote_python is not None and not os.path.exists(remote_python):
         if os.environ.get("CI"):
@@ -599,6 +770,7 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
     if shutil.which("sudo") is None:
         pytest.skip("sudo not installed (apt-get install sudo)")
     import grp
+
     try:
         grp.getgrnam("sudo")
     except KeyError:
@@ -615,15 +787,15 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
     # The laptop process was handed the password in FETCHSYNC_NEW_PASSWORD: that one may hold
     # it; its children (none expected) and every process on the robot side may not.
     allowed = {os.getpid()}
-    watcher = threading.Thread(target=_watch_proc,
-                               args=(password.encode(), done, seen, looked, allowed), daemon=True)
+    watcher = threading.Thread(
+        target=_watch_proc, args=(password.encode(), done, seen, looked, allowed), daemon=True
+    )
     watcher.start()
     try:
         env = {"FETCH_USER": name, "ROS_DISTRO": "noetic", "FETCHSYNC_NEW_PASSWORD": password}
         if remote_python is not None:
             env["FETCHSYNC_REMOTE_PYTHON"] = remote_python
-        proc = _create_as_user(ssh_home, "--fullname", "Not A. Robot", env=env,
-                               started=allowed.add)
+        proc = _create_as_user(ssh_home, "--fullname", "Not A. Robot", env=env, started=allowed.add)
     finally:
         done.set()
         watcher.join(timeout=30)
@@ -647,11 +819,18 @@ def test_fetch_tools_skeleton_gets_its_ros_setup_and_a_working_sudo(sshd, ssh_ho
     setup = (home / ".bashrc.d" / "40-ros-setup.sh").read_text()
     assert "source /opt/ros/noetic/setup.bash" in setup
     assert f"source {home}/noetic/devel/setup.bash" in setup
-    assert (report["workspace"], report["workspace_file"]) == ("~/noetic",
-                                                               ".bashrc.d/40-ros-setup.sh")
+    assert (report["workspace"], report["workspace_file"]) == (
+        "~/noetic",
+        ".bashrc.d/40-ros-setup.sh",
+    )
     assert (home / "noetic" / "src").is_dir()  # $FETCH_WORKSPACE arrived expanded
-    shell = subprocess.run(["su", "-", name, "-c", "bash -ic 'echo \"$LEGACY_MARK\"' 2>/dev/null"],
-                           capture_output=True, text=True, timeout=30, check=False)
+    shell = subprocess.run(
+        ["su", "-", name, "-c", "bash -ic 'echo \"$LEGACY_MARK\"' 2>/dev/null"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
     assert shell.stdout.strip().splitlines()[-1] == "sourced-by-40-ros-setup"
 
 
@@ -664,6 +843,7 @@ def test_a_workspace_file_that_is_a_link_or_fifo_is_left_to_the_user(tmp_path, m
     request = {"workspace": "~/noetic", "env": {"ROS_DISTRO": "noetic"}}
     os.mkfifo(tmp_path / ".bashrc.d" / "30-workspace.sh")  # a read would block forever
     import signal
+
     signal.alarm(20)  # so that a regression fails instead of hanging the suite
     try:
         assert account_robot.record_workspace(entry, request)["workspace_record"] == "yours"
@@ -678,4 +858,6 @@ def test_a_workspace_file_that_is_a_link_or_fifo_is_left_to_the_user(tmp_path, m
     result = account_robot.record_workspace(entry, request)
     assert (result["workspace_record"], result["workspace"]) == ("written", "~/noetic")
     assert account_robot.read_exports(".bashrc.d/30-workspace.sh") == {
-        "ROS_DISTRO": "noetic", "FETCH_WORKSPACE": f"{entry.pw_dir}/noetic"}
+        "ROS_DISTRO": "noetic",
+        "FETCH_WORKSPACE": f"{entry.pw_dir}/noetic",
+    }

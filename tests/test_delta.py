@@ -29,12 +29,41 @@ from fetchsync.protocol.errors import DeltaError, ProtocolError
 REPO = Path(__file__).resolve().parent.parent
 PY38 = "/root/.pyenv/versions/3.8.18/bin/python3.8"
 TARGET, MIN, MAX = D.DEFAULT_PARAMS
-SMALL = (64, 16, 256)   # many chunks from little data, for property tests
+SMALL = (64, 16, 256)  # many chunks from little data, for property tests
 
-WORDS = [b"int", b"return", b"self", b"value", b"ros::NodeHandle", b"std::vector<double>",
-         b"if", b"for", b"const", b"auto", b"publisher_", b"msg", b"data", b"callback",
-         b"=", b"+", b"(", b")", b"{", b"}", b";", b"0", b"1", b"rate", b"node",
-         b"#include", b"<ros/ros.h>", b"//", b"TODO", b"x_", b"y_"]
+WORDS = [
+    b"int",
+    b"return",
+    b"self",
+    b"value",
+    b"ros::NodeHandle",
+    b"std::vector<double>",
+    b"if",
+    b"for",
+    b"const",
+    b"auto",
+    b"publisher_",
+    b"msg",
+    b"data",
+    b"callback",
+    b"=",
+    b"+",
+    b"(",
+    b")",
+    b"{",
+    b"}",
+    b";",
+    b"0",
+    b"1",
+    b"rate",
+    b"node",
+    b"#include",
+    b"<ros/ros.h>",
+    b"//",
+    b"TODO",
+    b"x_",
+    b"y_",
+]
 
 
 def random_bytes(n: int, seed: int) -> bytes:
@@ -146,7 +175,7 @@ def test_append() -> None:
 def test_insert_in_the_middle() -> None:
     base = source_text(TEXT)
     mid = base.index(b"\n", len(base) // 2) + 1
-    new = base[:mid] + b"    ROS_INFO(\"inserted\");\n" + base[mid:]
+    new = base[:mid] + b'    ROS_INFO("inserted");\n' + base[mid:]
     d = check(base, new)
     assert literal_bytes(d) < 3 * TARGET
     assert len(d.ops) == 3
@@ -204,7 +233,7 @@ def test_binary_without_newlines_is_cut_every_max_bytes() -> None:
     ends = D.signature(base).ends
     assert ends == tuple(range(MAX, len(base), MAX)) + (len(base),)
     assert literal_bytes(check(base, base + b"more")) <= MAX + 4
-    check(base, b"x" + base)   # round trips, though fixed blocks cannot realign
+    check(base, b"x" + base)  # round trips, though fixed blocks cannot realign
 
 
 def test_prepend_to_random_binary() -> None:
@@ -219,7 +248,7 @@ def test_edits_scattered_in_random_binary() -> None:
     new = bytearray(base)
     for _ in range(10):
         at = r.randrange(len(new))
-        new[at:at + r.randrange(50)] = random_bytes(r.randrange(50), r.randrange(1000))
+        new[at : at + r.randrange(50)] = random_bytes(r.randrange(50), r.randrange(1000))
     d = check(base, bytes(new))
     assert literal_bytes(d) < 10 * 3 * TARGET
 
@@ -279,14 +308,15 @@ def test_algorithms_give_different_digests() -> None:
     sigs = {name: D.signature(base, algorithm=name) for name in hashing.available()}
     assert len({s.digests for s in sigs.values()}) == len(sigs)
     for name, sig in sigs.items():
-        assert sig.digests[:8] == hashing.chunk_digest(name, base[:sig.ends[0]])
+        assert sig.digests[:8] == hashing.chunk_digest(name, base[: sig.ends[0]])
 
 
 def test_a_chunk_with_a_matching_digest_but_another_length_is_not_copied() -> None:
     base = source_text(5000)
     sig = D.signature(base)
-    forged = Signature(sig.algorithm, sig.size + 1, sig.params,
-                       sig.ends[:-1] + (sig.ends[-1] + 1,), sig.digests)
+    forged = Signature(
+        sig.algorithm, sig.size + 1, sig.params, sig.ends[:-1] + (sig.ends[-1] + 1,), sig.digests
+    )
     d = D.delta(base, forged)
     assert D.patch(base + b"?", d) == base
     assert literal_bytes(d) == sig.lengths()[-1]
@@ -299,11 +329,22 @@ def test_stats() -> None:
 
 
 # ---------------------------------------------------------------------------- parameters
-@pytest.mark.parametrize("params", [
-    (1024, 256), (1024, 256, 8192, 1), [1024, 256, 8192], (1024.0, 256, 8192),
-    (True, 0, 8), (256, 256, 8192), (1024, 0, 8192), (1024, 256, 1000),
-    (1024, 256, D.MAX_CHUNK_LIMIT + 1), "abc", None,
-])
+@pytest.mark.parametrize(
+    "params",
+    [
+        (1024, 256),
+        (1024, 256, 8192, 1),
+        [1024, 256, 8192],
+        (1024.0, 256, 8192),
+        (True, 0, 8),
+        (256, 256, 8192),
+        (1024, 0, 8192),
+        (1024, 256, 1000),
+        (1024, 256, D.MAX_CHUNK_LIMIT + 1),
+        "abc",
+        None,
+    ],
+)
 def test_bad_parameters_are_refused(params: Any) -> None:
     with pytest.raises(DeltaError):
         D.check_params(params)
@@ -340,37 +381,49 @@ def test_signature_repr_is_short() -> None:
     assert len(repr(D.signature(source_text(100_000)))) < 120
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"algorithm": "md5"}, "unknown hash algorithm"),
-    ({"params": (16, 64, 256)}, "parameters"),
-    ({"size": -1}, "bad size"),
-    ({"size": True}, "bad size"),
-    ({"ends": [1, 2]}, "tuple of integers"),
-    ({"ends": (1.0,)}, "tuple of integers"),
-    ({"digests": b"x" * 7}, "bytes of digests"),
-    ({"digests": bytearray(8)}, "bytes of digests"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"algorithm": "md5"}, "unknown hash algorithm"),
+        ({"params": (16, 64, 256)}, "parameters"),
+        ({"size": -1}, "bad size"),
+        ({"size": True}, "bad size"),
+        ({"ends": [1, 2]}, "tuple of integers"),
+        ({"ends": (1.0,)}, "tuple of integers"),
+        ({"digests": b"x" * 7}, "bytes of digests"),
+        ({"digests": bytearray(8)}, "bytes of digests"),
+    ],
+)
 def test_signature_validate_rejects_bad_fields(change: dict[str, Any], message: str) -> None:
-    fields = {"algorithm": hashing.BLAKE2B_128, "size": 10, "params": SMALL, "ends": (10,),
-                  "digests": bytes(8)}
+    fields = {
+        "algorithm": hashing.BLAKE2B_128,
+        "size": 10,
+        "params": SMALL,
+        "ends": (10,),
+        "digests": bytes(8),
+    }
     Signature(**fields).validate()  # type: ignore[arg-type]
     fields.update(change)
     with pytest.raises(DeltaError, match=message):
         Signature(**fields).validate()  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("ends, size, message", [
-    ((), 5, "no chunks"),
-    ((20, 20, 30), 30, "not increasing"),
-    ((30, 20), 20, "not increasing"),
-    ((0, 20), 20, "not increasing"),
-    ((300,), 300, "longer than MAX"),
-    ((20, 300), 300, "longer than MAX"),
-    ((10, 30), 30, "shorter than MIN"),
-    ((20, 40), 41, "not at the size"),
-])
-def test_signature_validate_rejects_bad_ends(ends: tuple[int, ...], size: int,
-                                             message: str) -> None:
+@pytest.mark.parametrize(
+    "ends, size, message",
+    [
+        ((), 5, "no chunks"),
+        ((20, 20, 30), 30, "not increasing"),
+        ((30, 20), 20, "not increasing"),
+        ((0, 20), 20, "not increasing"),
+        ((300,), 300, "longer than MAX"),
+        ((20, 300), 300, "longer than MAX"),
+        ((10, 30), 30, "shorter than MIN"),
+        ((20, 40), 41, "not at the size"),
+    ],
+)
+def test_signature_validate_rejects_bad_ends(
+    ends: tuple[int, ...], size: int, message: str
+) -> None:
     sig = Signature(hashing.BLAKE2B_128, size, SMALL, ends, bytes(8 * len(ends)))
     with pytest.raises(DeltaError, match=message):
         sig.validate()
@@ -392,9 +445,13 @@ def test_signature_from_truncated_bytes() -> None:
 
 def test_signature_from_bytes_checks_the_header() -> None:
     raw = bytearray(good_signature().to_bytes())
-    for offset, value, message in ((0, ord("X"), "bad magic"), (3, 2, "bad magic"),
-                                   (4, 3, "width"), (D._SIG_HEAD.size, ord("X"), "unknown hash"),
-                                   (5, 200, "do not hold")):
+    for offset, value, message in (
+        (0, ord("X"), "bad magic"),
+        (3, 2, "bad magic"),
+        (4, 3, "width"),
+        (D._SIG_HEAD.size, ord("X"), "unknown hash"),
+        (5, 200, "do not hold"),
+    ):
         bad = bytearray(raw)
         bad[offset] = value
         with pytest.raises(DeltaError, match=message):
@@ -417,19 +474,28 @@ def test_signature_from_bytes_checks_lengths_against_params() -> None:
     sig = good_signature()
     raw = bytearray(sig.to_bytes())
     at = D._SIG_HEAD.size + len(sig.algorithm)
-    raw[at:at + 2] = (0).to_bytes(2, "little")
+    raw[at : at + 2] = (0).to_bytes(2, "little")
     with pytest.raises(DeltaError):
         Signature.from_bytes(bytes(raw))
-    raw[at:at + 2] = (MAX + 1).to_bytes(2, "little")
+    raw[at : at + 2] = (MAX + 1).to_bytes(2, "little")
     with pytest.raises(DeltaError):
         Signature.from_bytes(bytes(raw))
 
 
 # ---------------------------------------------------------------------------- delta validation
-@pytest.mark.parametrize("op", [
-    Copy(-1, 5), Copy(0, 0), Copy(0, -3), Copy(True, 5), Copy(0, 2.0),  # type: ignore[arg-type]
-    Literal(b""), Literal(bytearray(b"ab")), Literal("ab"),  # type: ignore[arg-type]
-])
+@pytest.mark.parametrize(
+    "op",
+    [
+        Copy(-1, 5),
+        Copy(0, 0),
+        Copy(0, -3),
+        Copy(True, 5),
+        Copy(0, 2.0),  # type: ignore[arg-type]
+        Literal(b""),
+        Literal(bytearray(b"ab")),
+        Literal("ab"),  # type: ignore[arg-type]
+    ],
+)
 def test_bad_ops_are_refused(op: Any) -> None:
     with pytest.raises(DeltaError):
         op.validate()
@@ -437,16 +503,19 @@ def test_bad_ops_are_refused(op: Any) -> None:
         Delta((op,), 5).validate()
 
 
-@pytest.mark.parametrize("d, message", [
-    (Delta((Copy(0, 5),), 6), "make 5 bytes, not 6"),
-    (Delta((Literal(b"ab"), Copy(0, 5)), 6), "make 7 bytes"),
-    (Delta((Copy(5, 5),), 5, 9), "beyond the base"),
-    (Delta(("Copy(0, 5)",), 5), "not an operation"),  # type: ignore[arg-type]
-    (Delta([Copy(0, 5)], 5), "tuple"),  # type: ignore[arg-type]
-    (Delta((), -1), "bad new size"),
-    (Delta((), 0, -1), "bad base size"),
-    (Delta((), 0.0), "bad new size"),  # type: ignore[arg-type]
-])
+@pytest.mark.parametrize(
+    "d, message",
+    [
+        (Delta((Copy(0, 5),), 6), "make 5 bytes, not 6"),
+        (Delta((Literal(b"ab"), Copy(0, 5)), 6), "make 7 bytes"),
+        (Delta((Copy(5, 5),), 5, 9), "beyond the base"),
+        (Delta(("Copy(0, 5)",), 5), "not an operation"),  # type: ignore[arg-type]
+        (Delta([Copy(0, 5)], 5), "tuple"),  # type: ignore[arg-type]
+        (Delta((), -1), "bad new size"),
+        (Delta((), 0, -1), "bad base size"),
+        (Delta((), 0.0), "bad new size"),  # type: ignore[arg-type]
+    ],
+)
 def test_delta_validate(d: Delta, message: str) -> None:
     with pytest.raises(DeltaError, match=message):
         d.validate()
@@ -493,8 +562,11 @@ def sample_delta() -> Delta:
 
 
 def test_encoding_without_a_base_size_and_with_big_numbers() -> None:
-    for d in (Delta((Copy(1 << 40, 1 << 33), Literal(b"x")), (1 << 33) + 1),
-              Delta((Literal(b"abc"),), 3), Delta((), 0)):
+    for d in (
+        Delta((Copy(1 << 40, 1 << 33), Literal(b"x")), (1 << 33) + 1),
+        Delta((Literal(b"abc"),), 3),
+        Delta((), 0),
+    ):
         raw = D.encode_delta(d)
         assert D.decode_delta(raw, max_size=1 << 40) == d
         assert D.decode_delta(memoryview(raw), max_size=1 << 40) == d
@@ -520,28 +592,36 @@ def op_bytes(*ops: bytes, new_size: int = 5, flags: int = 0) -> bytes:
     return D._DELTA_HEAD.pack(D._DELTA_MAGIC, flags, new_size) + b"".join(ops)
 
 
-@pytest.mark.parametrize("raw, message", [
-    (b"XSD\x01" + bytes(9), "bad magic"),
-    (op_bytes(flags=2), "unknown flags"),
-    (op_bytes(flags=1), "truncated header"),
-    (op_bytes(b"\x09"), "unknown op"),
-    (op_bytes(D._COPY32_S.pack(1, 0, 0)), "empty op"),
-    (op_bytes(D._LIT32_S.pack(3, 0)), "empty op"),
-    (op_bytes(D._LIT32_S.pack(3, 6) + b"abcdef"), "more than"),
-    (op_bytes(D._LIT64_S.pack(4, 1 << 62) + b"abcde"), "runs past the end"),
-    (op_bytes(D._COPY64_S.pack(2, 0, 1 << 62)), "more than"),
-    (op_bytes(D._COPY32_S.pack(1, 0, 4)), "make 4 bytes, not 5"),
-    (op_bytes(D._COPY32_S.pack(1, 10, 5), flags=1)[:-9], "truncated"),
-    (op_bytes(D._U64.pack(12) + D._COPY32_S.pack(1, 10, 5), flags=1), "beyond the base"),
-])
+@pytest.mark.parametrize(
+    "raw, message",
+    [
+        (b"XSD\x01" + bytes(9), "bad magic"),
+        (op_bytes(flags=2), "unknown flags"),
+        (op_bytes(flags=1), "truncated header"),
+        (op_bytes(b"\x09"), "unknown op"),
+        (op_bytes(D._COPY32_S.pack(1, 0, 0)), "empty op"),
+        (op_bytes(D._LIT32_S.pack(3, 0)), "empty op"),
+        (op_bytes(D._LIT32_S.pack(3, 6) + b"abcdef"), "more than"),
+        (op_bytes(D._LIT64_S.pack(4, 1 << 62) + b"abcde"), "runs past the end"),
+        (op_bytes(D._COPY64_S.pack(2, 0, 1 << 62)), "more than"),
+        (op_bytes(D._COPY32_S.pack(1, 0, 4)), "make 4 bytes, not 5"),
+        (op_bytes(D._COPY32_S.pack(1, 10, 5), flags=1)[:-9], "truncated"),
+        (op_bytes(D._U64.pack(12) + D._COPY32_S.pack(1, 10, 5), flags=1), "beyond the base"),
+    ],
+)
 def test_decode_refuses_malformed(raw: bytes, message: str) -> None:
     with pytest.raises(DeltaError, match=message):
         D.decode_delta(raw, max_size=1 << 40)
 
 
 def test_decode_accepts_non_canonical_ops() -> None:
-    raw = op_bytes(D._LIT32_S.pack(3, 2) + b"ab", D._LIT32_S.pack(3, 1) + b"c",
-                   D._COPY32_S.pack(1, 0, 1), D._COPY32_S.pack(1, 1, 1), new_size=5)
+    raw = op_bytes(
+        D._LIT32_S.pack(3, 2) + b"ab",
+        D._LIT32_S.pack(3, 1) + b"c",
+        D._COPY32_S.pack(1, 0, 1),
+        D._COPY32_S.pack(1, 1, 1),
+        new_size=5,
+    )
     d = D.decode_delta(raw, max_size=5)
     assert D.patch(b"xy", d) == b"abcxy"
 
@@ -596,10 +676,21 @@ def test_corrupted_encodings_raise_only_delta_error(data: st.DataObject) -> None
 
 # ---------------------------------------------------------------------------- properties
 FRAGMENTS = [
-    b"", b"\n", b"}\n", b"    return x;\n", b"#include <ros/ros.h>\n", b"\n\n\n",
-    b"a" * 100, b"b" * 100 + b"\n", bytes(300), b"z" * 700 + b"\n",
-    source_text(500, seed=11), source_text(2000, seed=12), source_text(5000, seed=13),
-    random_bytes(300, 14), random_bytes(3000, 15),
+    b"",
+    b"\n",
+    b"}\n",
+    b"    return x;\n",
+    b"#include <ros/ros.h>\n",
+    b"\n\n\n",
+    b"a" * 100,
+    b"b" * 100 + b"\n",
+    bytes(300),
+    b"z" * 700 + b"\n",
+    source_text(500, seed=11),
+    source_text(2000, seed=12),
+    source_text(5000, seed=13),
+    random_bytes(300, 14),
+    random_bytes(3000, 15),
 ]
 pieces = st.one_of(st.sampled_from(FRAGMENTS), st.binary(max_size=50))
 contents = st.lists(pieces, max_size=12).map(b"".join)
@@ -628,19 +719,29 @@ def test_a_base_shared_with_new_is_copied(base: bytes, params: D.Params) -> None
 @given(data=contents, params=param_sets, bufsize=st.integers(1, 5000))
 def test_streaming_cuts_like_in_memory(data: bytes, params: D.Params, bufsize: int) -> None:
     want = chunks_of(data, params)
-    got = [(o, c) for o, n, _d, c in D.iter_chunks(io.BytesIO(data), params=params,
-                                                    bufsize=bufsize)]
+    got = [
+        (o, c) for o, n, _d, c in D.iter_chunks(io.BytesIO(data), params=params, bufsize=bufsize)
+    ]
     assert got == want
     assert D.signature_file(io.BytesIO(data), params=params, bufsize=bufsize) == D.signature(
-        data, params=params)
+        data, params=params
+    )
 
 
 # ---------------------------------------------------------------------------- streaming
 def mixed_data() -> bytes:
-    return b"".join([
-        source_text(50_000), b"q" * 3000 + b"\n", random_bytes(40_000, 21), bytes(40_000),
-        b"\n" * 2000, b"L" * (MAX * 3 + 7), source_text(30_000, seed=3), b"w" * 800,
-    ])
+    return b"".join(
+        [
+            source_text(50_000),
+            b"q" * 3000 + b"\n",
+            random_bytes(40_000, 21),
+            bytes(40_000),
+            b"\n" * 2000,
+            b"L" * (MAX * 3 + 7),
+            source_text(30_000, seed=3),
+            b"w" * 800,
+        ]
+    )
 
 
 @pytest.mark.parametrize("bufsize", [1, 3, 100, 767, 768, 769, 8192, 1 << 20])
@@ -660,8 +761,9 @@ def test_streaming_when_max_cuts_fall_inside_short_lines(bufsize: int) -> None:
     # cut splits a short line whose start the streaming chunker must keep.
     params = (300, 40, 300)
     data = source_text(20_000)
-    got = [(o, c) for o, _n, _d, c in D.iter_chunks(io.BytesIO(data), params=params,
-                                                     bufsize=bufsize)]
+    got = [
+        (o, c) for o, _n, _d, c in D.iter_chunks(io.BytesIO(data), params=params, bufsize=bufsize)
+    ]
     assert got == chunks_of(data, params)
     assert sum(len(c) == 300 for _o, c in got) > len(got) // 4
 
@@ -673,8 +775,10 @@ def test_streaming_with_tiny_chunks_and_blocks(params: D.Params) -> None:
     data = bytes(r.choice(b"ab\n\n") for _ in range(20_000))
     want = chunks_of(data, params)
     for bufsize in (1, 2, 3, 5):
-        got = [(o, c) for o, _n, _d, c in D.iter_chunks(io.BytesIO(data), params=params,
-                                                         bufsize=bufsize)]
+        got = [
+            (o, c)
+            for o, _n, _d, c in D.iter_chunks(io.BytesIO(data), params=params, bufsize=bufsize)
+        ]
         assert got == want, bufsize
 
 
@@ -691,7 +795,7 @@ class ShortReads(io.RawIOBase):
 
     def readinto(self, buf: Any) -> int:
         n = min(len(buf), self._r.randint(1, 3000), len(self._data) - self._pos)
-        buf[:n] = self._data[self._pos:self._pos + n]
+        buf[:n] = self._data[self._pos : self._pos + n]
         self._pos += n
         return n
 
@@ -707,7 +811,7 @@ def test_streaming_memory_is_bounded() -> None:
     biggest = 0
     for data in (b"n" * (1 << 20), source_text(1 << 20), random_bytes(1 << 20, 8), bytes(1 << 20)):
         for at in range(0, len(data), block):
-            chunker.feed(data[at:at + block])
+            chunker.feed(data[at : at + block])
             biggest = max(biggest, len(chunker._buf))
     assert biggest <= MAX + TARGET + block
 
@@ -774,15 +878,21 @@ def test_python38_runs_the_engine_and_agrees(tmp_path: Path) -> None:
     script = tmp_path / "engine38.py"
     script.write_text(PY38_SCRIPT)
     env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}
-    proc = subprocess.run([PY38, "-I", str(script), str(REPO)], capture_output=True,
-                          env=env, timeout=60, check=False)
+    proc = subprocess.run(
+        [PY38, "-I", str(script), str(REPO)], capture_output=True, env=env, timeout=60, check=False
+    )
     assert proc.returncode == 0, proc.stderr.decode(errors="replace")
     theirs = json.loads(proc.stdout)
     assert theirs["version"] == [3, 8]
     assert hashing.BLAKE2B_128 in theirs["available"]
     # the same script here must give the same bytes, so the two ends agree
-    ours = subprocess.run([sys.executable, "-I", str(script), str(REPO)], capture_output=True,
-                          env=env, timeout=60, check=False)
+    ours = subprocess.run(
+        [sys.executable, "-I", str(script), str(REPO)],
+        capture_output=True,
+        env=env,
+        timeout=60,
+        check=False,
+    )
     assert ours.returncode == 0, ours.stderr.decode(errors="replace")
     mine = json.loads(ours.stdout)
     assert (theirs["signature"], theirs["delta"]) == (mine["signature"], mine["delta"])
@@ -798,4 +908,7 @@ def test_signature_file_bytes_is_the_signatures_wire_form():
     for size in (0, 1, 255, 5000, 300_000):
         data = _os.urandom(size // 2) + b"ab" * (size // 4)
         want = _d.signature(data, algorithm="blake2b-128").to_bytes()
-        assert _d.signature_file_bytes(_io.BytesIO(data), algorithm="blake2b-128", bufsize=4096) == want
+        assert (
+            _d.signature_file_bytes(_io.BytesIO(data), algorithm="blake2b-128", bufsize=4096)
+            == want
+        )

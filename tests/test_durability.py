@@ -56,8 +56,10 @@ TEMP_MARK = ".fetchsync-tmp-"
 MAGIC = b"\x89FSYNC"
 POWERCUT = bool(os.environ.get("FETCHSYNC_TEST_POWERCUT"))
 
-TRACED = ("write,pwrite64,writev,openat,fchmod,ftruncate,rename,renameat,renameat2,unlink,unlinkat,"
-          "rmdir,mkdir,mkdirat,symlink,symlinkat,link,linkat,chmod,fchmodat,syncfs,sync,fsync,fdatasync")
+TRACED = (
+    "write,pwrite64,writev,openat,fchmod,ftruncate,rename,renameat,renameat2,unlink,unlinkat,"
+    "rmdir,mkdir,mkdirat,symlink,symlinkat,link,linkat,chmod,fchmodat,syncfs,sync,fsync,fdatasync"
+)
 
 SHIM_C = """\
 /* the endpoint without its durability: syncfs does nothing, and O_DIRECT is
@@ -87,7 +89,9 @@ int fcntl64(int fd, int cmd, ...) {
 
 # ---------------------------------------------------------------------- tools
 def _need(tool: str) -> str:
-    found = shutil.which(tool, path=os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"]))
+    found = shutil.which(
+        tool, path=os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
+    )
     if found is None:
         if os.environ.get("CI"):
             pytest.fail(f"{tool} is not installed (it belongs in .ci/run's APT_PACKAGES)")
@@ -117,8 +121,11 @@ def _shim(tmp_path_factory: pytest.TempPathFactory, name: str, source: str) -> P
     cc = shutil.which("gcc") or shutil.which("cc") or _need("gcc")
     d = tmp_path_factory.mktemp("shim")
     (d / f"{name}.c").write_text(source)
-    subprocess.run([cc, "-shared", "-fPIC", "-O2", "-o", str(d / f"{name}.so"), str(d / f"{name}.c"), "-ldl"],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [cc, "-shared", "-fPIC", "-O2", "-o", str(d / f"{name}.so"), str(d / f"{name}.c"), "-ldl"],
+        check=True,
+        capture_output=True,
+    )
     return d / f"{name}.so"
 
 
@@ -136,9 +143,13 @@ def slowsyncfs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def make_env(tmp_path: Path, robot_home: Path) -> dict:
     e = dict(os.environ)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home), XDG_STATE_HOME=str(tmp_path / "state"),
-             FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
         e.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -163,7 +174,7 @@ class Call:
     args: str
     ret: str
     start: int  # line index of entry
-    end: int    # line index of exit
+    end: int  # line index of exit
 
     @property
     def ok(self) -> bool:
@@ -188,7 +199,9 @@ class Call:
                 continue
             if self.name in ("write", "pwrite64", "writev"):
                 break  # data, not a path
-            out.append(value if value.startswith("/") or base is None else os.path.join(base, value))
+            out.append(
+                value if value.startswith("/") or base is None else os.path.join(base, value)
+            )
             base = None
         return out
 
@@ -205,7 +218,9 @@ _RESUMED = re.compile(r"^<\.\.\. (\w+) resumed>(.*)\)\s+=\s+(.*)$")
 
 
 def _unescape(s: str) -> str:
-    return codecs.escape_decode(s.encode("utf-8", "surrogateescape"))[0].decode("utf-8", "surrogateescape")
+    return codecs.escape_decode(s.encode("utf-8", "surrogateescape"))[0].decode(
+        "utf-8", "surrogateescape"
+    )
 
 
 def parse_trace(text: str) -> list[Call]:
@@ -234,8 +249,22 @@ def is_temp(path: str) -> bool:
     return TEMP_MARK in name or name.startswith("upload-")
 
 
-MUTATIONS = {"rename", "renameat", "renameat2", "unlink", "unlinkat", "rmdir", "mkdir", "mkdirat",
-             "symlink", "symlinkat", "link", "linkat", "chmod", "fchmodat"}
+MUTATIONS = {
+    "rename",
+    "renameat",
+    "renameat2",
+    "unlink",
+    "unlinkat",
+    "rmdir",
+    "mkdir",
+    "mkdirat",
+    "symlink",
+    "symlinkat",
+    "link",
+    "linkat",
+    "chmod",
+    "fchmodat",
+}
 DATA = {"write", "pwrite64", "writev", "fchmod", "ftruncate"}
 
 
@@ -254,10 +283,13 @@ class Verdict:
 def check_order(calls: list[Call], workspace: str) -> Verdict:
     """Check the endpoint's trace against the durability rules (see the module docstring)."""
     src = workspace.rstrip("/") + "/src/"
-    kept = (workspace.rstrip("/") + "/.fetchsync/trash/", workspace.rstrip("/") + "/.fetchsync/conflicts/")
+    kept = (
+        workspace.rstrip("/") + "/.fetchsync/trash/",
+        workspace.rstrip("/") + "/.fetchsync/conflicts/",
+    )
     v = Verdict()
-    touched: dict[str, int] = {}       # temporary -> line of its last write
-    syncs: list[Call] = []             # completed syncs, in order of completion
+    touched: dict[str, int] = {}  # temporary -> line of its last write
+    syncs: list[Call] = []  # completed syncs, in order of completion
     pending: list[tuple[Call, list[str]]] = []  # changes not yet covered: (call, paths)
     channel = None
 
@@ -288,8 +320,10 @@ def check_order(calls: list[Call], workspace: str) -> Verdict:
                 v.replies += 1
                 for m, ps in pending:
                     if m.end < c.start:
-                        v.violations.append(f"reply at line {c.start} leaves before a sync of "
-                                            f"{m.name}{tuple(ps)} (line {m.end})")
+                        v.violations.append(
+                            f"reply at line {c.start} leaves before a sync of "
+                            f"{m.name}{tuple(ps)} (line {m.end})"
+                        )
                 pending = [(m, ps) for m, ps in pending if m.end >= c.start]
                 continue
         if not c.ok:
@@ -322,10 +356,14 @@ def check_order(calls: list[Call], workspace: str) -> Verdict:
             v.temp_renames += 1
             wrote = touched.get(ps[0])
             if wrote is None:
-                v.violations.append(f"rename of {ps[0]} at line {c.start}: its writes are not in the trace")
+                v.violations.append(
+                    f"rename of {ps[0]} at line {c.start}: its writes are not in the trace"
+                )
             elif not any(s.start > wrote and s.end < c.start and covers(s, [ps[0]]) for s in syncs):
-                v.violations.append(f"rename of {ps[0]} into place at line {c.start} before a sync "
-                                    f"of its content (last written at line {wrote})")
+                v.violations.append(
+                    f"rename of {ps[0]} into place at line {c.start} before a sync "
+                    f"of its content (last written at line {wrote})"
+                )
         if any(in_scope(p) for p in ps):
             v.mutations[c.name] = v.mutations.get(c.name, 0) + 1
             v.changes.append((c.name, *ps))
@@ -350,7 +388,11 @@ def _overlapped(calls: list[Call]) -> int:
             continue
         if c.name == "syncfs":
             sync_starts.append(c.start)
-        elif c.name == "openat" and "O_CREAT" in c.args and TEMP_MARK in os.path.basename(_ret_path(c)):
+        elif (
+            c.name == "openat"
+            and "O_CREAT" in c.args
+            and TEMP_MARK in os.path.basename(_ret_path(c))
+        ):
             if waiting and any(min(waiting.values()) < s < c.start for s in sync_starts):
                 n += 1
             waiting[_ret_path(c)] = c.start
@@ -364,8 +406,9 @@ def _ret_path(c: Call) -> str:
     return m.group(1) if m else ""
 
 
-def traced_push(env: dict, trace: Path, *, preload: Path | None = None,
-                workspace: Path | None = None) -> tuple[dict, Verdict]:
+def traced_push(
+    env: dict, trace: Path, *, preload: Path | None = None, workspace: Path | None = None
+) -> tuple[dict, Verdict]:
     strace = _need("strace")
     python = f"{strace} -f -tt -y -s 8 -e trace={TRACED} -o {trace} python3"
     r = push(env, python=python, preload=preload)
@@ -392,7 +435,11 @@ def test_initial_push_renames_after_sync_and_replies_after_the_last_sync(env, tm
     assert r["files"] == 5 and r["links"] == 2 and r["dirs"] == 4
     assert v.violations == []
     assert v.temp_renames == 7  # 5 files and 2 symlinks went through temporaries
-    assert v.mutations.get("mkdir", 0) + v.mutations.get("mkdirat", 0) == 4 and v.syncs >= 2 and v.replies >= 3
+    assert (
+        v.mutations.get("mkdir", 0) + v.mutations.get("mkdirat", 0) == 4
+        and v.syncs >= 2
+        and v.replies >= 3
+    )
     assert tree_of(local_src(env)) == tree_of(robot_src(env))
 
 
@@ -402,20 +449,23 @@ def test_mixed_push_with_deletes_links_dirs_and_a_conflict(env, tmp_path):
     (robot / "my_pkg/src/node.cpp").write_text("edited on the robot\n")  # kept in conflicts/
     (src / "my_pkg/src/node.cpp").write_text("edited on the laptop\n")
     data = src / "my_pkg/data.txt"
-    data.write_text("// new first line\n" + data.read_text())          # a delta
-    (src / "my_pkg/package.xml").unlink()                               # a delete
-    shutil.rmtree(src / "my_pkg/scripts")                               # a directory deleted
-    (src / "my_pkg/config").mkdir()                                     # a new directory
+    data.write_text("// new first line\n" + data.read_text())  # a delta
+    (src / "my_pkg/package.xml").unlink()  # a delete
+    shutil.rmtree(src / "my_pkg/scripts")  # a directory deleted
+    (src / "my_pkg/config").mkdir()  # a new directory
     (src / "my_pkg/config/a.yaml").write_text("a: 1\n")
     (src / "my_pkg/launch/link.launch").symlink_to("../config/a.yaml")  # a new symlink
-    (src / "my_pkg/CMakeLists.txt").chmod(0o600)                        # a chmod
+    (src / "my_pkg/CMakeLists.txt").chmod(0o600)  # a chmod
     r, v = traced_push(env, tmp_path / "trace")
     assert r["deleted"] == 2 and r["deltas"] == 1 and len(r["conflicts"]) == 1
     assert v.violations == []
     assert v.temp_renames == 4  # node.cpp, data.txt, a.yaml, link.launch
     # the conflict is kept by a link made once its replacement is durable, the deletes moved
-    aside = [c[2].split("/.fetchsync/")[1].split("/")[0] for c in v.changes
-             if c[0].startswith(("rename", "link")) and "/.fetchsync/" in c[2]]
+    aside = [
+        c[2].split("/.fetchsync/")[1].split("/")[0]
+        for c in v.changes
+        if c[0].startswith(("rename", "link")) and "/.fetchsync/" in c[2]
+    ]
     assert sorted(aside) == ["conflicts", "trash", "trash"]
     assert ("mkdirat", str(robot / "my_pkg/config")) in v.changes
     assert ("fchmod", str(robot / "my_pkg/CMakeLists.txt")) in v.changes
@@ -452,12 +502,23 @@ def test_many_batches_keep_every_rule(env, tmp_path, slowsyncfs):
 def test_push_over_ssh_replies_after_the_last_sync(ssh_home, remote_dir, tmp_path):
     """The same order when sshd starts the endpoint, as on a real robot."""
     e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCHSYNC_REMOTE_PYTHON"):
+    for k in (
+        "FETCH_ROBOT",
+        "FETCH_USER",
+        "ROS_MASTER_URI",
+        "FETCHSYNC_USER",
+        "FETCHSYNC_REMOTE_PYTHON",
+    ):
         e.pop(k, None)
     # no connection master: each push starts its own endpoint, under strace
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_PERSIST="0",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_PERSIST="0",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     src = make_workspace(tmp_path / "ws") / "src"
     _r, v = traced_push(e, tmp_path / "trace1", workspace=remote_dir)
     assert v.violations == [] and v.temp_renames == 7
@@ -482,11 +543,14 @@ def _only_chmod(src: Path) -> None:
     (src / "my_pkg/src/node.cpp").chmod(0o600)
 
 
-@pytest.mark.parametrize("change", [
-    pytest.param(_only_deletes, id="deletes"),
-    pytest.param(_only_mkdir, id="mkdir"),
-    pytest.param(_only_chmod, id="chmod"),
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        pytest.param(_only_deletes, id="deletes"),
+        pytest.param(_only_mkdir, id="mkdir"),
+        pytest.param(_only_chmod, id="chmod"),
+    ],
+)
 def test_a_batch_without_writes_is_synced_before_its_reply(env, tmp_path, change):
     push(env)
     change(local_src(env))
@@ -571,7 +635,9 @@ def robot_disk(tmp_path: Path, options: str) -> Iterator[Disk]:
     with open(image, "wb") as fh:
         fh.truncate(size_mb << 20)
     # every table written now: no lazy init thread writing to the device later
-    res = _sh(_need("mkfs.ext4"), "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0", str(image))
+    res = _sh(
+        _need("mkfs.ext4"), "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0", str(image)
+    )
     assert res.returncode == 0, res.stderr
     with loop_ext4(image, tmp_path / "robot-disk", options=options) as device:
         yield Disk(image, device, tmp_path / "robot-disk")
@@ -628,7 +694,9 @@ def test_power_cut_right_after_success_keeps_every_reported_file(tmp_path, disk)
             _edit(src, n)
         disk.settle()
         push(env)
-        assert cut_power(disk, tmp_path, f"cut{n}") == tree_of(src), f"push {n} lost data in a power cut"
+        assert cut_power(disk, tmp_path, f"cut{n}") == tree_of(src), (
+            f"push {n} lost data in a power cut"
+        )
 
 
 def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
@@ -649,10 +717,13 @@ def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
     pytest.skip("the robot's disk was flushed by someone else during every push")
 
 
-@pytest.mark.parametrize("change", [
-    pytest.param(_only_deletes, id="deletes"),
-    pytest.param(_only_mkdir, id="mkdir"),
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        pytest.param(_only_deletes, id="deletes"),
+        pytest.param(_only_mkdir, id="mkdir"),
+    ],
+)
 def test_power_cut_after_a_batch_without_writes(tmp_path, disk, change):
     env = make_env(tmp_path, disk.mount / "robot")
     src = local_src(env)
@@ -669,8 +740,14 @@ def _start_endpoint(home: Path) -> bytes:
 
     cmd, archive = loader_command("python3 -S")  # -S: no installed fetchsync to fall back on
     env = {"HOME": str(home), "PATH": os.environ.get("PATH", "/usr/bin:/bin")}
-    proc = subprocess.Popen(["/bin/sh", "-c", cmd], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=env, cwd=str(home))
+    proc = subprocess.Popen(
+        ["/bin/sh", "-c", cmd],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        cwd=str(home),
+    )
     assert proc.stdin is not None and proc.stdout is not None
     first = proc.stdout.read(len(NEED))
     if first == NEED:
@@ -680,7 +757,7 @@ def _start_endpoint(home: Path) -> bytes:
     proc.stdin.close()  # the endpoint ends at end of input
     proc.stdout.read()
     proc.wait(timeout=30)
-    return first[:len(MAGIC)]
+    return first[: len(MAGIC)]
 
 
 def test_power_cut_after_the_endpoint_is_cached_leaves_a_working_robot(tmp_path):
@@ -703,4 +780,6 @@ def test_power_cut_after_the_endpoint_is_cached_leaves_a_working_robot(tmp_path)
         shutil.copyfile(d.image, snap)
         with loop_ext4(snap, tmp_path / "cut-mnt"):
             home_after = tmp_path / "cut-mnt" / "robot"
-            assert _start_endpoint(home_after) == MAGIC, "the robot cannot start the endpoint after the cut"
+            assert _start_endpoint(home_after) == MAGIC, (
+                "the robot cannot start the endpoint after the cut"
+            )

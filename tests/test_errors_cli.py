@@ -50,9 +50,15 @@ def old_python() -> str | None:
 
 def cli(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
     """The real CLI without a controlling terminal (as in CI): it must never prompt."""
-    return subprocess.run([sys.executable, "-m", "fetchsync", *args], check=False,
-                          capture_output=True, env=env, stdin=subprocess.DEVNULL, timeout=120,
-                          start_new_session=True)
+    return subprocess.run(
+        [sys.executable, "-m", "fetchsync", *args],
+        check=False,
+        capture_output=True,
+        env=env,
+        stdin=subprocess.DEVNULL,
+        timeout=120,
+        start_new_session=True,
+    )
 
 
 def one_line(proc: subprocess.CompletedProcess, code: int) -> str:
@@ -68,15 +74,27 @@ def one_line(proc: subprocess.CompletedProcess, code: int) -> str:
 
 def make_env(home: Path, remote_ws: str, tmp_path: Path) -> dict[str, str]:
     e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER",
-              "FETCH_REMOTE_WORKSPACE", "FETCHSYNC_REMOTE_PYTHON", "SSH_AUTH_SOCK"):
+    for k in (
+        "FETCH_ROBOT",
+        "FETCH_USER",
+        "ROS_MASTER_URI",
+        "FETCHSYNC_USER",
+        "FETCH_REMOTE_WORKSPACE",
+        "FETCHSYNC_REMOTE_PYTHON",
+        "SSH_AUTH_SOCK",
+    ):
         e.pop(k, None)
     ws = tmp_path / "ws"
     if not ws.exists():
         make_workspace(ws)
-    e.update(HOME=str(home), FETCHSYNC_ROBOT="robot", FETCHSYNC_WORKSPACE=str(ws),
-             FETCHSYNC_REMOTE_WORKSPACE=remote_ws, XDG_STATE_HOME=str(tmp_path / "state"),
-             FETCHSYNC_PERSIST="0")
+    e.update(
+        HOME=str(home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(ws),
+        FETCHSYNC_REMOTE_WORKSPACE=remote_ws,
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_PERSIST="0",
+    )
     return e
 
 
@@ -104,8 +122,13 @@ def other_sshd(sshd: SSHD, workdir: Path, extra: list[str]) -> Iterator[int]:
     config = workdir / "sshd_config"
     config.write_text("\n".join(lines) + "\n")
     log = open(workdir / "sshd.log", "ab")  # noqa: SIM115 - closed below
-    proc = subprocess.Popen([sshd_path, "-D", "-e", "-f", str(config)], stdin=subprocess.DEVNULL,
-                            stdout=log, stderr=log, start_new_session=True)
+    proc = subprocess.Popen(
+        [sshd_path, "-D", "-e", "-f", str(config)],
+        stdin=subprocess.DEVNULL,
+        stdout=log,
+        stderr=log,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 10
         while True:
@@ -131,8 +154,9 @@ def kex_robot(sshd: SSHD, tmp_path_factory) -> Iterator[int]:
     if KEX_PARAMIKO_LACKS not in known.stdout.split():
         pytest.skip(f"this OpenSSH lacks {KEX_PARAMIKO_LACKS}")
     assert KEX_PARAMIKO_LACKS not in paramiko.Transport._preferred_kex  # else pick another
-    with other_sshd(sshd, tmp_path_factory.mktemp("sshd-kex"),
-                    [f"KexAlgorithms {KEX_PARAMIKO_LACKS}"]) as port:
+    with other_sshd(
+        sshd, tmp_path_factory.mktemp("sshd-kex"), [f"KexAlgorithms {KEX_PARAMIKO_LACKS}"]
+    ) as port:
         yield port
 
 
@@ -147,8 +171,9 @@ def no_python_robot(sshd: SSHD, tmp_path_factory) -> Iterator[int]:
             found = shutil.which(tool)
             if found:
                 (bin_dir / tool).symlink_to(found)
-        with other_sshd(sshd, tmp_path_factory.mktemp("sshd-nopy"),
-                        [f"SetEnv PATH={bin_dir}"]) as port:
+        with other_sshd(
+            sshd, tmp_path_factory.mktemp("sshd-nopy"), [f"SetEnv PATH={bin_dir}"]
+        ) as port:
             yield port
     finally:
         shutil.rmtree(bin_dir, ignore_errors=True)
@@ -180,8 +205,9 @@ def test_changed_host_key(env, ssh_home, remote_dir, tmp_path) -> None:
     name = ssh_home.sshd.known_hosts_name
     ssh_home.known_hosts.write_text(f"{name} {kind} {blob}\n")
     # even the new key's fingerprint given to accept does not get past a changed key
-    line = one_line(cli("push", "--accept-host-key", ssh_home.sshd.host_key_fingerprint,
-                        env=env), CONNECT_EXIT)
+    line = one_line(
+        cli("push", "--accept-host-key", ssh_home.sshd.host_key_fingerprint, env=env), CONNECT_EXIT
+    )
     assert "REMOTE HOST IDENTIFICATION HAS CHANGED" in line
     assert ssh_home.sshd.host_key_fingerprint in line
     assert f"ssh-keygen -R '{name}'" in line
@@ -216,16 +242,21 @@ def test_key_refused(env, ssh_home, tmp_path) -> None:
 @pytest.fixture(scope="module")
 def keys_only_robot(sshd: SSHD, tmp_path_factory) -> Iterator[int]:
     """A robot whose sshd takes keys only, as many are set up."""
-    with other_sshd(sshd, tmp_path_factory.mktemp("sshd-keys-only"),
-                    ["PasswordAuthentication no", "KbdInteractiveAuthentication no"]) as port:
+    with other_sshd(
+        sshd,
+        tmp_path_factory.mktemp("sshd-keys-only"),
+        ["PasswordAuthentication no", "KbdInteractiveAuthentication no"],
+    ) as port:
         yield port
 
 
-def test_key_refused_by_a_robot_without_passwords(keys_only_robot, sshd, remote_dir,
-                                                  tmp_path) -> None:
+def test_key_refused_by_a_robot_without_passwords(
+    keys_only_robot, sshd, remote_dir, tmp_path
+) -> None:
     home = make_ssh_home(tmp_path / "keys-home", sshd=sshd, port=keys_only_robot)
-    subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(tmp_path / "k")],
-                   check=True)
+    subprocess.run(
+        ["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(tmp_path / "k")], check=True
+    )
     shutil.copyfile(tmp_path / "k", home.identity)
     env = make_env(home.home, str(remote_dir), tmp_path)
     # on a terminal too: no password prompt for a robot that would refuse any password
@@ -255,8 +286,9 @@ def password_user(sshd: SSHD) -> Iterator[tuple[str, str]]:
     subprocess.run(["useradd", "-m", "-s", "/bin/sh", name], check=True, capture_output=True)
     try:
         # on stdin: never a password in a command line
-        subprocess.run(["chpasswd"], input=f"{name}:{password}\n".encode(), check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["chpasswd"], input=f"{name}:{password}\n".encode(), check=True, capture_output=True
+        )
         account = pwd.getpwnam(name)
         ssh_dir = Path(account.pw_dir) / ".ssh"
         ssh_dir.mkdir(mode=0o700)
@@ -340,8 +372,12 @@ def test_no_python3_on_the_robot(no_python_robot, sshd, password_user, tmp_path)
 def test_python3_too_old_on_the_robot(env) -> None:
     python = old_python()
     assert python is not None
-    version = subprocess.run([python, "-c", "import sys; print('%d.%d.%d' % sys.version_info[:3])"],
-                             capture_output=True, text=True, check=True).stdout.strip()
+    version = subprocess.run(
+        [python, "-c", "import sys; print('%d.%d.%d' % sys.version_info[:3])"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
     env = dict(env, FETCHSYNC_REMOTE_PYTHON=python)
     line = one_line(cli("push", env=env), CONNECT_EXIT)
     assert f"python {version} on the robot is too old" in line and "python3 >= 3.6" in line
@@ -352,13 +388,20 @@ def test_python3_too_old_on_the_robot(env) -> None:
 
 
 def test_remote_workspace_not_writable(env, remote_dir) -> None:
-    if os.geteuid() != 0 or subprocess.run(["chattr", "+i", str(remote_dir)],
-                                           check=False, capture_output=True).returncode != 0:
+    if (
+        os.geteuid() != 0
+        or subprocess.run(
+            ["chattr", "+i", str(remote_dir)], check=False, capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("chattr +i needs root and a file system that supports it")
     try:
         line = one_line(cli("push", env=env), 4)  # fetchsync.errors.RemoteError
         assert str(remote_dir) in line and "Operation not permitted" in line
-        assert "not writable" in line and f"check the permissions of {remote_dir} on the robot" in line
+        assert (
+            "not writable" in line and f"check the permissions of {remote_dir} on the robot" in line
+        )
     finally:
         subprocess.run(["chattr", "-i", str(remote_dir)], check=True)
     assert not (remote_dir / "src").exists()

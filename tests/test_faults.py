@@ -45,8 +45,12 @@ def assert_one_line_failure(proc: subprocess.CompletedProcess | tuple[int, bytes
 
 
 def start(args: list[str], env: dict) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "fetchsync", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, "-m", "fetchsync", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def finish(proc: subprocess.Popen, timeout: float = FAULT_DEADLINE) -> tuple[int, bytes]:
@@ -85,12 +89,15 @@ def local_src(env: dict) -> Path:
 
 
 @pytest.mark.parametrize("fault", ["blackhole", "cut"])
-def test_link_fault_mid_push_fails_cleanly_and_the_next_push_converges(env, fault_proxy,
-                                                                       remote_dir, fault):
+def test_link_fault_mid_push_fails_cleanly_and_the_next_push_converges(
+    env, fault_proxy, remote_dir, fault
+):
     bulky_files(local_src(env))
     fault_proxy.throttle(bytes_per_second=200_000)
     proc = start(["push"], env)
-    wait_for(lambda: (remote_dir / "src").exists() or proc.poll() is not None, what="the push to start")
+    wait_for(
+        lambda: (remote_dir / "src").exists() or proc.poll() is not None, what="the push to start"
+    )
     time.sleep(0.5)
     getattr(fault_proxy, fault)()
     line = assert_one_line_failure(finish(proc))
@@ -195,12 +202,17 @@ def test_client_killed_mid_transfer_of_a_large_file(env, fault_proxy, remote_dir
     fetchsync("push", env=env)
     robot_big = remote_dir / "src/my_pkg/model.bin"
     assert robot_big.read_bytes() == old
-    big.write_bytes(os.urandom(60 * 1024 * 1024))   # nothing in common with the old one
+    big.write_bytes(os.urandom(60 * 1024 * 1024))  # nothing in common with the old one
     fault_proxy.throttle(bytes_per_second=4_000_000)
     proc = start(["push"], env)
     # kill it once the robot has started receiving the new content
-    wait_for(lambda: robot_scratch(remote_dir) or temporaries(remote_dir / "src")
-             or proc.poll() is not None, timeout=FAULT_DEADLINE, what="the transfer to start")
+    wait_for(
+        lambda: (
+            robot_scratch(remote_dir) or temporaries(remote_dir / "src") or proc.poll() is not None
+        ),
+        timeout=FAULT_DEADLINE,
+        what="the transfer to start",
+    )
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     # the robot holds the whole old file, never a mix of the two
@@ -265,8 +277,9 @@ def tiny_disk(tmp_path):
         pytest.skip("mounting a tmpfs needs root")
     where = tmp_path / "tiny-robot-ws"
     where.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(where)],
-                             capture_output=True)
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(where)], capture_output=True
+    )
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
     yield where
@@ -319,6 +332,7 @@ def test_a_push_does_not_wait_on_a_watch_agent_whose_robot_is_offline(env, fault
     env = dict(env, XDG_RUNTIME_DIR=str(runtime))
     watch = start(["watch"], env)
     try:
+
         def live() -> bool:
             out = fetchsync("status", "--json", env=env, check=False)
             return out.returncode == 0 and json.loads(out.stdout).get("state") == "live"
@@ -337,6 +351,7 @@ def test_a_push_does_not_wait_on_a_watch_agent_whose_robot_is_offline(env, fault
         watch.terminate()
         watch.communicate(timeout=20)
         import shutil
+
         shutil.rmtree(runtime, ignore_errors=True)
 
 
@@ -360,14 +375,18 @@ def marked_env(env, tmp_path):
     import uuid
 
     mark = uuid.uuid4().hex[:12]
-    yield dict(env, FETCHSYNC_DEADLINE="3", FETCHSYNC_REMOTE_PYTHON=f"python3 -X fsmark={mark}"), mark
+    yield (
+        dict(env, FETCHSYNC_DEADLINE="3", FETCHSYNC_REMOTE_PYTHON=f"python3 -X fsmark={mark}"),
+        mark,
+    )
     signal_all(marked(mark), signal.SIGCONT)
     signal_all(marked(mark), signal.SIGKILL)
 
 
 @pytest.mark.parametrize("via", ["direct", "master", "local"])
-def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(via, marked_env, fault_proxy,
-                                                                     remote_dir, tmp_path):
+def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(
+    via, marked_env, fault_proxy, remote_dir, tmp_path
+):
     """Issue 22 item 17: the robot's endpoint stops (SIGSTOP) mid-push with the link up; the
     call ends after the progress deadline with one line and exit 3, and once the endpoint
     runs again it ends: nothing is left running on the robot."""
@@ -378,8 +397,12 @@ def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(via, marked_
     if via == "master":
         env = dict(env, FETCHSYNC_PERSIST="60", XDG_RUNTIME_DIR=str(runtime))
     elif via == "local":
-        env = dict(env, FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "lr"),
-                   FETCHSYNC_REMOTE_WORKSPACE="~/ws")
+        env = dict(
+            env,
+            FETCHSYNC_ROBOT="local",
+            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "lr"),
+            FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+        )
     try:
         fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))
         if via == "master":
@@ -404,6 +427,7 @@ def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(via, marked_
     finally:
         subprocess.run(["pkill", "-f", f"fetchsync.link.mux.*{runtime}"], check=False)
         import shutil
+
         shutil.rmtree(runtime, ignore_errors=True)
 
 

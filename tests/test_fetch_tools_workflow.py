@@ -54,11 +54,15 @@ REPO = Path(__file__).resolve().parents[1]
 pytestmark = [
     pytest.mark.ssh,
     pytest.mark.skipif(os.geteuid() != 0, reason="creating an account on the robot needs root"),
-    pytest.mark.skipif(shutil.which("catkin_make") is None or shutil.which("g++") is None,
-                       reason="catkin (catkin_make) and g++ not installed"),
+    pytest.mark.skipif(
+        shutil.which("catkin_make") is None or shutil.which("g++") is None,
+        reason="catkin (catkin_make) and g++ not installed",
+    ),
     pytest.mark.skipif(shutil.which("bash") is None, reason="bash not installed"),
-    pytest.mark.skipif(not os.access("/usr/bin/rosdep", os.X_OK) and not os.environ.get("CI"),
-                       reason="Debian's rosdep (python3-rosdep2) not installed"),
+    pytest.mark.skipif(
+        not os.access("/usr/bin/rosdep", os.X_OK) and not os.environ.get("CI"),
+        reason="Debian's rosdep (python3-rosdep2) not installed",
+    ),
 ]
 
 
@@ -70,10 +74,12 @@ def shell(request: pytest.FixtureRequest) -> str:
         pytest.skip(f"{request.param} not installed")
     return str(request.param)
 
+
 PKG = "my_awesome_package"
 DEPEND = "make"  # a rosdep key whose Debian package is installed here (catkin needs it)
 PACKAGE_XML = CATKIN_PACKAGE_XML.format(name=PKG).replace(
-    "</package>", f"  <depend>{DEPEND}</depend>\n</package>")
+    "</package>", f"  <depend>{DEPEND}</depend>\n</package>"
+)
 CMAKELISTS = f"""cmake_minimum_required(VERSION 3.0.2)
 project({PKG})
 find_package(catkin REQUIRED)
@@ -109,21 +115,30 @@ def _laptop(ssh_home, tmp_path: Path, user: str) -> dict[str, str]:
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     wrapper = bin_dir / "fetchsync"  # this checkout's fetchsync, whatever is installed
-    wrapper.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync \"$@\"\n")
+    wrapper.write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync "$@"\n')
     wrapper.chmod(0o755)
     password = "Pw-" + secrets.token_urlsafe(12)
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))
-           and k not in ("SSH_AUTH_SOCK", "BASH_ENV", "ENV")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))
+        and k not in ("SSH_AUTH_SOCK", "BASH_ENV", "ENV")
+    }
     env.update(
-        HOME=str(home), PATH=f"{bin_dir}:{os.environ['PATH']}", PYTHONPATH=str(REPO),
-        ROS_DISTRO="noetic", FETCH_USER=user, FETCHSYNC_ADMIN_USER="root",
+        HOME=str(home),
+        PATH=f"{bin_dir}:{os.environ['PATH']}",
+        PYTHONPATH=str(REPO),
+        ROS_DISTRO="noetic",
+        FETCH_USER=user,
+        FETCHSYNC_ADMIN_USER="root",
         FETCHSYNC_NEW_PASSWORD=password,
         # the account's sudo password for rosdep (a user types it at the terminal's prompt)
         FETCHSYNC_SUDO_PASSWORD=password,
         # the tests' session settings (no lingering connection master, its own cache)
-        FETCHSYNC_PERSIST="0", XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", ""),
-        XDG_CACHE_HOME=os.environ.get("XDG_CACHE_HOME", ""), XDG_STATE_HOME=str(tmp_path / "st"),
+        FETCHSYNC_PERSIST="0",
+        XDG_RUNTIME_DIR=os.environ.get("XDG_RUNTIME_DIR", ""),
+        XDG_CACHE_HOME=os.environ.get("XDG_CACHE_HOME", ""),
+        XDG_STATE_HOME=str(tmp_path / "st"),
     )
     return env
 
@@ -136,28 +151,39 @@ def _robot_rosdep_offline(home: Path) -> None:
     root = home / ".rosdep-offline"
     (root / "sources.list.d").mkdir(parents=True)
     (root / "rules.yaml").write_text(
-        "".join(f"{key}:\n  debian: [{key}]\n" for key in ("catkin", DEPEND)))
+        "".join(f"{key}:\n  debian: [{key}]\n" for key in ("catkin", DEPEND))
+    )
     (root / "sources.list.d" / "10-offline.list").write_text(f"yaml file://{root}/rules.yaml\n")
     (root / "index.yaml").write_text("%YAML 1.1\n---\ndistributions: {}\ntype: index\nversion: 4\n")
     bashrc = home / ".bashrc"
-    bashrc.write_text(f"export ROSDEP_SOURCE_PATH={shlex.quote(str(root / 'sources.list.d'))}\n"
-                      f"export ROSDISTRO_INDEX_URL={shlex.quote(f'file://{root}/index.yaml')}\n"
-                      + bashrc.read_text())
+    bashrc.write_text(
+        f"export ROSDEP_SOURCE_PATH={shlex.quote(str(root / 'sources.list.d'))}\n"
+        f"export ROSDISTRO_INDEX_URL={shlex.quote(f'file://{root}/index.yaml')}\n"
+        + bashrc.read_text()
+    )
     for path in (root, *root.rglob("*"), bashrc):
         os.chown(path, entry.st_uid, entry.st_gid)
 
 
-def _typed(env: dict[str, str], cwd: Path, line: str,
-           shell: str = "bash") -> subprocess.CompletedProcess[str]:
+def _typed(
+    env: dict[str, str], cwd: Path, line: str, shell: str = "bash"
+) -> subprocess.CompletedProcess[str]:
     """One README line, typed in a shell that ran shell-init (and `ufr 0`)."""
     program = f'eval "$(fetchsync shell-init {shell})"\nufr 0 >/dev/null\n{line}\n'
     argv = [shell, "--norc", "--noprofile"] if shell == "bash" else [shell, "-f"]
-    return subprocess.run([*argv, "-c", program], env=env, cwd=cwd, capture_output=True,
-                          text=True, timeout=600, stdin=subprocess.DEVNULL, check=False)
+    return subprocess.run(
+        [*argv, "-c", program],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        stdin=subprocess.DEVNULL,
+        check=False,
+    )
 
 
-def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_user,
-                                                   shell) -> None:
+def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_user, shell) -> None:
     env = _laptop(ssh_home, tmp_path, robot_user)
     cwd = ssh_home.home
 
@@ -192,7 +218,8 @@ def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_use
 
     # Edit code to fix a bug
     (cwd / "noetic" / "src" / PKG / "src" / "do_stuff.cpp").write_text(
-        PROGRAM.format(message="doing stuff, well"))
+        PROGRAM.format(message="doing stuff, well")
+    )
     rebuilt = _step(env, cwd, f'fetch push --build "--pkg {PKG}"')
     assert rebuilt.returncode == 0, rebuilt.stdout + rebuilt.stderr
     assert f"catkin_make --pkg {PKG} (on freight0)" in rebuilt.stderr

@@ -30,17 +30,21 @@ def fleet_env(ssh_home, tmp_path: Path) -> dict[str, str]:
     """fetch1..3 are the sshd, each with a remote workspace of its own; ``down`` is nobody;
     robots.toml names groups ``lab`` (fetch1..3) and ``mixed`` (fetch1, down, fetch2)."""
     config = ssh_home.config.read_text()
-    block = config[config.index("Host robot"):]
+    block = config[config.index("Host robot") :]
     extra = "".join(block.replace("Host robot", f"Host {name}", 1) for name in ROBOTS)
     extra += block.replace("Host robot", "Host down", 1).replace(
-        f"Port {ssh_home.sshd.port}", f"Port {_closed_port()}")
+        f"Port {ssh_home.sshd.port}", f"Port {_closed_port()}"
+    )
     ssh_home.config.write_text(config + "\n" + extra)
     conf = ssh_home.home / ".config/fetchsync"
     conf.mkdir(parents=True)
     remote = {name: tmp_path / f"robot-{name}" for name in (*ROBOTS, "down")}
     (conf / "robots.toml").write_text(
         'lab = ["fetch1", "fetch2", "fetch3"]\nmixed = ["fetch1", "down", "fetch2"]\n\n'
-        + "".join(f'[robots.{name}]\nremote_workspace = "{path}"\n\n' for name, path in remote.items()))
+        + "".join(
+            f'[robots.{name}]\nremote_workspace = "{path}"\n\n' for name, path in remote.items()
+        )
+    )
     env = ssh_env(ssh_home.home, tmp_path / "unused", tmp_path)
     for k in ("FETCHSYNC_ROBOT", "FETCHSYNC_REMOTE_WORKSPACE", "XDG_CONFIG_HOME"):
         env.pop(k, None)
@@ -62,8 +66,9 @@ def _rows(stderr: bytes) -> dict[str, list[str]]:
 
 
 def test_a_fleet_push_with_a_robot_down_pushes_the_others(fleet_env, tmp_path):
-    proc = fetchsync("push", "--robot", "fetch1", "--robot", "down,fetch2", "--json",
-                     env=fleet_env, check=False)
+    proc = fetchsync(
+        "push", "--robot", "fetch1", "--robot", "down,fetch2", "--json", env=fleet_env, check=False
+    )
     assert proc.returncode == 3, proc.stderr.decode()  # the link's exit status: the one failure
     for name in ("fetch1", "fetch2"):
         assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(_src(fleet_env))
@@ -89,8 +94,9 @@ def test_retry_failed_runs_again_on_the_failed_robots_only(fleet_env, tmp_path):
 
 
 def test_fail_fast_starts_no_robot_after_a_failure(fleet_env, tmp_path):
-    proc = fetchsync("push", "-j", "1", "--fail-fast", "--robot", "down,fetch1", env=fleet_env,
-                     check=False)
+    proc = fetchsync(
+        "push", "-j", "1", "--fail-fast", "--robot", "down,fetch1", env=fleet_env, check=False
+    )
     assert proc.returncode == 3
     rows = _rows(proc.stderr)
     assert rows["down"][0] == "failed" and rows["fetch1"][:2] == ["not", "started"]
@@ -110,9 +116,17 @@ def test_a_group_from_robots_toml_and_in_the_variable(fleet_env, tmp_path):
 
 
 def test_a_fleet_run_prefixes_each_robots_output_and_fails_if_one_fails(fleet_env):
-    proc = fetchsync("run", "--robot", "@mixed", "--", "sh", "-c",
-                     'echo "out of $(basename $PWD)"; echo "err line" >&2; exit 0', env=fleet_env,
-                     check=False)
+    proc = fetchsync(
+        "run",
+        "--robot",
+        "@mixed",
+        "--",
+        "sh",
+        "-c",
+        'echo "out of $(basename $PWD)"; echo "err line" >&2; exit 0',
+        env=fleet_env,
+        check=False,
+    )
     assert proc.returncode == 255, proc.stderr.decode()  # down: fetchsync could not run it
     out = proc.stdout.decode().splitlines()
     assert sorted(line.split()[0] for line in out) == ["[fetch1]", "[fetch2]"]
@@ -121,18 +135,23 @@ def test_a_fleet_run_prefixes_each_robots_output_and_fails_if_one_fails(fleet_en
     rows = _rows(proc.stderr)
     assert rows["fetch1"][0] == "ok" and rows["down"][0] == "failed"
     # a command's own status is the robot's result
-    proc = fetchsync("run", "--robot", "fetch1,fetch2", "test $(hostname) = nobody", env=fleet_env,
-                     check=False)
+    proc = fetchsync(
+        "run", "--robot", "fetch1,fetch2", "test $(hostname) = nobody", env=fleet_env, check=False
+    )
     assert proc.returncode == 1
     assert _rows(proc.stderr)["fetch2"][0] == "failed"
 
 
 def test_pull_and_watch_refuse_several_robots(fleet_env):
     for verb in (["pull", "--yes"], ["watch"], ["workspace-status"]):
-        proc = fetchsync(*verb, "--robot", "fetch1", "--robot", "fetch2", env=fleet_env, check=False)
+        proc = fetchsync(
+            *verb, "--robot", "fetch1", "--robot", "fetch2", env=fleet_env, check=False
+        )
         assert proc.returncode == 2, (verb, proc.stderr.decode())
         [line] = [x for x in proc.stderr.decode().splitlines() if x.strip()]
-        assert "several robots (fetch1, fetch2, from --robot): only push and run take several" in line
+        assert (
+            "several robots (fetch1, fetch2, from --robot): only push and run take several" in line
+        )
 
 
 # -- naming, without a robot ---------------------------------------------------------
@@ -168,15 +187,31 @@ def test_ctrl_c_ends_a_fleet_run_and_its_commands_on_every_robot(fleet_env):
     marker = f"0.{uuid.uuid4().int % 10**9:09d}"
 
     def sleeps() -> list[str]:
-        return subprocess.run(["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True,
-                              text=True, check=False).stdout.split()
+        return subprocess.run(
+            ["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True, text=True, check=False
+        ).stdout.split()
 
     saved = signal.getsignal(signal.SIGINT)
     if saved == signal.SIG_IGN:  # as test_run: children of a background suite would ignore it
         signal.signal(signal.SIGINT, signal.default_int_handler)
-    proc = subprocess.Popen([sys.executable, "-m", "fetchsync", "run", "--robot", "fetch1,fetch2",
-                             "--", "sleep", "300", marker], env=fleet_env, stdin=subprocess.DEVNULL,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fetchsync",
+            "run",
+            "--robot",
+            "fetch1,fetch2",
+            "--",
+            "sleep",
+            "300",
+            marker,
+        ],
+        env=fleet_env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 60
         while len(sleeps()) < 2:
@@ -195,7 +230,9 @@ def test_ctrl_c_ends_a_fleet_run_and_its_commands_on_every_robot(fleet_env):
             os.kill(int(pid), signal.SIGKILL)
 
 
-def test_at_a_terminal_a_host_key_is_asked_once_for_robots_sharing_it(fleet_env, ssh_home, tmp_path):
+def test_at_a_terminal_a_host_key_is_asked_once_for_robots_sharing_it(
+    fleet_env, ssh_home, tmp_path
+):
     """fetch1..3 are one host: its key is asked about once, before any robot uses it, and
     the question is whole (asked in parallel, three would wait on one answer)."""
     from terminal import Terminal
@@ -222,4 +259,7 @@ def test_run_sources_each_robots_own_remote_workspace_from_robots_toml(fleet_env
     proc = fetchsync("run", "--robot", "fetch2", "echo mark=$FLEET_MARK", env=fleet_env)
     assert proc.stdout == b"mark=fetch2-workspace\n"
     proc = fetchsync("run", "--robot", "fetch1,fetch2", "echo mark=$FLEET_MARK", env=fleet_env)
-    assert sorted(proc.stdout.decode().splitlines()) == ["[fetch1] mark=", "[fetch2] mark=fetch2-workspace"]
+    assert sorted(proc.stdout.decode().splitlines()) == [
+        "[fetch1] mark=",
+        "[fetch2] mark=fetch2-workspace",
+    ]

@@ -25,8 +25,9 @@ def test_a_fleet_build_fails_on_one_robot_and_builds_on_the_other(fleet_env, tmp
     broken = tmp_path / "robot-fetch2"
     broken.mkdir()
     (broken / "build").write_text("a file where catkin_make wants its build directory\n")
-    proc = fetchsync("push", SYSTEM_PYTHON, "--robot", "fetch1,fetch2", "--json", env=fleet_env,
-                     check=False)
+    proc = fetchsync(
+        "push", SYSTEM_PYTHON, "--robot", "fetch1,fetch2", "--json", env=fleet_env, check=False
+    )
     assert proc.returncode != 0, proc.stderr.decode()
     assert (tmp_path / "robot-fetch1/devel/setup.bash").is_file()
     rows = _rows(proc.stderr)

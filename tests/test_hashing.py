@@ -46,8 +46,9 @@ def test_available_without_xxhash(no_xxhash: None) -> None:
         hashing.new(hashing.XXH3_128)
     with pytest.raises(ProtocolError):
         hashing.digest(hashing.XXH3_128, b"x")
-    assert hashing.digest(hashing.BLAKE2B_128, b"x") == hashlib.blake2b(
-        b"x", digest_size=16).digest()
+    assert (
+        hashing.digest(hashing.BLAKE2B_128, b"x") == hashlib.blake2b(b"x", digest_size=16).digest()
+    )
 
 
 def test_negotiate_takes_our_first_choice_they_have() -> None:
@@ -74,8 +75,9 @@ def test_unknown_algorithm_is_a_protocol_error(name: str) -> None:
 
 
 def test_blake2b_128_is_blake2b_with_a_16_byte_digest() -> None:
-    assert hashing.digest(hashing.BLAKE2B_128, DATA) == hashlib.blake2b(
-        DATA, digest_size=16).digest()
+    assert (
+        hashing.digest(hashing.BLAKE2B_128, DATA) == hashlib.blake2b(DATA, digest_size=16).digest()
+    )
     assert hashing.digest(hashing.BLAKE2B_128, b"").hex() == "cae66941d9efbd404e4d88758ea67670"
 
 
@@ -89,7 +91,7 @@ def test_xxh3_128_is_xxhash_xxh3_128() -> None:
 def test_incremental_equals_one_shot(name: str) -> None:
     h = hashing.new(name)
     for i in range(0, len(DATA), 1000):
-        h.update(DATA[i:i + 1000])
+        h.update(DATA[i : i + 1000])
     assert h.digest() == hashing.digest(name, DATA)
     assert len(h.digest()) == hashing.DIGEST_SIZE == 16
     assert hashing.digester(name)(DATA) == hashing.digest(name, DATA)

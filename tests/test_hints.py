@@ -18,8 +18,14 @@ pytestmark = pytest.mark.ssh
 
 def pasted(command: str, home: Path) -> subprocess.CompletedProcess:
     """``command`` pasted into bash by a user whose HOME is ``home``."""
-    return subprocess.run(["bash", "-c", command], env=dict(os.environ, HOME=str(home)),
-                          capture_output=True, text=True, check=False, timeout=30)
+    return subprocess.run(
+        ["bash", "-c", command],
+        env=dict(os.environ, HOME=str(home)),
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=30,
+    )
 
 
 def test_the_changed_key_hint_removes_the_old_key_when_pasted(ssh_home: SSHHome, tmp_path: Path):
@@ -39,7 +45,9 @@ def test_the_changed_key_hint_removes_the_old_key_when_pasted(ssh_home: SSHHome,
 
 
 @pytest.mark.parametrize("known", [True, False])
-def test_a_hint_built_from_a_hostile_user_name_runs_nothing(known, ssh_home: SSHHome, tmp_path: Path):
+def test_a_hint_built_from_a_hostile_user_name_runs_nothing(
+    known, ssh_home: SSHHome, tmp_path: Path
+):
     marker = tmp_path / "ran"
     user = f"$(touch {marker})"
     if not known:

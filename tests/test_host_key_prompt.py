@@ -16,8 +16,9 @@ QUESTION = b"(yes/no/[fingerprint])? "
 
 
 @pytest.mark.parametrize("answer", ["yes", "fingerprint"])
-def test_an_accepted_unknown_key_is_recorded_and_the_push_goes_on(answer, ssh_home, remote_dir,
-                                                                  tmp_path):
+def test_an_accepted_unknown_key_is_recorded_and_the_push_goes_on(
+    answer, ssh_home, remote_dir, tmp_path
+):
     ssh_home.known_hosts.write_text("")
     env = ssh_env(ssh_home.home, remote_dir, tmp_path, PYTHONPATH=os.environ.get("PYTHONPATH", ""))
     term = Terminal(["push"], env)

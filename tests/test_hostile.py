@@ -32,32 +32,49 @@ def robot(tmp_path: Path):
     env = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         env.pop(k, None)
-    env.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-               XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
-               FETCHSYNC_WORKSPACE=str(ws), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
-    fetchsync("push", env=env)   # the honest endpoint
+    env.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(ws),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
+    fetchsync("push", env=env)  # the honest endpoint
     return env, ws, canary
 
 
 def hostile(env: dict, tmp_path: Path, mode: str, canary: Path) -> dict:
     wrapper = tmp_path / f"hostile-python-{mode}"
-    wrapper.write_text("#!/bin/sh\n"
-                       f"PYTHONPATH={shlex.quote(str(REPO))} exec {shlex.quote(sys.executable)} "
-                       f"{shlex.quote(str(HERE / 'hostile_endpoint.py'))} {mode} "
-                       f"{shlex.quote(str(canary))}\n")
+    wrapper.write_text(
+        "#!/bin/sh\n"
+        f"PYTHONPATH={shlex.quote(str(REPO))} exec {shlex.quote(sys.executable)} "
+        f"{shlex.quote(str(HERE / 'hostile_endpoint.py'))} {mode} "
+        f"{shlex.quote(str(canary))}\n"
+    )
     wrapper.chmod(0o755)
     return dict(env, FETCHSYNC_REMOTE_PYTHON=str(wrapper))
 
 
 def snapshot(ws: Path) -> dict:
     # pull keeps its own store's bookkeeping in .fetchsync/ beside src/
-    return {"src": tree_of(ws / "src"), "canary": tree_of(ws / "canary"),
-            "beside": sorted(set(os.listdir(ws)) - {".fetchsync"}),
-            "outside": sorted(os.listdir(ws.parent))}
+    return {
+        "src": tree_of(ws / "src"),
+        "canary": tree_of(ws / "canary"),
+        "beside": sorted(set(os.listdir(ws)) - {".fetchsync"}),
+        "outside": sorted(os.listdir(ws.parent)),
+    }
 
 
-REFUSED = ["dotdot", "absolute", "nul", "slash", "empty_name", "oversized_frame",
-           "garbage_after_hello", "huge_header"]
+REFUSED = [
+    "dotdot",
+    "absolute",
+    "nul",
+    "slash",
+    "empty_name",
+    "oversized_frame",
+    "garbage_after_hello",
+    "huge_header",
+]
 
 
 @pytest.mark.parametrize("mode", REFUSED)
@@ -132,8 +149,12 @@ FUZZ = int(os.environ.get("FETCHSYNC_FUZZ_EXAMPLES", "0"))
 
 
 def fuzz(default: int):
-    return settings(max_examples=FUZZ or default, deadline=None, database=None,
-                    suppress_health_check=list(HealthCheck))
+    return settings(
+        max_examples=FUZZ or default,
+        deadline=None,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+    )
 
 
 def _peak_rss_mb() -> float:
@@ -147,24 +168,50 @@ def bounded_memory():
     assert _peak_rss_mb() - before < 512, "a fuzz case allocated hundreds of MiB"
 
 
-json_leaf = st.one_of(st.none(), st.booleans(), st.integers(-(1 << 70), 1 << 70),
-                      st.text(max_size=20), st.sampled_from(["", ".", "..", "/", "a/../b", "\x00",
-                                                             "f:00", "l:x", "-", "d"]))
-json_value = st.one_of(json_leaf, st.lists(json_leaf, max_size=3),
-                       st.dictionaries(st.text(max_size=3), json_leaf, max_size=3))
+json_leaf = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(1 << 70), 1 << 70),
+    st.text(max_size=20),
+    st.sampled_from(["", ".", "..", "/", "a/../b", "\x00", "f:00", "l:x", "-", "d"]),
+)
+json_value = st.one_of(
+    json_leaf,
+    st.lists(json_leaf, max_size=3),
+    st.dictionaries(st.text(max_size=3), json_leaf, max_size=3),
+)
 op_keys = st.sampled_from(["k", "p", "e", "m", "t", "h", "s", "src", "b", "fp", "bl", "u", "z"])
-op_like = st.dictionaries(op_keys, json_value, max_size=13) | st.fixed_dictionaries(
-    {"k": st.sampled_from(M.OP_KINDS), "p": json_leaf}, optional={"e": json_leaf, "bl": json_value,
-    "src": st.sampled_from(M.SOURCES), "m": json_leaf, "s": json_leaf, "u": json_leaf}) | json_value
+op_like = (
+    st.dictionaries(op_keys, json_value, max_size=13)
+    | st.fixed_dictionaries(
+        {"k": st.sampled_from(M.OP_KINDS), "p": json_leaf},
+        optional={
+            "e": json_leaf,
+            "bl": json_value,
+            "src": st.sampled_from(M.SOURCES),
+            "m": json_leaf,
+            "s": json_leaf,
+            "u": json_leaf,
+        },
+    )
+    | json_value
+)
 
 frame_bytes = st.one_of(
     st.binary(max_size=300),
-    st.builds(lambda blen, t, f, body: struct.pack(">IBBI", blen, t, f, 1) + body,
-              st.integers(0, (1 << 32) - 1), st.integers(0, 5), st.integers(0, 5),
-              st.binary(max_size=200)),
-    st.builds(lambda hdr, blob, comp: wire.encode_frame(wire.Frame(1, 1, hdr, blob), compress=comp),
-              st.dictionaries(st.text(max_size=5), json_leaf, max_size=4), st.binary(max_size=600),
-              st.booleans()).map(lambda b: b[:-1] if len(b) % 3 == 0 else b),
+    st.builds(
+        lambda blen, t, f, body: struct.pack(">IBBI", blen, t, f, 1) + body,
+        st.integers(0, (1 << 32) - 1),
+        st.integers(0, 5),
+        st.integers(0, 5),
+        st.binary(max_size=200),
+    ),
+    st.builds(
+        lambda hdr, blob, comp: wire.encode_frame(wire.Frame(1, 1, hdr, blob), compress=comp),
+        st.dictionaries(st.text(max_size=5), json_leaf, max_size=4),
+        st.binary(max_size=600),
+        st.booleans(),
+    ).map(lambda b: b[:-1] if len(b) % 3 == 0 else b),
 )
 
 
@@ -181,8 +228,12 @@ def test_fuzz_reader_read_frame(data, bounded_memory):
 
 
 @fuzz(1500)
-@given(ftype=st.integers(0, 255), flags=st.integers(0, 255), body=st.binary(max_size=300)
-       | st.binary(max_size=200).map(lambda b: __import__("zlib").compress(b)))
+@given(
+    ftype=st.integers(0, 255),
+    flags=st.integers(0, 255),
+    body=st.binary(max_size=300)
+    | st.binary(max_size=200).map(lambda b: __import__("zlib").compress(b)),
+)
 def test_fuzz_decode_body(ftype, flags, body, bounded_memory):
     try:
         wire.decode_body(ftype, flags, 1, body)
@@ -190,14 +241,29 @@ def test_fuzz_decode_body(ftype, flags, body, bounded_memory):
         pass
 
 
-@given(kind=st.sampled_from(M.OP_KINDS), path=st.sampled_from(["a", "a/b c", "d/\udcff"]),
-       mode=st.integers(0, 0o7777), size=st.integers(0, 1 << 40), z=st.integers(0, 1))
+@given(
+    kind=st.sampled_from(M.OP_KINDS),
+    path=st.sampled_from(["a", "a/b c", "d/\udcff"]),
+    mode=st.integers(0, 0o7777),
+    size=st.integers(0, 1 << 40),
+    z=st.integers(0, 1),
+)
 def test_op_from_wire_is_the_op_sent(kind, path, mode, size, z):
     """Decoding builds the instance's fields at once (not through the frozen dataclass's
     __init__): what arrives must equal, hash and behave as the operation sent."""
-    op = M.Op(kind=kind, path=path, expect=M.ABSENT, mode=mode, target="t" if kind == M.SYMLINK else "",
-              hash="ab", size=size, source=M.SRC_DATA if kind == M.WRITE else "", blob=(3, 4), z=z,
-              upload="u1" if kind == M.UPLOAD else "")
+    op = M.Op(
+        kind=kind,
+        path=path,
+        expect=M.ABSENT,
+        mode=mode,
+        target="t" if kind == M.SYMLINK else "",
+        hash="ab",
+        size=size,
+        source=M.SRC_DATA if kind == M.WRITE else "",
+        blob=(3, 4),
+        z=z,
+        upload="u1" if kind == M.UPLOAD else "",
+    )
     got = M.Op.from_wire(op.to_wire())
     assert got == op and hash(got) == hash(op) and got.blob == (3, 4)
     with pytest.raises(__import__("dataclasses").FrozenInstanceError):  # still frozen
@@ -209,11 +275,21 @@ def test_op_but_is_dataclasses_replace():
     leave the original as it was, and refuse a field Op does not have."""
     import dataclasses
 
-    op = M.Op(kind=M.WRITE, path="a/b", expect=M.ABSENT, mode=0o644, hash="ab", size=3,
-              source=M.SRC_DATA, blob=(0, 3))
+    op = M.Op(
+        kind=M.WRITE,
+        path="a/b",
+        expect=M.ABSENT,
+        mode=0o644,
+        hash="ab",
+        size=3,
+        source=M.SRC_DATA,
+        blob=(0, 3),
+    )
     got = op.but(blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1")
     assert got == dataclasses.replace(op, blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1")
-    assert hash(got) == hash(dataclasses.replace(op, blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1"))
+    assert hash(got) == hash(
+        dataclasses.replace(op, blob=(7, 3), z=1, source=M.SRC_UPLOAD, upload="u1")
+    )
     assert op.blob == (0, 3) and op.z == 0 and op.source == M.SRC_DATA
     with pytest.raises(TypeError, match="no field sizes"):
         op.but(sizes=1)
@@ -221,13 +297,16 @@ def test_op_but_is_dataclasses_replace():
         got.z = 0  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("wire_op, says", [
-    ({"p": "a", "e": "-"}, "lacks 'k'"),
-    ({"k": "write", "p": 5, "e": "-"}, "path is not a string"),
-    ({"k": "write", "p": "a", "e": "-", "h": ["x"]}, "hash is not a string"),
-    ({"k": "write", "p": "a", "e": "-", "bl": [1]}, "bad blob reference"),
-    ("write", "not an object"),
-])
+@pytest.mark.parametrize(
+    "wire_op, says",
+    [
+        ({"p": "a", "e": "-"}, "lacks 'k'"),
+        ({"k": "write", "p": 5, "e": "-"}, "path is not a string"),
+        ({"k": "write", "p": "a", "e": "-", "h": ["x"]}, "hash is not a string"),
+        ({"k": "write", "p": "a", "e": "-", "bl": [1]}, "bad blob reference"),
+        ("write", "not an object"),
+    ],
+)
 def test_op_from_wire_refuses_malformed_fields(wire_op, says):
     with pytest.raises(ProtocolError, match=says):
         M.Op.from_wire(wire_op)
@@ -243,9 +322,17 @@ def test_fuzz_op_from_wire(obj):
 
 
 @fuzz(1500)
-@given(obj=st.lists(json_leaf, min_size=5, max_size=5) | st.tuples(
-    st.sampled_from(["a", "a/b", "..", "/x", "a\x00"]), st.sampled_from(["f", "d", "l", "x"]),
-    json_leaf, json_leaf, json_leaf).map(list) | json_value)
+@given(
+    obj=st.lists(json_leaf, min_size=5, max_size=5)
+    | st.tuples(
+        st.sampled_from(["a", "a/b", "..", "/x", "a\x00"]),
+        st.sampled_from(["f", "d", "l", "x"]),
+        json_leaf,
+        json_leaf,
+        json_leaf,
+    ).map(list)
+    | json_value
+)
 def test_fuzz_listed_from_wire(obj):
     try:
         M.Listed.from_wire(obj)
@@ -257,7 +344,8 @@ def _mutations(good: bytes) -> st.SearchStrategy[bytes]:
     return st.one_of(
         st.binary(max_size=200),
         st.tuples(st.integers(0, max(len(good) - 1, 0)), st.binary(min_size=1, max_size=8)).map(
-            lambda t: good[:t[0]] + t[1] + good[t[0] + len(t[1]):]),
+            lambda t: good[: t[0]] + t[1] + good[t[0] + len(t[1]) :]
+        ),
         st.integers(0, len(good)).map(lambda n: good[:n]),
     )
 
@@ -287,22 +375,60 @@ def test_fuzz_signature_from_bytes(data, bounded_memory):
         pass
 
 
-_names = st.sampled_from(["a", "b", "a/b", "a/b/c", "d", "d/x", "../x", "/abs", "a//b", "lnk",
-                          "lnk/in", ".fetchsync-tmp-x", ""])
+_names = st.sampled_from(
+    [
+        "a",
+        "b",
+        "a/b",
+        "a/b/c",
+        "d",
+        "d/x",
+        "../x",
+        "/abs",
+        "a//b",
+        "lnk",
+        "lnk/in",
+        ".fetchsync-tmp-x",
+        "",
+    ]
+)
 _expects = st.sampled_from([None, "-", "d", "f:" + "0" * 32, "l:a", "l:/etc", "x"])
 fuzz_op = st.builds(
     lambda kind, path, expect, mode, target, src, size, blob, z, upload, fp: {
-        "k": kind, "p": path, "e": expect, "m": mode, "t": target, "h": "ab" * 16, "s": size,
-        "src": src, "b": "ab" * 16, "fp": fp, "bl": blob, "u": upload, "z": z},
-    st.sampled_from(M.OP_KINDS), _names, _expects, st.integers(0, 0o7777),
-    st.sampled_from(["", "a", "/etc", "../..", "lnk"]), st.sampled_from(M.SOURCES + ("",)),
-    st.integers(0, 1 << 40), st.lists(st.integers(0, 1 << 40), min_size=2, max_size=2),
-    st.integers(0, 1), st.sampled_from(["", "u1", "u2"]), _names)
+        "k": kind,
+        "p": path,
+        "e": expect,
+        "m": mode,
+        "t": target,
+        "h": "ab" * 16,
+        "s": size,
+        "src": src,
+        "b": "ab" * 16,
+        "fp": fp,
+        "bl": blob,
+        "u": upload,
+        "z": z,
+    },
+    st.sampled_from(M.OP_KINDS),
+    _names,
+    _expects,
+    st.integers(0, 0o7777),
+    st.sampled_from(["", "a", "/etc", "../..", "lnk"]),
+    st.sampled_from(M.SOURCES + ("",)),
+    st.integers(0, 1 << 40),
+    st.lists(st.integers(0, 1 << 40), min_size=2, max_size=2),
+    st.integers(0, 1),
+    st.sampled_from(["", "u1", "u2"]),
+    _names,
+)
 
 
 @fuzz(300)
-@given(raw_ops=st.lists(fuzz_op, max_size=8), blob=st.binary(max_size=256),
-       zpart=st.none() | st.lists(st.integers(0, 1 << 30), min_size=2, max_size=2))
+@given(
+    raw_ops=st.lists(fuzz_op, max_size=8),
+    blob=st.binary(max_size=256),
+    zpart=st.none() | st.lists(st.integers(0, 1 << 30), min_size=2, max_size=2),
+)
 def test_fuzz_store_apply(raw_ops, blob, zpart, bounded_memory):
     with tempfile.TemporaryDirectory() as tmp:
         outside = Path(tmp) / "outside"
@@ -337,9 +463,13 @@ def local_env(tmp_path: Path) -> dict:
     env = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         env.pop(k, None)
-    env.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-               XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
-               FETCHSYNC_WORKSPACE=str(ws), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    env.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(ws),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     return env
 
 
@@ -357,10 +487,14 @@ def _bytes_tree(root: Path) -> dict:
             elif os.path.isdir(full):
                 out[rel] = ("d",)
             elif not os.path.isfile(full):
-                out[rel] = ("special",)   # never open a FIFO: it would block
+                out[rel] = ("special",)  # never open a FIFO: it would block
             else:
                 with open(full, "rb") as fh:
-                    out[rel] = ("f", st_.st_mode & 0o777, hashing.digest(hashing.FALLBACK, fh.read()))
+                    out[rel] = (
+                        "f",
+                        st_.st_mode & 0o777,
+                        hashing.digest(hashing.FALLBACK, fh.read()),
+                    )
     return out
 
 

@@ -631,9 +631,13 @@ def test_pull_never_brings_a_robots_git_directory(tmp_path: Path) -> None:
     env = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER"):
         env.pop(k, None)
-    env.update(FETCHSYNC_ROBOT="local", FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
-               FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/ws",
-               XDG_STATE_HOME=str(tmp_path / "state"))
+    env.update(
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     (tmp_path / "ws/src/pkg").mkdir(parents=True)
     (tmp_path / "ws/src/pkg/package.xml").write_text("<package/>\n")
     robot = tmp_path / "robot/ws/src"
@@ -646,13 +650,21 @@ def test_pull_never_brings_a_robots_git_directory(tmp_path: Path) -> None:
     (robot / ".fetchsyncignore").write_text(HOSTILE.replace("!*\n", ""))
     (robot / "pkg/.fetchsyncignore").write_text(HOSTILE.replace("!*\n", ""))
     (robot / "pkg/robot_only.txt").write_text("from the robot\n")
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "pull", "--yes"], env=env,
-                          capture_output=True, timeout=120, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", "pull", "--yes"],
+        env=env,
+        capture_output=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr.decode()
     local = tmp_path / "ws/src"
     assert (local / "pkg/robot_only.txt").exists()  # the pull did happen
-    found = [str(p.relative_to(local)) for p in local.rglob("*")
-             if {".git", ".hg", ".svn", ".bzr"} & set(p.relative_to(local).parts)]
+    found = [
+        str(p.relative_to(local))
+        for p in local.rglob("*")
+        if {".git", ".hg", ".svn", ".bzr"} & set(p.relative_to(local).parts)
+    ]
     assert found == []
 
 

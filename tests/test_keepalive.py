@@ -17,9 +17,13 @@ from fetchsync.protocol import wire
 
 def local_env(tmp_path: Path, **extra: str) -> dict[str, str]:
     e = dict(os.environ)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-             XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     e.update(extra)
@@ -39,8 +43,11 @@ def test_a_request_slower_than_the_deadline_completes(tmp_path):
 def _raw_endpoint(home: Path, **env: str) -> tuple[subprocess.Popen, wire.Reader, dict]:
     proc = subprocess.Popen(
         [sys.executable, "-c", "from fetchsync.protocol.server import main; main()"],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        env=dict(os.environ, HOME=str(home), **env))
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=dict(os.environ, HOME=str(home), **env),
+    )
     assert proc.stdout is not None
     reader = wire.Reader(proc.stdout.read1)  # type: ignore[attr-defined]
     return proc, reader, reader.read_hello()
@@ -57,7 +64,10 @@ def test_a_client_that_asks_gets_progress_frames_for_the_request_then_its_answer
     try:
         assert hello["progress"] > 0
         _send(proc, wire.encode_hello({"algorithm": ALG, "progress": 0.2}))
-        _send(proc, wire.encode_frame(wire.Frame(wire.T_REQUEST, 1, {"op": "open", "workspace": "~/ws"})))
+        _send(
+            proc,
+            wire.encode_frame(wire.Frame(wire.T_REQUEST, 1, {"op": "open", "workspace": "~/ws"})),
+        )
         assert reader.read_frame().type == wire.T_RESPONSE  # type: ignore[union-attr]
         _send(proc, wire.encode_frame(wire.Frame(wire.T_REQUEST, 2, {"op": "list"})))
         frames = []

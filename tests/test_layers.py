@@ -51,8 +51,12 @@ def _imports() -> dict[str, set[str]]:
                 continue
             if isinstance(node, ast.Import):
                 found.update(a.name for a in node.names if a.name.split(".")[0] == "fetchsync")
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and \
-                    node.module.split(".")[0] == "fetchsync":
+            elif (
+                isinstance(node, ast.ImportFrom)
+                and node.level == 0
+                and node.module
+                and node.module.split(".")[0] == "fetchsync"
+            ):
                 for alias in node.names:
                     sub = f"{node.module}.{alias.name}"
                     as_path = PACKAGE.parent / sub.replace(".", "/")
@@ -65,8 +69,12 @@ def _imports() -> dict[str, set[str]]:
 
 
 def upward_edges(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
-    return sorted((a, b) for a, targets in graph.items() for b in targets
-                  if ORDER.index(_room(b)) > ORDER.index(_room(a)))
+    return sorted(
+        (a, b)
+        for a, targets in graph.items()
+        for b in targets
+        if ORDER.index(_room(b)) > ORDER.index(_room(a))
+    )
 
 
 def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -123,8 +131,11 @@ def test_the_robots_programs_import_nothing_of_fetchsync() -> None:
 def test_the_protocol_imports_only_the_protocol() -> None:
     """It is what the robot runs: nothing of the laptop's side may come along."""
     graph = _imports()
-    assert {m: sorted(t) for m, t in graph.items() if _room(m) == "protocol"
-            and any(_room(x) != "protocol" for x in t)} == {}
+    assert {
+        m: sorted(t)
+        for m, t in graph.items()
+        if _room(m) == "protocol" and any(_room(x) != "protocol" for x in t)
+    } == {}
 
 
 def test_no_import_cycles() -> None:
@@ -133,7 +144,9 @@ def test_no_import_cycles() -> None:
 
 def test_the_checks_see_an_upward_edge_and_a_cycle() -> None:
     """The two checks above would fail on a graph that breaks them."""
-    graph = {"fetchsync.link.session": {"fetchsync.sync.state"},
-             "fetchsync.sync.state": {"fetchsync.link.session"}}
+    graph = {
+        "fetchsync.link.session": {"fetchsync.sync.state"},
+        "fetchsync.sync.state": {"fetchsync.link.session"},
+    }
     assert upward_edges(graph) == [("fetchsync.link.session", "fetchsync.sync.state")]
     assert cycles(graph) == [["fetchsync.link.session", "fetchsync.sync.state"]]

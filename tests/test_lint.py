@@ -10,22 +10,23 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner, Result
 
-from fetchsync.cli import cli
 from fetchsync.chores.lint import (
     CPPLINT,
     PYCODESTYLE,
     classify,
-    parse_cpplint,
     resolve_targets,
     run_catkin_lint,
 )
+from fetchsync.cli import cli
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from helpers import fetchsync
 
 REPO = Path(__file__).resolve().parent.parent
-ROSLINT_LINE = ("lint: style roslint (fetch_tools' rules: pep8 at 79 columns, roslint's cpplint, "
-                "catkin_lint -W2)")
+ROSLINT_LINE = (
+    "lint: style roslint (fetch_tools' rules: pep8 at 79 columns, roslint's cpplint, "
+    "catkin_lint -W2)"
+)
 
 CLEAN_PY = '"""A clean module."""\n\n\ndef answer():\n    return 42\n'
 # A 110-character line: fine by roslint's cpplint (120), not by pep8's 79 as fetch_tools ran it.
@@ -188,8 +189,10 @@ def test_python_findings_are_reported_with_exit_1(tmp_path: Path) -> None:
     assert result.exit_code == 1
     assert finding_lines(result) == [
         "bad.py:2: [pycodestyle] E302 expected 2 blank lines, found 0",
-        ("bad.py:4: [pycodestyle] E305 expected 2 blank lines after class or function "
-         "definition, found 0"),
+        (
+            "bad.py:4: [pycodestyle] E305 expected 2 blank lines after class or function "
+            "definition, found 0"
+        ),
         "bad.py:4: [pycodestyle] E501 line too long (136 > 79 characters)",
     ]
     assert "pycodestyle: 3 findings in 1 file (1 file checked)" in result.output
@@ -200,7 +203,8 @@ def test_max_line_length_option(tmp_path: Path) -> None:
     result = run("--max-line-length", "100", "long.py")
     assert result.exit_code == 1
     assert finding_lines(result) == [
-        "long.py:8: [pycodestyle] E501 line too long (110 > 100 characters)"]
+        "long.py:8: [pycodestyle] E501 line too long (110 > 100 characters)"
+    ]
 
 
 def test_python_script_found_by_shebang(tmp_path: Path) -> None:
@@ -223,7 +227,8 @@ def test_cpp_roslint_filters(tmp_path: Path) -> None:
         "catkin_lint: no packages to check",
     ]
     bad = ROS_STYLE_CPP.replace("if (x > 0)", "if(x > 0)").replace(
-        "under roslint's limit", "well over roslint's limit of 120 characters, which it reports")
+        "under roslint's limit", "well over roslint's limit of 120 characters, which it reports"
+    )
     write(tmp_path / "bad.cpp", bad)
     result = run("bad.cpp")
     assert result.exit_code == 1
@@ -236,15 +241,21 @@ def test_cpp_roslint_filters(tmp_path: Path) -> None:
 def test_header_guards_follow_ros_style(tmp_path: Path) -> None:
     pkg = make_package(tmp_path / "src", "pkg_a")
     write(pkg / "include" / "pkg_a" / "thing.h", GOOD_HEADER)
-    write(pkg / "include" / "pkg_a" / "other.h",
-          GOOD_HEADER.replace("PKG_A_THING_H", "OTHER_H_INCLUDED"))
+    write(
+        pkg / "include" / "pkg_a" / "other.h",
+        GOOD_HEADER.replace("PKG_A_THING_H", "OTHER_H_INCLUDED"),
+    )
     write(pkg / "src" / "local.h", GOOD_HEADER.replace("PKG_A_THING_H", "SRC_LOCAL_H"))
     result = run("--tool", "cpplint", str(pkg))
     assert [ln for ln in finding_lines(result) if "header_guard" in ln] == [
-        ("src/pkg_a/include/pkg_a/other.h:2: [cpplint] build/header_guard "
-         "#ifndef header guard has wrong style, please use: PKG_A_OTHER_H"),
-        ("src/pkg_a/include/pkg_a/other.h:19: [cpplint] build/header_guard "
-         "#endif line should be \"#endif  // PKG_A_OTHER_H\""),
+        (
+            "src/pkg_a/include/pkg_a/other.h:2: [cpplint] build/header_guard "
+            "#ifndef header guard has wrong style, please use: PKG_A_OTHER_H"
+        ),
+        (
+            "src/pkg_a/include/pkg_a/other.h:19: [cpplint] build/header_guard "
+            '#endif line should be "#endif  // PKG_A_OTHER_H"'
+        ),
     ]
 
 
@@ -252,12 +263,15 @@ def test_unlintable_or_missing_path_is_a_usage_error(tmp_path: Path) -> None:
     write(tmp_path / "notes.txt", "hello\n")
     result = run("notes.txt")
     assert result.exit_code == 2
-    assert result.output == ("fetchsync: error: cannot lint notes.txt: not a Python or C/C++ "
-                             "file, nor a package.xml or CMakeLists.txt of a package\n")
+    assert result.output == (
+        "fetchsync: error: cannot lint notes.txt: not a Python or C/C++ "
+        "file, nor a package.xml or CMakeLists.txt of a package\n"
+    )
     result = run("./missing.py")
     assert result.exit_code == 2
-    assert result.output == ("fetchsync: error: cannot lint ./missing.py: "
-                             "no such file or directory\n")
+    assert result.output == (
+        "fetchsync: error: cannot lint ./missing.py: no such file or directory\n"
+    )
 
 
 # --------------------------------------------------------------------------- packages
@@ -281,14 +295,17 @@ def test_package_by_name_reports_missing_sibling_dependency(tmp_path: Path) -> N
     assert result.exit_code == 1
     assert finding_lines(result) == [
         "ws/src/pkg_b/package.xml: [catkin_lint] MISSING_DEPEND missing build_depend on 'pkg_a'",
-        ("ws/src/pkg_b/package.xml: [catkin_lint] MISSING_DEPEND "
-         "missing build_export_depend on 'pkg_a'"),
+        (
+            "ws/src/pkg_b/package.xml: [catkin_lint] MISSING_DEPEND "
+            "missing build_export_depend on 'pkg_a'"
+        ),
     ]
     assert "catkin_lint: 2 findings in 1 file (1 package checked)" in result.output
 
 
-def test_package_by_name_lints_its_files_only(tmp_path: Path,
-                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_package_by_name_lints_its_files_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     ws = make_workspace(tmp_path)
     write(ws / "src" / "pkg_a" / "scripts" / "node", "#!/usr/bin/env python\nimport os,sys\n")
     write(ws / "src" / "pkg_b" / "scripts" / "other.py", "import os,sys\n")
@@ -311,17 +328,23 @@ def test_unknown_package_name_is_one_line_with_close_matches(tmp_path: Path) -> 
     result = run("--workspace", "ws", "pkg_c")
     assert result.exit_code == 2
     assert result.output.count("\n") == 1
-    assert result.output.startswith("fetchsync: error: cannot lint pkg_c: no such file or "
-                                    "directory, nor a package of that name in ")
-    assert "did you mean pkg_a, pkg_b?" in result.output or \
-        "did you mean pkg_b, pkg_a?" in result.output
+    assert result.output.startswith(
+        "fetchsync: error: cannot lint pkg_c: no such file or "
+        "directory, nor a package of that name in "
+    )
+    assert (
+        "did you mean pkg_a, pkg_b?" in result.output
+        or "did you mean pkg_b, pkg_a?" in result.output
+    )
 
 
 def test_package_name_without_a_workspace_is_a_config_error() -> None:
     result = run("pkg_a")
     assert result.exit_code == 2
-    assert result.output.startswith("fetchsync: error: pkg_a is not a file or directory, so it "
-                                    "names a package, but no workspace given")
+    assert result.output.startswith(
+        "fetchsync: error: pkg_a is not a file or directory, so it "
+        "names a package, but no workspace given"
+    )
     assert result.output.count("\n") == 1
 
 
@@ -336,8 +359,10 @@ def test_manifest_file_lints_its_package(tmp_path: Path) -> None:
 
 
 def test_a_package_catkin_lint_cannot_read_is_a_finding(tmp_path: Path) -> None:
-    write(tmp_path / "ws" / "src" / "broken" / "package.xml",
-          '<package format="2"><name>broken</name></package>\n')
+    write(
+        tmp_path / "ws" / "src" / "broken" / "package.xml",
+        '<package format="2"><name>broken</name></package>\n',
+    )
     result = run("ws/src")
     assert result.exit_code == 1
     [line] = finding_lines(result)
@@ -391,17 +416,33 @@ def test_json_shape(tmp_path: Path) -> None:
     assert set(report["tools"]) == {"pycodestyle", "cpplint", "catkin_lint"}
     assert report["tools"]["cpplint"] == {"files": 0, "findings": []}
     assert report["tools"]["catkin_lint"]["files"] == 1
-    assert report["tools"]["pycodestyle"] == {"files": 1, "findings": [
-        {"path": "ws/src/pkg_b/bad.py", "line": 2, "code": "E302",
-         "message": "expected 2 blank lines, found 0"},
-        {"path": "ws/src/pkg_b/bad.py", "line": 4, "code": "E305",
-         "message": "expected 2 blank lines after class or function definition, found 0"},
-        {"path": "ws/src/pkg_b/bad.py", "line": 4, "code": "E501",
-         "message": "line too long (136 > 79 characters)"},
-    ]}
+    assert report["tools"]["pycodestyle"] == {
+        "files": 1,
+        "findings": [
+            {
+                "path": "ws/src/pkg_b/bad.py",
+                "line": 2,
+                "code": "E302",
+                "message": "expected 2 blank lines, found 0",
+            },
+            {
+                "path": "ws/src/pkg_b/bad.py",
+                "line": 4,
+                "code": "E305",
+                "message": "expected 2 blank lines after class or function definition, found 0",
+            },
+            {
+                "path": "ws/src/pkg_b/bad.py",
+                "line": 4,
+                "code": "E501",
+                "message": "line too long (136 > 79 characters)",
+            },
+        ],
+    }
     catkin = report["tools"]["catkin_lint"]["findings"]
     assert [(f["path"], f["line"], f["code"]) for f in catkin] == [
-        ("ws/src/pkg_b/package.xml", None, "MISSING_DEPEND")] * 2
+        ("ws/src/pkg_b/package.xml", None, "MISSING_DEPEND")
+    ] * 2
     assert report["total"] == 5
 
 

@@ -188,7 +188,8 @@ def findings(result: Result) -> list[str]:
 
 ament = pytest.mark.skipif(
     any(importlib.util.find_spec(m) is None for m in ("flake8", "ament_pep257", "ament_cpplint")),
-    reason="the ament linters are not installed (pip install -e '.[test]')")
+    reason="the ament linters are not installed (pip install -e '.[test]')",
+)
 
 
 # --------------------------------------------------------------------------- roslint
@@ -198,26 +199,33 @@ def test_a_clean_catkin_package_lints_clean_with_fetch_tools_rules(tmp_path):
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert lines[0].startswith("lint: style roslint (fetch_tools' rules")
-    assert lines[1:] == ["pycodestyle: no findings (1 file checked)",
-                         "cpplint: no findings (1 file checked)",
-                         "catkin_lint: no findings (1 package checked)"]
+    assert lines[1:] == [
+        "pycodestyle: no findings (1 file checked)",
+        "cpplint: no findings (1 file checked)",
+        "catkin_lint: no findings (1 package checked)",
+    ]
 
 
 def test_roslint_reports_a_brace_that_does_not_stand_alone(tmp_path):
     pkg = catkin_package(tmp_path / "src")
-    write(pkg / "src/talker.cpp", ROS1_CPP.replace("int main(int argc, char** argv)\n{",
-                                                   "int main(int argc, char** argv) {"))
+    write(
+        pkg / "src/talker.cpp",
+        ROS1_CPP.replace("int main(int argc, char** argv)\n{", "int main(int argc, char** argv) {"),
+    )
     result = run("--tool", "cpplint", "src/cat_talker")
     assert result.exit_code == 1
     assert findings(result) == [
         "src/cat_talker/src/talker.cpp:28: [cpplint] whitespace/braces when starting a new scope, "
-        "{ should be on a line by itself"]
+        "{ should be on a line by itself"
+    ]
 
 
 def test_roslint_runs_pep8_as_fetch_tools_did(tmp_path):
     # 80 columns is one too many; pep8's default ignores (E226) were dropped by fetch_tools'
     # --ignore; E266 (`## ` Doxygen comments) was ignored
-    write(tmp_path / "a.py", '"""Doc."""\n\n## A Doxygen comment.\nx = 1+2\ny = "' + "a" * 74 + '"\n')
+    write(
+        tmp_path / "a.py", '"""Doc."""\n\n## A Doxygen comment.\nx = 1+2\ny = "' + "a" * 74 + '"\n'
+    )
     result = run("a.py")
     assert findings(result) == [
         "a.py:4: [pycodestyle] E226 missing whitespace around arithmetic operator",
@@ -235,26 +243,34 @@ def test_clean_ros2_packages_lint_clean_with_the_ament_rules_and_no_catkin_lint(
     lines = result.output.splitlines()
     assert lines[0].startswith("lint: style ament (ament_lint_common's rules")
     assert "flake8 with ament_flake8's settings" in lines[0]
-    assert lines[1:] == ["flake8: no findings (3 files checked)",
-                         "ament_pep257: no findings (3 files checked)",
-                         "ament_cpplint: no findings (1 file checked)"]
+    assert lines[1:] == [
+        "flake8: no findings (3 files checked)",
+        "ament_pep257: no findings (3 files checked)",
+        "ament_cpplint: no findings (1 file checked)",
+    ]
     assert "catkin_lint" not in result.output
 
 
 @ament
 def test_ament_rules_find_what_ros2_ci_would(tmp_path):
     pkg = ament_python_package(tmp_path / "src")
-    write(pkg / "py_talker/talker.py", CLEAN_PY.replace('"""Return', '"""return') +
-          "\n\nz = '" + "a" * 95 + "'\n")
+    write(
+        pkg / "py_talker/talker.py",
+        CLEAN_PY.replace('"""Return', '"""return') + "\n\nz = '" + "a" * 95 + "'\n",
+    )
     cpp = ament_cmake_package(tmp_path / "src")
     write(cpp / "src/talker.cpp", ROS2_CPP.replace("// Copyright 2026 Dev\n", ""))
     result = run("--json", "src")
     assert result.exit_code == 1
     report = json.loads(result.output)
-    codes = {tool: sorted({f["code"] for f in r["findings"]})
-             for tool, r in report["tools"].items()}
-    assert codes == {"flake8": ["E501"], "ament_pep257": ["D403"],
-                     "ament_cpplint": ["legal/copyright"]}
+    codes = {
+        tool: sorted({f["code"] for f in r["findings"]}) for tool, r in report["tools"].items()
+    }
+    assert codes == {
+        "flake8": ["E501"],
+        "ament_pep257": ["D403"],
+        "ament_cpplint": ["legal/copyright"],
+    }
     assert report["styles"] == {"ament": ["cpp_talker", "py_talker"]}
 
 

@@ -72,10 +72,14 @@ def test_the_loader_puts_site_directories_and_a_venvs_on_the_path(tmp_path):
     (site_dir / "only_in_the_venv.py").write_text("")
     head = loader.LOADER.split("h, n = sys.argv[1]")[0]
     probe = head + "\nimport only_in_the_venv, xxhash\nprint(sys.flags.no_site)"
-    got = subprocess.run([str(venv / "bin" / "python"), "-S", "-c", probe], capture_output=True, text=True)
+    got = subprocess.run(
+        [str(venv / "bin" / "python"), "-S", "-c", probe], capture_output=True, text=True
+    )
     assert got.returncode == 0 and got.stdout == "1\n", got.stderr
     # the installation's own site-packages, where xxhash was installed, stays reachable
-    base = subprocess.run([sys.executable, "-S", "-c", head + "\nimport xxhash"], capture_output=True, text=True)
+    base = subprocess.run(
+        [sys.executable, "-S", "-c", head + "\nimport xxhash"], capture_output=True, text=True
+    )
     assert base.returncode == 0, base.stderr
 
 
@@ -87,11 +91,28 @@ def test_the_endpoint_imports_nothing_it_needs_only_later():
     import sys
 
     root = Path(__file__).resolve().parents[1]
-    code = ("import sys; sys.path.insert(0, %r); import fetchsync.protocol.server; "
-            "print(' '.join(sorted(m for m in sys.modules if m in %r)))"
-            % (str(root), ["shutil", "ctypes", "hashlib", "_hashlib", "shlex", "socket", "uuid",
-                           "traceback", "zipfile", "subprocess"]))
-    out = subprocess.run([sys.executable, "-S", "-c", code], capture_output=True, text=True, check=True)
+    code = (
+        "import sys; sys.path.insert(0, %r); import fetchsync.protocol.server; "
+        "print(' '.join(sorted(m for m in sys.modules if m in %r)))"
+        % (
+            str(root),
+            [
+                "shutil",
+                "ctypes",
+                "hashlib",
+                "_hashlib",
+                "shlex",
+                "socket",
+                "uuid",
+                "traceback",
+                "zipfile",
+                "subprocess",
+            ],
+        )
+    )
+    out = subprocess.run(
+        [sys.executable, "-S", "-c", code], capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == ""
 
 
@@ -104,9 +125,18 @@ def _run_loader(home: Path, *, umask: int = 0o022) -> tuple[Any, bytes]:
     from fetchsync.protocol import wire
 
     cmd, archive = loader.loader_command(sys.executable)
-    env = {"HOME": str(home), "PATH": "/usr/bin:/bin", "PYTHONPATH": str(Path(loader.__file__).parents[2])}
-    proc = subprocess.Popen(["sh", "-c", f"umask {umask:03o}; exec {cmd}"], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    env = {
+        "HOME": str(home),
+        "PATH": "/usr/bin:/bin",
+        "PYTHONPATH": str(Path(loader.__file__).parents[2]),
+    }
+    proc = subprocess.Popen(
+        ["sh", "-c", f"umask {umask:03o}; exec {cmd}"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
     first = proc.stdout.read(len(loader.NEED))
     if first == loader.NEED:
         proc.stdin.write(archive)
@@ -120,7 +150,9 @@ def test_the_endpoint_cache_is_private_whatever_the_umask(tmp_path):
     home = tmp_path / "home"
     home.mkdir()
     (got, magic) = _run_loader(home, umask=0o000)
-    assert got.returncode == 0 and got.stdout.startswith(loader.NEED) and magic in got.stdout, got.stderr
+    assert got.returncode == 0 and got.stdout.startswith(loader.NEED) and magic in got.stdout, (
+        got.stderr
+    )
     d = home / ".cache" / "fetchsync"
     assert d.stat().st_mode & 0o777 == 0o700
     found = list(d.rglob("*"))

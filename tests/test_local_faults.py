@@ -28,10 +28,10 @@ from pathlib import Path
 import pytest
 from helpers import make_workspace, report, ssh_env, tree_of
 
-from fetchsync.sync import engine as sync
 from fetchsync.link.connection import Connection
-from fetchsync.sync.state import State
 from fetchsync.link.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.sync.state import State
 
 SETPRIV = shutil.which("setpriv")
 
@@ -61,7 +61,9 @@ def run(*args: str, env: dict, unprivileged: bool = False) -> subprocess.Complet
 
 
 @pytest.mark.ssh
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
     robot = remote_dir / "src"
@@ -69,12 +71,12 @@ def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
     before = tree_of(robot)
     (local / "my_pkg/package.xml").write_text("<package>edited, then locked</package>\n")
     (local / "my_pkg/package.xml").chmod(0)
-    (local / "my_pkg/src").chmod(0)          # a directory nobody can list
+    (local / "my_pkg/src").chmod(0)  # a directory nobody can list
     (local / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
     (local / "my_pkg/new.txt").write_text("new\n")
     try:
         proc = run("push", "--json", env=env, unprivileged=True)
-        assert proc.returncode == 5, proc.stderr.decode()   # SyncError: some paths failed
+        assert proc.returncode == 5, proc.stderr.decode()  # SyncError: some paths failed
         assert b"Traceback" not in proc.stderr
         r = report(proc)
         assert not r["ok"]
@@ -95,8 +97,9 @@ def test_unreadable_paths_are_left_on_the_robot_and_reported(env, remote_dir):
         assert proc.returncode == 5 and "Traceback" not in err
         assert "error: my_pkg/package.xml: cannot read" in err
         assert err.strip().splitlines()[-1].startswith("fetchsync: error: 2 path(s) failed")
-        assert not (remote_dir / ".fetchsync/trash").exists() or \
-            not any("package.xml" in n for _d, _s, f in os.walk(remote_dir / ".fetchsync/trash") for n in f)
+        assert not (remote_dir / ".fetchsync/trash").exists() or not any(
+            "package.xml" in n for _d, _s, f in os.walk(remote_dir / ".fetchsync/trash") for n in f
+        )
     finally:
         (local / "my_pkg/package.xml").chmod(0o644)
         (local / "my_pkg/src").chmod(0o755)
@@ -128,7 +131,9 @@ print(json.dumps({"errors": r.errors, "deleted": r.deleted, "files": r.files}))
 """
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 def test_the_watch_agents_incremental_push_leaves_unreadable_paths_too(tmp_path):
     make_workspace(tmp_path / "ws")
     cmd = [sys.executable, "-c", INCREMENTAL, str(tmp_path)]
@@ -149,12 +154,19 @@ def test_the_watch_agents_incremental_push_leaves_unreadable_paths_too(tmp_path)
         (tmp_path / "ws/src/my_pkg/src").chmod(0o755)
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 def test_pull_leaves_unreadable_local_paths_alone(tmp_path):
     make_workspace(tmp_path / "ws")
-    e = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-             XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e = dict(
+        os.environ,
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     local, robot = tmp_path / "ws/src/my_pkg", tmp_path / "robot-home/robot_ws/src/my_pkg"
@@ -223,23 +235,34 @@ def test_a_big_file_that_keeps_changing_keeps_the_robots_version(env, remote_dir
 @pytest.fixture
 def robot(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """A pushed workspace, its Syncer over the local robot, and the robot's workspace."""
-    monkeypatch.setattr(sync, "BIG", 512 * 1024)     # big files are sent in pieces ...
-    monkeypatch.setattr(sync, "PIECE", 128 * 1024)   # ... of this size
+    monkeypatch.setattr(sync, "BIG", 512 * 1024)  # big files are sent in pieces ...
+    monkeypatch.setattr(sync, "PIECE", 128 * 1024)  # ... of this size
     make_workspace(tmp_path / "ws")
     src = tmp_path / "ws/src"
-    (src / "my_pkg/data.txt").write_bytes(b"".join(b"line %d\n" % i for i in range(12000)))  # ~100 KB
+    (src / "my_pkg/data.txt").write_bytes(
+        b"".join(b"line %d\n" % i for i in range(12000))
+    )  # ~100 KB
     (src / "my_pkg/big.bin").write_bytes(os.urandom(1024 * 1024))
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     state = State(tmp_path / "state.sqlite")
-    s = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules())
+    s = sync.Syncer(
+        conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules()
+    )
     assert s.push().errors == []
     yield s, src, tmp_path / "robot-home/ws"
     conn.close()
     state.close()
 
 
-def hook_on(monkeypatch: pytest.MonkeyPatch, name: str, event: str, action, times: int = 1,
-            skip: int = 0, every: int = 1) -> list[int]:
+def hook_on(
+    monkeypatch: pytest.MonkeyPatch,
+    name: str,
+    event: str,
+    action,
+    times: int = 1,
+    skip: int = 0,
+    every: int = 1,
+) -> list[int]:
     """Run ``action(path)`` at ``times`` ``event``s ("open" or "read" of a chunk) of the file
     ``name``, after letting ``skip`` of them pass, then at every ``every``-th one."""
     calls = [0]
@@ -272,16 +295,16 @@ def append(path: Path) -> None:
 def test_a_file_changed_while_read_is_read_again(robot, monkeypatch, name, skip):
     s, src, ws = robot
     f = src / "my_pkg" / name
-    f.write_bytes(f.read_bytes()[:-10] + b"0123456789")   # what the scan sees
+    f.write_bytes(f.read_bytes()[:-10] + b"0123456789")  # what the scan sees
     calls = hook_on(monkeypatch, name, "read", append, skip=skip)  # changes under the first read
     r = s.push()
     assert calls[0] == 1
     assert r.errors == [] and r.files == 1
     assert (ws / "src/my_pkg" / name).read_bytes() == f.read_bytes()
     assert f.read_bytes().endswith(b"appended while it was read\n")
-    assert leftovers(ws) == []          # the first attempt's upload was overwritten, not left
+    assert leftovers(ws) == []  # the first attempt's upload was overwritten, not left
     monkeypatch.setattr(sync, "read_hook", None)
-    assert s.push().changed == 0       # and the state knows it is there
+    assert s.push().changed == 0  # and the state knows it is there
 
 
 def test_a_big_file_that_shrinks_while_read_is_sent_whole(robot, monkeypatch):
@@ -309,13 +332,13 @@ def test_a_file_that_keeps_changing_keeps_the_robots_version(robot, monkeypatch,
     (src / "my_pkg/CMakeLists.txt").write_text("project(my_pkg)  # edited\n")
     calls = hook_on(monkeypatch, name, "read", append, times=1000, every=every)
     r = s.push()
-    assert 1 < calls[0] <= 10                  # read again, a bounded number of times
+    assert 1 < calls[0] <= 10  # read again, a bounded number of times
     assert [e["path"] for e in r.errors] == [f"my_pkg/{name}"]
     assert "kept changing" in r.errors[0]["error"]
     assert (ws / "src/my_pkg" / name).read_bytes() == old
     assert (ws / "src/my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
     assert not list(ws.rglob("*fetchsync-tmp*"))
-    assert len(leftovers(ws)) == (every > 1)     # the abandoned upload part, for now
+    assert len(leftovers(ws)) == (every > 1)  # the abandoned upload part, for now
     monkeypatch.setattr(sync, "read_hook", None)
     r = s.push()
     assert r.errors == [] and (ws / "src/my_pkg" / name).read_bytes() == f.read_bytes()
@@ -330,7 +353,7 @@ def test_a_file_replaced_while_read_sends_the_new_one(robot, monkeypatch, name):
     f.write_bytes(os.urandom(size(name)))
     new = os.urandom(size(name) - 1000)
 
-    def replace(p: Path) -> None:   # an editor's atomic save: write aside, rename over
+    def replace(p: Path) -> None:  # an editor's atomic save: write aside, rename over
         (p.parent / "tmp-save").write_bytes(new)
         os.rename(p.parent / "tmp-save", p)
 
@@ -366,14 +389,21 @@ def test_a_file_that_becomes_a_fifo_is_reported_not_waited_on(robot, monkeypatch
         signal.signal(signal.SIGALRM, before)
     assert [e["path"] for e in r.errors] == [f"my_pkg/{name}"]
     assert "no longer a regular file" in r.errors[0]["error"]
-    assert (ws / "src/my_pkg" / name).read_bytes() == old     # the robot keeps its version
+    assert (ws / "src/my_pkg" / name).read_bytes() == old  # the robot keeps its version
     assert not list(ws.rglob("*fetchsync-tmp*"))
 
 
 # the scan hashes a changed file (its first open); the send opens it again and reads it
-@pytest.mark.parametrize(("name", "event", "skip"), [
-    ("data.txt", "open", 0), ("data.txt", "open", 1), ("data.txt", "read", 0),
-    ("big.bin", "open", 1), ("big.bin", "read", 1)])
+@pytest.mark.parametrize(
+    ("name", "event", "skip"),
+    [
+        ("data.txt", "open", 0),
+        ("data.txt", "open", 1),
+        ("data.txt", "read", 0),
+        ("big.bin", "open", 1),
+        ("big.bin", "read", 1),
+    ],
+)
 def test_a_file_that_vanishes_is_treated_as_deleted(robot, monkeypatch, name, event, skip):
     s, src, ws = robot
     f = src / "my_pkg" / name
@@ -386,13 +416,13 @@ def test_a_file_that_vanishes_is_treated_as_deleted(robot, monkeypatch, name, ev
     assert [x["path"] for x in r.skipped] == [f"my_pkg/{name}"]
     assert "vanished" in r.skipped[0]["reason"]
     assert r.deleted == 1
-    assert not (ws / "src/my_pkg" / name).exists()      # mirrored: gone (into the trash)
+    assert not (ws / "src/my_pkg" / name).exists()  # mirrored: gone (into the trash)
     assert list((ws / ".fetchsync/trash").rglob(name))
     assert (ws / "src/my_pkg/CMakeLists.txt").read_text() == "project(my_pkg)  # edited\n"
     assert not list(ws.rglob("*fetchsync-tmp*"))
     monkeypatch.setattr(sync, "read_hook", None)
     assert s.push().changed == 0
-    s.conn.close()    # a part of the vanished file goes with the session
+    s.conn.close()  # a part of the vanished file goes with the session
     assert leftovers(ws) == []
 
 
@@ -406,12 +436,19 @@ def test_a_new_file_that_vanishes_leaves_nothing(robot, monkeypatch):
     assert tree_of(src) == tree_of(ws / "src")
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 def test_an_unreadable_src_itself_is_one_line(tmp_path):
     make_workspace(tmp_path / "ws")
-    e = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-             XDG_STATE_HOME=str(tmp_path / "state"), FETCHSYNC_ROBOT="local",
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e = dict(
+        os.environ,
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     (tmp_path / "ws/src").chmod(0)

@@ -26,16 +26,19 @@ from helpers import fetchsync, report, ssh_env, tree_of
 
 from fetchsync.link import mux
 
-needs_root = pytest.mark.skipif(os.getuid() != 0 or shutil.which("useradd") is None,
-                                reason="needs root and useradd to make a throwaway user")
+needs_root = pytest.mark.skipif(
+    os.getuid() != 0 or shutil.which("useradd") is None,
+    reason="needs root and useradd to make a throwaway user",
+)
 
 
 @pytest.fixture
 def intruder() -> Iterator[pwd.struct_passwd]:
     """A throwaway local user, deleted afterwards."""
     name = "fsq" + uuid.uuid4().hex[:8]
-    subprocess.run(["useradd", "--no-create-home", "--shell", "/bin/sh", name], check=True,
-                   capture_output=True)
+    subprocess.run(
+        ["useradd", "--no-create-home", "--shell", "/bin/sh", name], check=True, capture_output=True
+    )
     try:
         yield pwd.getpwnam(name)
     finally:
@@ -44,8 +47,10 @@ def intruder() -> Iterator[pwd.struct_passwd]:
 
 
 def as_user(user: pwd.struct_passwd, *argv: str, **kwargs) -> subprocess.Popen:
-    return subprocess.Popen(["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}",
-                             "--clear-groups", *argv], **kwargs)
+    return subprocess.Popen(
+        ["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}", "--clear-groups", *argv],
+        **kwargs,
+    )
 
 
 def run_as(user: pwd.struct_passwd, *argv: str) -> subprocess.CompletedProcess:
@@ -69,8 +74,9 @@ def said(proc: subprocess.CompletedProcess) -> list[str]:
 
 
 def masters_under(path: Path) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"fetchsync.link.mux.*{path}"], check=False,
-                         capture_output=True)
+    out = subprocess.run(
+        ["pgrep", "-f", f"fetchsync.link.mux.*{path}"], check=False, capture_output=True
+    )
     return [int(x) for x in out.stdout.split()]
 
 
@@ -91,8 +97,9 @@ def wait_for(cond, timeout: float = 20.0) -> bool:
 @needs_root
 @pytest.mark.ssh
 @pytest.mark.parametrize("squat", ["their-directory", "symlink"])
-def test_a_squatted_socket_directory_never_fails_a_push(squat, intruder, shared_tmp, ssh_home,
-                                                         remote_dir, tmp_path, monkeypatch):
+def test_a_squatted_socket_directory_never_fails_a_push(
+    squat, intruder, shared_tmp, ssh_home, remote_dir, tmp_path, monkeypatch
+):
     """Another user's ``$TMPDIR/fetchsync-UID`` (or a symlink there, even to a private
     directory of ours) is never used: a push goes direct (saying why once when it
     wanted a master), ``FETCHSYNC_PERSIST=0`` and ``--robot local`` say nothing."""
@@ -103,8 +110,9 @@ def test_a_squatted_socket_directory_never_fails_a_push(squat, intruder, shared_
     else:
         assert run_as(intruder, "ln", "-s", str(ours), str(squatted)).returncode == 0
     try:
-        env = ssh_env(ssh_home.home, remote_dir, tmp_path, TMPDIR=str(shared_tmp),
-                      FETCHSYNC_PERSIST="0")
+        env = ssh_env(
+            ssh_home.home, remote_dir, tmp_path, TMPDIR=str(shared_tmp), FETCHSYNC_PERSIST="0"
+        )
         env.pop("XDG_RUNTIME_DIR", None)
         local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
         proc = fetchsync("push", "--json", env=env, check=False)
@@ -122,9 +130,14 @@ def test_a_squatted_socket_directory_never_fails_a_push(squat, intruder, shared_
         time.sleep(1)
         assert not masters_under(squatted) and not list(ours.iterdir())
         # the local robot needs no socket at all
-        local_env = dict(env, FETCHSYNC_ROBOT="local", FETCHSYNC_PERSIST="60",
-                         FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "local-robot"),
-                         FETCHSYNC_REMOTE_WORKSPACE="~/ws", XDG_STATE_HOME=str(tmp_path / "st2"))
+        local_env = dict(
+            env,
+            FETCHSYNC_ROBOT="local",
+            FETCHSYNC_PERSIST="60",
+            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "local-robot"),
+            FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+            XDG_STATE_HOME=str(tmp_path / "st2"),
+        )
         proc = fetchsync("push", "--json", env=local_env, check=False)
         assert proc.returncode == 0 and said(proc) == [], proc.stderr.decode()
         assert tree_of(local) == tree_of(tmp_path / "local-robot/ws/src")
@@ -153,14 +166,16 @@ def test_socket_directory_checks_do_not_follow_a_symlink(intruder, shared_tmp, m
 
 
 @pytest.mark.ssh
-def test_an_unusable_runtime_directory_is_one_line_and_a_push_still_works(ssh_home, remote_dir,
-                                                                          tmp_path):
+def test_an_unusable_runtime_directory_is_one_line_and_a_push_still_works(
+    ssh_home, remote_dir, tmp_path
+):
     """Issue 22 item 22: an ``XDG_RUNTIME_DIR`` where nothing can be made (here a file)."""
     fd, name = tempfile.mkstemp(prefix="fsnd", dir="/tmp")  # short: else /tmp would serve
     os.close(fd)
     blocker = Path(name)
-    env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60",
-                  XDG_RUNTIME_DIR=str(blocker))
+    env = ssh_env(
+        ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60", XDG_RUNTIME_DIR=str(blocker)
+    )
     proc = fetchsync("push", "--json", env=env, check=False)
     err = proc.stderr.decode()
     assert proc.returncode == 0 and "Traceback" not in err, err
@@ -179,8 +194,13 @@ def test_the_master_refuses_another_users_connection(intruder, ssh_home, remote_
     no process of another uid (SO_PEERCRED)."""
     runtime = Path(tempfile.mkdtemp(prefix="fsrun", dir="/tmp"))
     try:
-        env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60",
-                      XDG_RUNTIME_DIR=str(runtime))
+        env = ssh_env(
+            ssh_home.home,
+            remote_dir,
+            tmp_path,
+            FETCHSYNC_PERSIST="60",
+            XDG_RUNTIME_DIR=str(runtime),
+        )
         fetchsync("push", env=env)
         assert wait_for(lambda: list((runtime / "fetchsync").glob("mux-*.sock")))
         sock = next((runtime / "fetchsync").glob("mux-*.sock"))
@@ -188,9 +208,11 @@ def test_the_master_refuses_another_users_connection(intruder, ssh_home, remote_
             path.chmod(0o711)
         sock.chmod(0o666)
         marker = remote_dir / "pwned"
-        code = ("import socket, sys; s = socket.socket(socket.AF_UNIX); s.connect(sys.argv[1]); "
-                "s.sendall(sys.argv[2].encode() + b'\\n'); s.shutdown(socket.SHUT_WR); "
-                "s.settimeout(10); data = s.recv(1 << 16); print(len(data))")
+        code = (
+            "import socket, sys; s = socket.socket(socket.AF_UNIX); s.connect(sys.argv[1]); "
+            "s.sendall(sys.argv[2].encode() + b'\\n'); s.shutdown(socket.SHUT_WR); "
+            "s.settimeout(10); data = s.recv(1 << 16); print(len(data))"
+        )
         request = json.dumps({"exec": f"touch {marker}"})
         got = run_as(intruder, sys.executable, "-c", code, str(sock), request)
         assert got.stdout.strip() in (b"0", b""), got
@@ -234,8 +256,9 @@ def test_a_socket_served_by_another_user_is_not_used(kind, intruder):
     try:
         runtime.chmod(0o777)  # the window a planted socket needs; closed again below
         path = runtime / f"{kind}-x.sock"
-        listener = as_user(intruder, sys.executable, "-c", LISTENER, str(path),
-                           stdout=subprocess.PIPE)
+        listener = as_user(
+            intruder, sys.executable, "-c", LISTENER, str(path), stdout=subprocess.PIPE
+        )
         assert listener.stdout is not None and listener.stdout.readline() == b"up\n"
         runtime.chmod(0o700)
         if kind == "mux":

@@ -17,8 +17,9 @@ pytestmark = pytest.mark.ssh
 
 
 def masters(runtime: Path) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"fetchsync.link.mux.*{runtime}"], check=False,
-                         capture_output=True)
+    out = subprocess.run(
+        ["pgrep", "-f", f"fetchsync.link.mux.*{runtime}"], check=False, capture_output=True
+    )
     return [int(x) for x in out.stdout.split()]
 
 
@@ -41,8 +42,14 @@ def wait_for(cond, timeout=15.0):
 def env(ssh_home, remote_dir, tmp_path):
     # short: AF_UNIX socket paths are limited to 108 bytes
     runtime = Path(tempfile.mkdtemp(prefix="fsrun", dir="/tmp"))
-    yield ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="60",
-                  XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_MUX_LOG=str(tmp_path / "mux.log"))
+    yield ssh_env(
+        ssh_home.home,
+        remote_dir,
+        tmp_path,
+        FETCHSYNC_PERSIST="60",
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_MUX_LOG=str(tmp_path / "mux.log"),
+    )
     for pid in masters(runtime):
         os.kill(pid, signal.SIGTERM)
     shutil.rmtree(runtime, ignore_errors=True)
@@ -50,6 +57,7 @@ def env(ssh_home, remote_dir, tmp_path):
 
 def test_socket_path_falls_back_to_a_short_directory(tmp_path, monkeypatch):
     from fetchsync.link import mux
+
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / ("x" * 120)))
     path = mux.socket_path("robot", None)
     assert len(os.fsencode(path)) <= mux.MAX_SOCKET_PATH
@@ -125,8 +133,9 @@ def test_robot_changes_between_pushes_through_the_master_are_seen(env, remote_di
 
 
 @pytest.mark.parametrize("change", ["changed", "removed"])
-def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(change, env, ssh_home,
-                                                                                 remote_dir, tmp_path):
+def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(
+    change, env, ssh_home, remote_dir, tmp_path
+):
     """Issue 22 item 16: the master re-checks the robot's host key against known_hosts
     before each call it serves: a key changed or removed since it connected is refused
     as a fresh connection refuses it, and that master goes away."""
@@ -138,10 +147,14 @@ def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(c
     trusted = ssh_home.known_hosts.read_text()
     if change == "changed":
         other = tmp_path / "other_host_key"
-        subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(other)], check=True)
+        subprocess.run(
+            ["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(other)], check=True
+        )
         name = trusted.split()[0]
-        ssh_home.known_hosts.write_text(f"{name} {other.with_suffix('.pub').read_text().split()[0]} "
-                                        f"{other.with_suffix('.pub').read_text().split()[1]}\n")
+        ssh_home.known_hosts.write_text(
+            f"{name} {other.with_suffix('.pub').read_text().split()[0]} "
+            f"{other.with_suffix('.pub').read_text().split()[1]}\n"
+        )
     else:
         ssh_home.known_hosts.write_text("")
     (local / "my_pkg" / "after.txt").write_text("must not reach the robot\n")
@@ -157,8 +170,9 @@ def test_a_live_master_is_not_used_once_known_hosts_no_longer_trusts_the_robot(c
 
 
 def robot_endpoints(mark: str) -> list[int]:
-    out = subprocess.run(["pgrep", "-f", f"^[^ ]*python3 -X fsmark={mark} "], check=False,
-                         capture_output=True)
+    out = subprocess.run(
+        ["pgrep", "-f", f"^[^ ]*python3 -X fsmark={mark} "], check=False, capture_output=True
+    )
     return [int(p) for p in out.stdout.split()]
 
 
@@ -203,12 +217,22 @@ def test_release_switches_through_a_master_leave_the_robot_identical(env, remote
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
     repo = local / "rclcpp"
     subprocess.run(["git", "clone", "-q", str(BUNDLE), str(repo)], check=True)
-    commits = dict(line.split(" ", 1)[::-1] for line in subprocess.run(
-        ["git", "-C", str(repo), "log", "--format=%h %s"], check=True, capture_output=True,
-        text=True).stdout.splitlines())
+    commits = dict(
+        line.split(" ", 1)[::-1]
+        for line in subprocess.run(
+            ["git", "-C", str(repo), "log", "--format=%h %s"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.splitlines()
+    )
 
     def synced() -> dict:
-        return {k: v for k, v in tree_of(local).items() if k != "rclcpp/.git" and not k.startswith("rclcpp/.git/")}
+        return {
+            k: v
+            for k, v in tree_of(local).items()
+            if k != "rclcpp/.git" and not k.startswith("rclcpp/.git/")
+        }
 
     via = []
     for release in RELEASES:
@@ -238,13 +262,29 @@ def test_garbage_on_the_masters_socket_runs_nothing_and_breaks_nothing(env, remo
     shapes = [
         lambda: rng.randbytes(rng.randrange(0, 300)),
         lambda: rng.randbytes(rng.randrange(1, 50)) + b"\n" + rng.randbytes(20),
-        lambda: _json.dumps(rng.choice([[], 5, "x", None, {"exec": 5}, {"exec": None},
-                                        {"exec": ["touch", str(marker)]}, {"check": "yes"},
-                                        {"scan": "/etc", "v": 1}, {"Exec": f"touch {marker}"},
-                                        {}])).encode() + b"\n",
+        lambda: (
+            _json.dumps(
+                rng.choice(
+                    [
+                        [],
+                        5,
+                        "x",
+                        None,
+                        {"exec": 5},
+                        {"exec": None},
+                        {"exec": ["touch", str(marker)]},
+                        {"check": "yes"},
+                        {"scan": "/etc", "v": 1},
+                        {"Exec": f"touch {marker}"},
+                        {},
+                    ]
+                )
+            ).encode()
+            + b"\n"
+        ),
         lambda: b"{" * rng.randrange(1, 5000) + b"\n",
         lambda: b"x" * (1 << 17),  # a line longer than the master reads
-        lambda: _json.dumps({"exec": f"touch {marker}"}).encode()[:rng.randrange(1, 20)],
+        lambda: _json.dumps({"exec": f"touch {marker}"}).encode()[: rng.randrange(1, 20)],
     ]
     for _ in range(int(os.environ.get("FETCHSYNC_FUZZ_EXAMPLES", "150"))):
         s = _socket.socket(_socket.AF_UNIX)
@@ -263,11 +303,14 @@ def test_garbage_on_the_masters_socket_runs_nothing_and_breaks_nothing(env, remo
     assert masters(runtime)
     (Path(env["FETCHSYNC_WORKSPACE"]) / "src/my_pkg/after_fuzz.txt").write_text("still served\n")
     r = report(fetchsync("push", "--json", env=env))
-    assert r["connection"] == "master" and tree_of(Path(env["FETCHSYNC_WORKSPACE"]) / "src") == \
-        tree_of(remote_dir / "src")
+    assert r["connection"] == "master" and tree_of(
+        Path(env["FETCHSYNC_WORKSPACE"]) / "src"
+    ) == tree_of(remote_dir / "src")
 
 
-def test_a_directory_deleted_and_re_created_between_pushes_through_a_master_is_pushed(env, remote_dir):
+def test_a_directory_deleted_and_re_created_between_pushes_through_a_master_is_pushed(
+    env, remote_dir
+):
     """Issue 22 item 6 in small: a directory removed and made again (its inode number may
     come back, as after a git checkout), with other files in it, is pushed whole."""
     runtime = Path(env["XDG_RUNTIME_DIR"])

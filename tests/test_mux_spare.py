@@ -130,7 +130,7 @@ def test_a_killed_spare_does_not_fail_the_next_push(env, remote_dir):
         pids = spare_ready(env)
         for pid in pids:
             os.kill(pid, signal.SIGKILL)
-        assert wait_for(lambda: not set(pids) & set(robot_endpoints(env["FSMARK"])))
+        assert wait_for(lambda pids=pids: not set(pids) & set(robot_endpoints(env["FSMARK"])))
         time.sleep(0.5)  # sshd has reported the exit to the master
         (local / "my_pkg" / f"after_kill{i}.txt").write_text(f"{i}\n")
         proc = fetchsync("push", "--json", env=env, check=False)

@@ -6,15 +6,41 @@ from fetchsync.protocol import paths
 from fetchsync.protocol.errors import PathError
 
 
-@pytest.mark.parametrize("bad", ["", "/etc/passwd", "../x", "a/../b", "a/./b", "a//b", "a/", ".",
-                                 "..", "a\x00b", "x" * 5000, "a/" + "n" * 300])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        "",
+        "/etc/passwd",
+        "../x",
+        "a/../b",
+        "a/./b",
+        "a//b",
+        "a/",
+        ".",
+        "..",
+        "a\x00b",
+        "x" * 5000,
+        "a/" + "n" * 300,
+    ],
+)
 def test_bad_paths_are_refused(bad):
     with pytest.raises(PathError):
         paths.validate(bad)
 
 
-@pytest.mark.parametrize("good", ["a", "pkg/src/node.cpp", "with space/new\nline", "caf\u00e9",
-                                  os.fsdecode(b"latin\xe9"), "...", "..a", "a..b"])
+@pytest.mark.parametrize(
+    "good",
+    [
+        "a",
+        "pkg/src/node.cpp",
+        "with space/new\nline",
+        "caf\u00e9",
+        os.fsdecode(b"latin\xe9"),
+        "...",
+        "..a",
+        "a..b",
+    ],
+)
 def test_good_paths_pass(good):
     assert paths.validate(good) == good
 

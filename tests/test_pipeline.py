@@ -20,11 +20,21 @@ def h(data: bytes) -> str:
 
 
 def write(path: str, data: bytes, at: int, expect: str = M.ABSENT) -> dict[str, Any]:
-    return M.Op(M.WRITE, path, expect=expect, mode=0o644, hash=h(data), size=len(data),
-                source=M.SRC_DATA, blob=(at, len(data))).to_wire()
+    return M.Op(
+        M.WRITE,
+        path,
+        expect=expect,
+        mode=0o644,
+        hash=h(data),
+        size=len(data),
+        source=M.SRC_DATA,
+        blob=(at, len(data)),
+    ).to_wire()
 
 
-def sync(ops: list[dict[str, Any]], blob: bytes = b"", gen: int | None = None) -> tuple[dict[str, Any], bytes]:
+def sync(
+    ops: list[dict[str, Any]], blob: bytes = b"", gen: int | None = None
+) -> tuple[dict[str, Any], bytes]:
     header: dict[str, Any] = {"op": "sync", "ops": ops, "policy": "preserve"}
     if gen is not None:
         header.update(require_fresh=True, epoch="?", gen=gen)

@@ -1,7 +1,7 @@
 """The planner is pure: trees in, operations out."""
 
-from fetchsync.sync.plan import COPY, DELTA, WHOLE, plan
 from fetchsync.protocol import messages as M
+from fetchsync.sync.plan import COPY, DELTA, WHOLE, plan
 
 
 def f(path, h, size=10, mode=0o644):
@@ -72,7 +72,9 @@ def test_expectations_come_from_the_caller():
 
 
 def test_symlink_target_change():
-    ops = plan(tree(M.Listed("l", "l", target="/abs")), tree(M.Listed("l", "l", target="rel")), absent)
+    ops = plan(
+        tree(M.Listed("l", "l", target="/abs")), tree(M.Listed("l", "l", target="rel")), absent
+    )
     assert kinds(ops) == [("symlink", "l", "")]
 
 
@@ -102,7 +104,10 @@ def test_reconcile_leaves_guarded_paths_as_the_robot_has_them():
     guarded = {"build", "a/locked", "a/x"}.__contains__  # excluded, unreadable
     assert reconcile(local, robot, synced_expect(robot), guarded=guarded) == []
     assert kinds(reconcile(local, robot, synced_expect(robot), guarded=lambda _p: False)) == [
-        ("write", "a/x", WHOLE), ("delete", "a/locked", ""), ("delete", "build", "")]
+        ("write", "a/x", WHOLE),
+        ("delete", "a/locked", ""),
+        ("delete", "build", ""),
+    ]
 
 
 def test_reconcile_of_identical_trees_is_empty():

@@ -17,9 +17,13 @@ from helpers import check_ready, fetchsync, make_workspace, report, tree_of
 def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
     robot_home = tmp_path / "robot-home"
     e = dict(os.environ)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home), XDG_STATE_HOME=str(tmp_path / "state"),
-             FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -53,7 +57,7 @@ def test_same_size_edit_within_the_same_second_is_sent(env):
     push(env)
     f = local_src(env) / "my_pkg/src/node.cpp"
     st = f.stat()
-    f.write_text("int main() { return 1; }\n")   # same size
+    f.write_text("int main() { return 1; }\n")  # same size
     os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the very same mtime
     push(env)
     assert (robot_ws(env) / "src/my_pkg/src/node.cpp").read_text() == "int main() { return 1; }\n"
@@ -183,7 +187,7 @@ def test_pull_mirrors_the_robot_and_keeps_local_edits(env):
     (robot_src / "my_pkg/CMakeLists.txt").write_text("changed on the robot\n")
     (local_src(env) / "my_pkg/src/node.cpp").write_text("local edit never pushed\n")
     proc = fetchsync("pull", "--json", env=env, check=False, input=b"")
-    assert proc.returncode != 0 and b"--yes" in proc.stderr   # no terminal: refuse, change nothing
+    assert proc.returncode != 0 and b"--yes" in proc.stderr  # no terminal: refuse, change nothing
     assert not (local_src(env) / "my_pkg/new_on_robot.txt").exists()
     r = report(fetchsync("pull", "--json", "--no-safety", env=env))
     assert r["ok"]
@@ -195,8 +199,9 @@ def test_pull_mirrors_the_robot_and_keeps_local_edits(env):
 
 
 def test_local_robot_refuses_its_own_workspace(env):
-    env = dict(env, FETCHSYNC_REMOTE_WORKSPACE=env["FETCHSYNC_WORKSPACE"],
-               FETCHSYNC_LOCAL_ROBOT_HOME="/")
+    env = dict(
+        env, FETCHSYNC_REMOTE_WORKSPACE=env["FETCHSYNC_WORKSPACE"], FETCHSYNC_LOCAL_ROBOT_HOME="/"
+    )
     proc = push(env, check=False)
     assert proc.returncode == 2 and b"local workspace itself" in proc.stderr
 
@@ -205,12 +210,13 @@ def test_first_push_onto_an_existing_robot_tree_uses_the_robots_signatures(env):
     # the robot already holds an older copy (say, from rsync) and we have no state
     robot_src = robot_ws(env) / "src"
     import shutil
+
     shutil.copytree(local_src(env), robot_src, symlinks=True)
     f = local_src(env) / "my_pkg/data.txt"
     old = f.read_text()
     f.write_text("// new first line\n" + old)
     r = report(push(env))
-    assert r["deltas"] == 1 and r["bytes_sent"] < 16384   # not the whole 2 MB
+    assert r["deltas"] == 1 and r["bytes_sent"] < 16384  # not the whole 2 MB
     assert tree_of(local_src(env)) == tree_of(robot_src)
     # the robot's version was not seen by us before: it is kept
     kept = list((robot_ws(env) / ".fetchsync/conflicts").rglob("data.txt"))
@@ -222,13 +228,18 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
     # the laptop is still writing requests
     import subprocess
     import sys
+
     src = local_src(env)
     for d in range(50):
         (src / f"many{d}").mkdir()
         for f in range(100):
             (src / f"many{d}" / f"{f}.txt").write_bytes(os.urandom(64).hex().encode())
-    proc = subprocess.run([sys.executable, "-m", "fetchsync", "push", "--json"], env=env,
-                          capture_output=True, timeout=90)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fetchsync", "push", "--json"],
+        env=env,
+        capture_output=True,
+        timeout=90,
+    )
     assert proc.returncode == 0, proc.stderr
     assert report(proc)["files"] == 5005
     assert tree_of(src) == tree_of(robot_ws(env) / "src")
@@ -237,11 +248,11 @@ def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
 def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch):
     """Connection.open runs ``meanwhile`` once the endpoint's command is sent and before
     its hello is read; a first push given that scan lands the same tree."""
-    from fetchsync.sync import engine as sync
     from fetchsync.link.connection import Connection
-    from fetchsync.protocol import wire
-    from fetchsync.sync.state import State
     from fetchsync.link.transport import LocalTransport
+    from fetchsync.protocol import wire
+    from fetchsync.sync import engine as sync
+    from fetchsync.sync.state import State
 
     make_workspace(tmp_path / "ws")
     src = tmp_path / "ws" / "src"
@@ -264,8 +275,9 @@ def test_the_local_scan_is_made_while_the_endpoint_starts(tmp_path, monkeypatch)
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"), meanwhile=meanwhile)
     try:
         assert events == ["scan", "hello"]
-        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push(scanned=scanned[0])
+        r = sync.Syncer(
+            conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules
+        ).push(scanned=scanned[0])
         assert r.errors == [] and r.files == 5
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
     finally:
@@ -298,15 +310,15 @@ def test_the_endpoint_runs_no_site_hooks_yet_finds_site_packages(tmp_path):
     cost every start tens of ms; the site directories are still on its path, so an
     installed xxhash is used."""
     from fetchsync.link.connection import Connection
-    from fetchsync.protocol import hashing, wire
     from fetchsync.link.transport import LocalTransport
+    from fetchsync.protocol import hashing, wire
 
     hooks = tmp_path / "hooks"
     hooks.mkdir()
     marker = tmp_path / "sitecustomize-ran"
     (hooks / "sitecustomize.py").write_text(f"open({str(marker)!r}, 'w').close()\nprint('noise')\n")
     python = tmp_path / "robot-python3"
-    python.write_text(f"#!/bin/sh\nPYTHONPATH={hooks} exec {sys.executable} \"$@\"\n")
+    python.write_text(f'#!/bin/sh\nPYTHONPATH={hooks} exec {sys.executable} "$@"\n')
     python.chmod(0o755)
     # the same interpreter without -S does run the hook: the test can see it
     subprocess.run([str(python), "-c", "pass"], check=True)
@@ -333,10 +345,10 @@ def test_a_push_killed_before_its_state_is_written_sends_nothing_again(tmp_path,
     """The state is written once, at the end of a push's rounds. A push stopped just
     before leaves the state as it was: the next push lists the robot, finds it
     identical, sends nothing, and then knows every path."""
-    from fetchsync.sync import engine as sync
     from fetchsync.link.connection import Connection
-    from fetchsync.sync.state import State
     from fetchsync.link.transport import LocalTransport
+    from fetchsync.sync import engine as sync
+    from fetchsync.sync.state import State
 
     src = tmp_path / "ws" / "src"
     for d in range(12):
@@ -362,8 +374,9 @@ def test_a_push_killed_before_its_state_is_written_sends_nothing_again(tmp_path,
         assert commits == [1] and state.entries() == {}
         assert tree_of(src) == tree_of(tmp_path / "robot-home" / "ws" / "src")
         monkeypatch.setattr(State, "commit", real_commit)
-        again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                            rules=rules).push()
+        again = sync.Syncer(
+            conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules
+        ).push()
         assert again.errors == [] and again.files == 0 and again.bytes_sent < 64 * 1024
         assert len(state.entries()) == 12 + 12 * 60
     finally:
@@ -375,11 +388,11 @@ def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monk
     """A push of more than a batch keeps a delta signature of each text file it sent
     (and none of a binary one), so the next edit goes as a delta with no question to
     the robot."""
-    from fetchsync.sync import engine as sync
     from fetchsync.link.connection import Connection
-    from fetchsync.protocol import delta
-    from fetchsync.sync.state import State
     from fetchsync.link.transport import LocalTransport
+    from fetchsync.protocol import delta
+    from fetchsync.sync import engine as sync
+    from fetchsync.sync.state import State
 
     src = make_workspace(tmp_path / "ws") / "src"
     texts = {}
@@ -393,11 +406,14 @@ def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monk
     robot_src = tmp_path / "robot-home" / "ws" / "src"
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     try:
-        r = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                        rules=rules).push()
+        r = sync.Syncer(
+            conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules
+        ).push()
         assert r.errors == []
         for name, data in texts.items():
-            assert state.signature(name) == delta.signature(data, algorithm=conn.algorithm).to_bytes()
+            assert (
+                state.signature(name) == delta.signature(data, algorithm=conn.algorithm).to_bytes()
+            )
         assert state.signature("mesh.bin") is None
 
         requests: list[str] = []
@@ -410,8 +426,9 @@ def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monk
         monkeypatch.setattr(Connection, "request", request)
         for name in ("t0.txt", "t1.txt"):
             (src / name).write_bytes(b"a line inserted at the top\n" + (src / name).read_bytes())
-        again = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                            rules=rules).push()
+        again = sync.Syncer(
+            conn, state, local_root=str(src), remote_workspace="~/ws", rules=rules
+        ).push()
         assert again.errors == [] and again.files == 2 and again.deltas == 2
         assert tree_of(src) == tree_of(robot_src)
         assert again.bytes_sent < 8 * 1024  # two deltas, not 44 KiB of files
@@ -440,8 +457,14 @@ def test_the_robots_command_is_sent_before_the_sync_engine_is_imported(env):
         from fetchsync.cli import main
         main()  # exits
     """)
-    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                          timeout=120, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     said = [line for line in proc.stderr.splitlines() if line.startswith("sync imported")]
     assert said == ["sync imported before the connection: False"], proc.stderr

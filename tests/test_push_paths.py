@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
-
-from fetchsync.sync import engine as sync
-from fetchsync.link.connection import Connection
-from fetchsync.sync.state import State
-from fetchsync.link.transport import LocalTransport
 from helpers import make_workspace, tree_of
+
+from fetchsync.link.connection import Connection
+from fetchsync.link.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.sync.state import State
 
 
 @pytest.fixture
@@ -19,8 +18,13 @@ def env(tmp_path: Path):
     make_workspace(tmp_path / "ws")
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     state = State(tmp_path / "state.sqlite")
-    s = sync.Syncer(conn, state, local_root=str(tmp_path / "ws" / "src"), remote_workspace="~/ws",
-                    rules=sync.build_rules())
+    s = sync.Syncer(
+        conn,
+        state,
+        local_root=str(tmp_path / "ws" / "src"),
+        remote_workspace="~/ws",
+        rules=sync.build_rules(),
+    )
     s.push()
     yield s, tmp_path / "ws" / "src", tmp_path / "robot-home" / "ws" / "src"
     conn.close()
@@ -102,7 +106,9 @@ def test_another_writer_makes_it_fall_back_to_a_full_push(env, tmp_path):
     osrc = tmp_path / "other/src"
     osrc.mkdir(parents=True)
     (osrc / "theirs.txt").write_text("theirs")
-    sync.Syncer(other, ostate, local_root=str(osrc), remote_workspace="~/ws", rules=sync.build_rules()).push()
+    sync.Syncer(
+        other, ostate, local_root=str(osrc), remote_workspace="~/ws", rules=sync.build_rules()
+    ).push()
     other.close()
     ostate.close()
     (src / "my_pkg/new.txt").write_text("new\n")

@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 from helpers import fetchsync, make_workspace, report, tree_of
 
-from fetchsync.sync import engine as sync
 from fetchsync.link.connection import Connection
-from fetchsync.sync.state import State
 from fetchsync.link.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.sync.state import State
 
 
 @pytest.fixture
@@ -29,7 +29,9 @@ def engine(tmp_path: Path):
     src = make_workspace(tmp_path / "ws") / "src"
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     state = State(tmp_path / "state.sqlite")
-    s = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules())
+    s = sync.Syncer(
+        conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules()
+    )
     assert s.push().errors == []
     yield s, src, tmp_path / "robot-home" / "ws"
     conn.close()
@@ -39,9 +41,13 @@ def engine(tmp_path: Path):
 @pytest.fixture
 def env(tmp_path: Path) -> dict:
     e = dict(os.environ)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
-             FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -173,7 +179,9 @@ def test_an_exclude_then_a_plain_push_finds_no_conflict_and_resends_nothing(env)
     plain = report(fetchsync("push", "--json", env=env))
     assert plain["ok"] and plain["conflicts"] == [] and plain["files"] == 0, plain
     assert plain["bytes_sent"] < 16 * 1024
-    assert not (ws / ".fetchsync/conflicts").exists() or not any((ws / ".fetchsync/conflicts").rglob("*.cpp"))
+    assert not (ws / ".fetchsync/conflicts").exists() or not any(
+        (ws / ".fetchsync/conflicts").rglob("*.cpp")
+    )
     assert tree_of(src) == tree_of(ws / "src")
 
 
@@ -254,7 +262,9 @@ def test_a_damaged_state_is_set_aside_and_rebuilt_with_a_note(env, damage):
     assert report(fetchsync("push", "--json", env=env))["ok"]
     (path,) = state_files(env)
     data = path.read_bytes()
-    path.write_bytes(data[:100] + os.urandom(len(data) - 100) if damage == "garbage" else data[:len(data) // 2])
+    path.write_bytes(
+        data[:100] + os.urandom(len(data) - 100) if damage == "garbage" else data[: len(data) // 2]
+    )
     (src / "my_pkg/package.xml").write_text("<edited after the damage/>\n")
     proc = fetchsync("push", "--json", env=env, check=False)
     err = proc.stderr.decode()
@@ -275,7 +285,9 @@ def test_a_damaged_state_is_set_aside_and_rebuilt_with_a_note(env, damage):
 SETPRIV = shutil.which("setpriv")
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 @pytest.mark.parametrize("how", ["full", "incremental"])
 def test_a_directory_that_lost_its_x_bit_is_one_line_and_left_alone(env, how):
     """Issue 22 item 22: a synced directory without its x bit (its entries cannot be
@@ -296,7 +308,9 @@ def test_a_directory_that_lost_its_x_bit_is_one_line_and_left_alone(env, how):
         (src / "my_pkg").chmod(0o755)
     err = proc.stderr.decode()
     assert proc.returncode == 5 and "Traceback" not in err, err
-    assert err.strip().splitlines()[-1].startswith("fetchsync: error: 1 path(s) failed; first: my_pkg")
+    assert (
+        err.strip().splitlines()[-1].startswith("fetchsync: error: 1 path(s) failed; first: my_pkg")
+    )
     assert tree_of(ws / "src") == before
     assert not (ws / ".fetchsync/trash").exists()
 
@@ -359,7 +373,9 @@ def test_deletions_in_quick_succession_count_as_one(engine):
     assert len(list((ws / "src/my_pkg/many").iterdir())) == 25
 
 
-@pytest.mark.skipif(os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root")
+@pytest.mark.skipif(
+    os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
+)
 def test_pull_works_on_a_read_only_robot(env):
     """Issue 22 items 24 and 25: pull opens the robot read-only and writes nothing there
     (no lock, no index), so a robot whose workspace cannot be written is pulled from."""

@@ -23,8 +23,9 @@ def bash(script: str, *, env: dict[str, str] | None = None) -> subprocess.Comple
     full = dict(os.environ)
     full.pop("ROS_DISTRO", None)
     full.update(env or {})
-    return subprocess.run(["bash", "-c", script], capture_output=True, text=True, env=full,
-                          timeout=30, check=False)
+    return subprocess.run(
+        ["bash", "-c", script], capture_output=True, text=True, env=full, timeout=30, check=False
+    )
 
 
 def fake_distro(root: Path, name: str) -> None:
@@ -43,12 +44,15 @@ def where_from(workspace: str | None, ros_root: Path, **kwargs: object) -> str:
 
 
 # --------------------------------------------------------------------------- quoting
-@pytest.mark.parametrize("path, expected", [
-    ("~", '"$HOME"'),
-    ("~/ws", '"$HOME"/ws'),
-    ("~/my ws/x", '"$HOME"/\'my ws/x\''),
-    ("/abs/it's", "'/abs/it'\"'\"'s'"),
-])
+@pytest.mark.parametrize(
+    "path, expected",
+    [
+        ("~", '"$HOME"'),
+        ("~/ws", '"$HOME"/ws'),
+        ("~/my ws/x", "\"$HOME\"/'my ws/x'"),
+        ("/abs/it's", "'/abs/it'\"'\"'s'"),
+    ],
+)
 def test_shell_path_keeps_tilde_for_the_other_end(path, expected):
     assert remote.shell_path(path) == expected
 
@@ -88,7 +92,9 @@ def test_without_a_built_workspace_the_robots_distro(tmp_path):
     fake_distro(tmp_path / "one-ros", "noetic")
     out = bash(where_from(str(tmp_path / "missing"), tmp_path / "one-ros"))
     assert out.stdout == "/opt/ros/noetic|unset"  # the only one; helper variables are unset after
-    out = bash(where_from(str(tmp_path / "missing"), tmp_path / "ros"), env={"ROS_DISTRO": "melodic"})
+    out = bash(
+        where_from(str(tmp_path / "missing"), tmp_path / "ros"), env={"ROS_DISTRO": "melodic"}
+    )
     assert out.stdout == "/opt/ros/melodic|unset"
 
 
@@ -134,25 +140,38 @@ def test_without_python_there_the_command_still_runs():
 
 
 def test_the_reaper_reports_signals_as_the_shell_does():
-    out = subprocess.run([sys.executable, REAPER, "pipe", "sh", "-c", "kill -TERM $$"],
-                         capture_output=True, check=False, timeout=30)
+    out = subprocess.run(
+        [sys.executable, REAPER, "pipe", "sh", "-c", "kill -TERM $$"],
+        capture_output=True,
+        check=False,
+        timeout=30,
+    )
     assert out.returncode == 128 + signal.SIGTERM
-    out = subprocess.run([sys.executable, REAPER, "pipe", "/nonexistent/cmd"],
-                         capture_output=True, check=False, timeout=30)
+    out = subprocess.run(
+        [sys.executable, REAPER, "pipe", "/nonexistent/cmd"],
+        capture_output=True,
+        check=False,
+        timeout=30,
+    )
     assert out.returncode == 127 and b"cannot run /nonexistent/cmd" in out.stderr
 
 
 def test_the_command_gets_default_signal_handling():
     # Python ignores SIGPIPE; a command run from it must not
     script = 'yes | head -1; echo "${PIPESTATUS[0]}"'
-    out = subprocess.run([sys.executable, REAPER, "pipe", "bash", "-c", script],
-                         capture_output=True, check=False, timeout=30)
+    out = subprocess.run(
+        [sys.executable, REAPER, "pipe", "bash", "-c", script],
+        capture_output=True,
+        check=False,
+        timeout=30,
+    )
     assert out.stdout == b"y\n141\n"
 
 
 def _sleeps(marker: str) -> list[str]:
-    out = subprocess.run(["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True, text=True,
-                         check=False)
+    out = subprocess.run(
+        ["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True, text=True, check=False
+    )
     return out.stdout.split()
 
 
@@ -167,8 +186,12 @@ def _wait_for(predicate, what: str) -> None:
 def test_the_reaper_stops_the_whole_group(stop):
     marker = f"0.{uuid.uuid4().int % 10**9:09d}"
     command = f"sleep 300 {marker} & sleep 300 {marker}; wait"
-    proc = subprocess.Popen([sys.executable, REAPER, "pipe", "bash", "-c", command],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, REAPER, "pipe", "bash", "-c", command],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     try:
         _wait_for(lambda: len(_sleeps(marker)) == 2, "the sleeps to start")
         if stop == "close-output":  # what sshd does when the channel closes

@@ -21,11 +21,23 @@ pytestmark = pytest.mark.ssh
 
 def _env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[str, str]:
     e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO",
-              "FETCH_WORKSPACE", "FETCH_REMOTE_WORKSPACE"):
+    for k in (
+        "FETCH_ROBOT",
+        "FETCH_USER",
+        "ROS_MASTER_URI",
+        "FETCHSYNC_USER",
+        "ROS_DISTRO",
+        "FETCH_WORKSPACE",
+        "FETCH_REMOTE_WORKSPACE",
+    ):
         e.pop(k, None)
-    e.update(HOME=str(home), FETCHSYNC_ROBOT="robot", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir), XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     e.update(extra)
     return e
 
@@ -54,8 +66,9 @@ def _marker() -> str:
 
 
 def _remote_sleeps(marker: str) -> list[str]:
-    out = subprocess.run(["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True, text=True,
-                         check=False)
+    out = subprocess.run(
+        ["pgrep", "-f", f"^sleep 300 {marker}"], capture_output=True, text=True, check=False
+    )
     return out.stdout.split()
 
 
@@ -68,9 +81,13 @@ def _wait_for(predicate, what: str, timeout: float = 30.0) -> None:
 
 
 def _start(args: list[str], env: dict[str, str]) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "fetchsync", "run", *args], env=env,
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
+    return subprocess.Popen(
+        [sys.executable, "-m", "fetchsync", "run", *args],
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
 
 
 def _kill_leftovers(marker: str) -> None:
@@ -147,9 +164,14 @@ def test_a_lost_robot_is_exit_255_with_a_message(env, ssh_home):
 
 
 def test_the_local_robot_runs_commands_too(tmp_path):
-    env = _env(tmp_path / "home", tmp_path / "unused", tmp_path, FETCHSYNC_ROBOT="local",
-               FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-               FETCHSYNC_REMOTE_WORKSPACE="~/ws")
+    env = _env(
+        tmp_path / "home",
+        tmp_path / "unused",
+        tmp_path,
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+    )
     (tmp_path / "robot-home/ws/devel").mkdir(parents=True)
     (tmp_path / "robot-home/ws/devel/setup.bash").write_text("export FROM_WS=yes\n")
     proc = fetchsync("run", "--", "sh", "-c", 'echo "$HOME $FROM_WS"; exit 3', env=env, check=False)
@@ -185,8 +207,9 @@ def test_a_killed_fetchsync_leaves_nothing_running(env):
         _kill_leftovers(marker)
 
 
-def test_a_lost_link_is_exit_255_and_leaves_nothing_running(proxied_home, fault_proxy, remote_dir,
-                                                            tmp_path):
+def test_a_lost_link_is_exit_255_and_leaves_nothing_running(
+    proxied_home, fault_proxy, remote_dir, tmp_path
+):
     env = _env(proxied_home.home, remote_dir, tmp_path)
     marker = _marker()
     proc = _start(["--", "sleep", "300", marker], env)

@@ -15,10 +15,14 @@ from pathlib import Path
 import pytest
 from helpers import run_bench
 
+
 @pytest.mark.ssh
 def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
     stdout, raw = run_bench("scale.py", "--files", "3000", "--size-mb", "20", tmp_path=tmp_path)
-    assert "| step | time | fetchsync peak RSS | robot endpoint peak RSS | target | verdict |" in stdout
+    assert (
+        "| step | time | fetchsync peak RSS | robot endpoint peak RSS | target | verdict |"
+        in stdout
+    )
     assert "verification: PASS" in stdout
     assert raw["failures"] == []
     assert raw["verification"] == {

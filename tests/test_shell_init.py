@@ -63,25 +63,39 @@ def env(tmp_path: Path) -> dict[str, str]:
         (bin_dir / name).chmod(0o755)
     # The installed `fetchsync` may be another checkout: run this one.
     wrapper = bin_dir / "fetchsync"
-    wrapper.write_text(f"#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync \"$@\"\n")
+    wrapper.write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync "$@"\n')
     wrapper.chmod(0o755)
-    keep = {k: v for k, v in os.environ.items()
-            if not k.startswith(("FETCH_", "FETCHSYNC_", "_FETCHSYNC_"))
-            and k not in ("ROS_MASTER_URI", "BASH_ENV", "ENV", "ZDOTDIR")}
-    keep.update(PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
-                PYTHONPATH=str(REPO), HOME=str(tmp_path))
+    keep = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("FETCH_", "FETCHSYNC_", "_FETCHSYNC_"))
+        and k not in ("ROS_MASTER_URI", "BASH_ENV", "ENV", "ZDOTDIR")
+    }
+    keep.update(
+        PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
+        PYTHONPATH=str(REPO),
+        HOME=str(tmp_path),
+    )
     return keep
 
 
-def run(shell: str, code: str, body: str, env: dict[str, str], tmp_path: Path,
-        *, setup: str = "") -> subprocess.CompletedProcess[str]:
+def run(
+    shell: str, code: str, body: str, env: dict[str, str], tmp_path: Path, *, setup: str = ""
+) -> subprocess.CompletedProcess[str]:
     """Run ``body`` in a fresh non-interactive ``shell`` after sourcing ``code``."""
     script = tmp_path / f"init.{shell}"
     script.write_text(code)
     argv = [_need(shell), "--norc", "--noprofile"] if shell == "bash" else [_need(shell), "-f"]
     program = f"{setup}\n. {shlex.quote(str(script))}\n{body}\n"
-    return subprocess.run([*argv, "-c", program], env=env, cwd=tmp_path, capture_output=True,
-                          text=True, timeout=30, check=False)
+    return subprocess.run(
+        [*argv, "-c", program],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -89,43 +103,56 @@ def generated() -> dict[str, str]:
     return {name: _generate(name) for name in SHELLS}
 
 
-def test_eval_of_the_real_command_defines_the_helpers(shell: str, env: dict[str, str],
-                                                      tmp_path: Path) -> None:
-    out = run(shell, "", f'eval "$(fetchsync shell-init {shell})"; uf 3; echo "$ROS_MASTER_URI"',
-              env, tmp_path)
+def test_eval_of_the_real_command_defines_the_helpers(
+    shell: str, env: dict[str, str], tmp_path: Path
+) -> None:
+    out = run(
+        shell,
+        "",
+        f'eval "$(fetchsync shell-init {shell})"; uf 3; echo "$ROS_MASTER_URI"',
+        env,
+        tmp_path,
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines() == ["http://fetch3:11311", "http://fetch3:11311"]
     assert out.stderr == ""
 
 
-@pytest.mark.parametrize(("body", "uri"), [
-    ("uf 3", "http://fetch3:11311"),
-    ("ufr 2", "http://freight2:11311"),
-    ("uf 7.local", "http://fetch7.local:11311"),
-    ("ufr 0.local", "http://freight0.local:11311"),
-    ("ul", "http://localhost:11311"),
-    ("ul 11312", "http://localhost:11312"),
-])
-def test_ros_master_uri_helpers(shell: str, generated: dict[str, str], env: dict[str, str],
-                                tmp_path: Path, body: str, uri: str) -> None:
+@pytest.mark.parametrize(
+    ("body", "uri"),
+    [
+        ("uf 3", "http://fetch3:11311"),
+        ("ufr 2", "http://freight2:11311"),
+        ("uf 7.local", "http://fetch7.local:11311"),
+        ("ufr 0.local", "http://freight0.local:11311"),
+        ("ul", "http://localhost:11311"),
+        ("ul 11312", "http://localhost:11312"),
+    ],
+)
+def test_ros_master_uri_helpers(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path, body: str, uri: str
+) -> None:
     out = run(shell, generated[shell], f'{body}; echo "exported $ROS_MASTER_URI"', env, tmp_path)
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines() == [uri, f"exported {uri}"]
     assert out.stderr == ""
 
 
-def test_fetchsync_follows_the_robot_uf_chose(shell: str, generated: dict[str, str],
-                                              env: dict[str, str], tmp_path: Path) -> None:
-    resolve = (f"{shlex.quote(sys.executable)} -c "
-               "'from fetchsync.config import resolve_robot; print(resolve_robot())'")
+def test_fetchsync_follows_the_robot_uf_chose(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
+    resolve = (
+        f"{shlex.quote(sys.executable)} -c "
+        "'from fetchsync.config import resolve_robot; print(resolve_robot())'"
+    )
     out = run(shell, generated[shell], f"uf 7.local >/dev/null; {resolve}", env, tmp_path)
     assert out.returncode == 0, out.stderr
     assert out.stdout == "fetch7.local\n"
 
 
-def test_uf_alone_prints_the_current_uri_like_fetch_tools(shell: str, generated: dict[str, str],
-                                                          env: dict[str, str],
-                                                          tmp_path: Path) -> None:
+def test_uf_alone_prints_the_current_uri_like_fetch_tools(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     out = run(shell, generated[shell], "ufr 4 >/dev/null; uf; uf; echo rc=$?", env, tmp_path)
     assert out.stdout.splitlines() == ["http://freight4:11311"] * 2 + ["rc=0"]
     unset = run(shell, generated[shell], "uf; echo rc=$?", env, tmp_path)
@@ -133,8 +160,9 @@ def test_uf_alone_prints_the_current_uri_like_fetch_tools(shell: str, generated:
     assert unset.stderr.startswith("usage: uf N")
 
 
-def test_ssh_helpers_run_ssh_with_user_and_arguments(shell: str, generated: dict[str, str],
-                                                     env: dict[str, str], tmp_path: Path) -> None:
+def test_ssh_helpers_run_ssh_with_user_and_arguments(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     body = """
 sf 1
 FETCH_USER=bob sf 1
@@ -160,32 +188,40 @@ kf -i ~/'my key.pub' -f 4
     assert out.stderr == ""
 
 
-@pytest.mark.parametrize("body", [
-    "uf 1 2",
-    "uf ''",
-    "uf '1; touch PWNED'",
-    "uf '$(touch PWNED)'",
-    "uf -h",
-    "ufr .local",
-    "ul 0",
-    "ul 65536",
-    "ul 123456",
-    "ul port",
-    "ul 1 2",
-    "sf",
-    "kfr",
-    "sf '-oProxyCommand=touch PWNED'",
-    "kf -i key '1 2'",
-    "FETCH_USER='-oProxyCommand=touch PWNED' sf 1",
-    "FETCHSYNC_USER='a b' kf 1",
-    "FETCHSYNC_ROBOT_PREFIX='-o' sf 1",
-    "FETCHSYNC_ROBOT_PREFIX_R='x;y' ufr 1",
-])
-def test_bad_input_is_refused_with_a_message(shell: str, generated: dict[str, str],
-                                             env: dict[str, str], tmp_path: Path,
-                                             body: str) -> None:
-    out = run(shell, generated[shell], f"ul 9999 >/dev/null\n{body}\necho rc=$? $ROS_MASTER_URI",
-              env, tmp_path)
+@pytest.mark.parametrize(
+    "body",
+    [
+        "uf 1 2",
+        "uf ''",
+        "uf '1; touch PWNED'",
+        "uf '$(touch PWNED)'",
+        "uf -h",
+        "ufr .local",
+        "ul 0",
+        "ul 65536",
+        "ul 123456",
+        "ul port",
+        "ul 1 2",
+        "sf",
+        "kfr",
+        "sf '-oProxyCommand=touch PWNED'",
+        "kf -i key '1 2'",
+        "FETCH_USER='-oProxyCommand=touch PWNED' sf 1",
+        "FETCHSYNC_USER='a b' kf 1",
+        "FETCHSYNC_ROBOT_PREFIX='-o' sf 1",
+        "FETCHSYNC_ROBOT_PREFIX_R='x;y' ufr 1",
+    ],
+)
+def test_bad_input_is_refused_with_a_message(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path, body: str
+) -> None:
+    out = run(
+        shell,
+        generated[shell],
+        f"ul 9999 >/dev/null\n{body}\necho rc=$? $ROS_MASTER_URI",
+        env,
+        tmp_path,
+    )
     # Nothing ran (the fakes print to stdout), nothing changed, nothing was evaluated.
     assert out.stdout.splitlines() == ["rc=1 http://localhost:9999"]
     assert out.stderr.strip(), "a message on stderr"
@@ -193,7 +229,8 @@ def test_bad_input_is_refused_with_a_message(shell: str, generated: dict[str, st
 
 
 def test_prefixes_baked_by_options_and_overridden_by_the_environment(
-        shell: str, env: dict[str, str], tmp_path: Path) -> None:
+    shell: str, env: dict[str, str], tmp_path: Path
+) -> None:
     code = _generate(shell, "--prefix", "robo", "--prefix-r", "base")
     body = """
 uf 1
@@ -216,34 +253,50 @@ sfr 6
     ]
 
 
-def test_uf_notes_a_robot_variable_that_still_wins(shell: str, generated: dict[str, str],
-                                                   env: dict[str, str], tmp_path: Path) -> None:
-    out = run(shell, generated[shell], "FETCH_ROBOT=fetch9 uf 1; FETCH_ROBOT=fetch1 uf 1",
-              env, tmp_path)
+def test_uf_notes_a_robot_variable_that_still_wins(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
+    out = run(
+        shell, generated[shell], "FETCH_ROBOT=fetch9 uf 1; FETCH_ROBOT=fetch1 uf 1", env, tmp_path
+    )
     assert out.stdout.splitlines() == ["http://fetch1:11311"] * 2
     assert out.stderr.splitlines() == [
-        "uf: note: fetchsync still targets FETCH_ROBOT=fetch9; unset it to follow ROS_MASTER_URI"]
+        "uf: note: fetchsync still targets FETCH_ROBOT=fetch9; unset it to follow ROS_MASTER_URI"
+    ]
 
 
-@pytest.mark.parametrize(("shell_name", "setup"), [
-    ("bash", "set -u"),
-    ("zsh", "setopt ksh_arrays sh_word_split no_unset no_glob; IFS=."),
-])
-def test_helpers_ignore_the_users_shell_options(shell_name: str, setup: str,
-                                                generated: dict[str, str], env: dict[str, str],
-                                                tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("shell_name", "setup"),
+    [
+        ("bash", "set -u"),
+        ("zsh", "setopt ksh_arrays sh_word_split no_unset no_glob; IFS=."),
+    ],
+)
+def test_helpers_ignore_the_users_shell_options(
+    shell_name: str, setup: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     _need(shell_name)
-    out = run(shell_name, generated[shell_name],
-              "ul; uf 2.local; sf 1 'a b'; kf -i k 3; sf; echo rc=$?",
-              env, tmp_path, setup=setup)
+    out = run(
+        shell_name,
+        generated[shell_name],
+        "ul; uf 2.local; sf 1 'a b'; kf -i k 3; sf; echo rc=$?",
+        env,
+        tmp_path,
+        setup=setup,
+    )
     assert out.stdout.splitlines() == [
-        "http://localhost:11311", "http://fetch2.local:11311", "ssh [fetch1] [a b]",
-        "ssh-copy-id [-i] [k] [fetch3]", "rc=1"]
+        "http://localhost:11311",
+        "http://fetch2.local:11311",
+        "ssh [fetch1] [a b]",
+        "ssh-copy-id [-i] [k] [fetch3]",
+        "rc=1",
+    ]
     assert out.stderr.startswith("usage: sf N")
 
 
-def test_bash_completion_of_verbs_and_options(generated: dict[str, str], env: dict[str, str],
-                                              tmp_path: Path) -> None:
+def test_bash_completion_of_verbs_and_options(
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     body = """
 complete -p fetchsync
 complete_words() { COMPREPLY=(); COMP_WORDS=("$@"); COMP_CWORD=$(($# - 1));
@@ -264,7 +317,8 @@ complete_words fetchsync shell-init ''
 
 
 def test_zsh_completion_registers_with_compdef_and_offers_verbs(
-        generated: dict[str, str], env: dict[str, str], tmp_path: Path) -> None:
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     _need("zsh")
     # compadd and _describe only work inside a completion widget: stand-ins
     # print what click's zsh function hands them.
@@ -275,8 +329,9 @@ function compadd { print -r -- "compadd $*"; }
 words=(fetchsync pu); CURRENT=2; _fetchsync_completion
 words=(fetchsync push --r); CURRENT=3; _fetchsync_completion
 """
-    out = run("zsh", generated["zsh"], body, env, tmp_path,
-              setup="autoload -Uz compinit; compinit -u -D")
+    out = run(
+        "zsh", generated["zsh"], body, env, tmp_path, setup="autoload -Uz compinit; compinit -u -D"
+    )
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     assert lines[0] == "registered: _fetchsync_completion"
@@ -285,24 +340,29 @@ words=(fetchsync push --r); CURRENT=3; _fetchsync_completion
     assert "--robot" in names
 
 
-def test_zsh_without_compinit_loads_the_helpers_quietly(generated: dict[str, str],
-                                                        env: dict[str, str],
-                                                        tmp_path: Path) -> None:
+def test_zsh_without_compinit_loads_the_helpers_quietly(
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     _need("zsh")
     out = run("zsh", generated["zsh"], "uf 1", env, tmp_path)
     assert (out.returncode, out.stdout, out.stderr) == (0, "http://fetch1:11311\n", "")
 
 
-@pytest.mark.parametrize(("words", "cword", "expected"), [
-    ("fetchsync ", 1, {"plain,push", "plain,pull", "plain,shell-init"}),
-    ("fetchsync push --r", 2, {"plain,--robot", "plain,--remote-workspace"}),
-    ("fetchsync shell-init ", 2, {"plain,bash", "plain,zsh"}),
-])
+@pytest.mark.parametrize(
+    ("words", "cword", "expected"),
+    [
+        ("fetchsync ", 1, {"plain,push", "plain,pull", "plain,shell-init"}),
+        ("fetchsync push --r", 2, {"plain,--robot", "plain,--remote-workspace"}),
+        ("fetchsync shell-init ", 2, {"plain,bash", "plain,zsh"}),
+    ],
+)
 def test_click_completion_protocol(words: str, cword: int, expected: set[str]) -> None:
     result = CliRunner().invoke(
-        cli, [], prog_name="fetchsync",
-        env={"_FETCHSYNC_COMPLETE": "bash_complete", "COMP_WORDS": words,
-             "COMP_CWORD": str(cword)})
+        cli,
+        [],
+        prog_name="fetchsync",
+        env={"_FETCHSYNC_COMPLETE": "bash_complete", "COMP_WORDS": words, "COMP_CWORD": str(cword)},
+    )
     assert result.exit_code == 0
     assert expected <= set(result.output.splitlines())
 
@@ -316,12 +376,18 @@ def test_cli_prints_helpers_and_completion_per_shell(generated: dict[str, str]) 
     assert "compdef" not in generated["bash"]
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["fish"], "fetchsync: error: unsupported shell 'fish'; choose bash or zsh"),
-    ([], "fetchsync: error: name the shell to initialise: bash or zsh"),
-    (["bash", "--prefix", "-o"], "fetchsync: error: --prefix '-o' is not a host name prefix"),
-    (["zsh", "--prefix-r", "a b"], "fetchsync: error: --prefix-r 'a b' is not a host name prefix"),
-])
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["fish"], "fetchsync: error: unsupported shell 'fish'; choose bash or zsh"),
+        ([], "fetchsync: error: name the shell to initialise: bash or zsh"),
+        (["bash", "--prefix", "-o"], "fetchsync: error: --prefix '-o' is not a host name prefix"),
+        (
+            ["zsh", "--prefix-r", "a b"],
+            "fetchsync: error: --prefix-r 'a b' is not a host name prefix",
+        ),
+    ],
+)
 def test_cli_refuses_bad_input_in_one_line(args: list[str], message: str) -> None:
     result = CliRunner().invoke(cli, ["shell-init", *args], prog_name="fetchsync")
     assert result.exit_code == 2
@@ -330,6 +396,7 @@ def test_cli_refuses_bad_input_in_one_line(args: list[str], message: str) -> Non
 
 
 # --- fetch_tools' `fetch` command -----------------------------------------------------------
+
 
 @pytest.fixture
 def fake_fetchsync(env: dict[str, str], tmp_path: Path) -> dict[str, str]:
@@ -342,8 +409,8 @@ def fake_fetchsync(env: dict[str, str], tmp_path: Path) -> dict[str, str]:
 
 
 def test_fetch_passes_fetch_tools_command_lines_as_typed(
-        shell: str, generated: dict[str, str], fake_fetchsync: dict[str, str],
-        tmp_path: Path) -> None:
+    shell: str, generated: dict[str, str], fake_fetchsync: dict[str, str], tmp_path: Path
+) -> None:
     # The command lines of fetch_tools' README, verbatim.
     body = """
 fetch create-account --fullname "Not A. Robot"
@@ -375,25 +442,33 @@ fetch run 'echo "$HOME" *'
     ]
 
 
-def test_fetch_exits_with_fetchsyncs_status(shell: str, generated: dict[str, str],
-                                            env: dict[str, str], tmp_path: Path) -> None:
-    out = run(shell, generated[shell], "fetch --version; echo rc=$?; fetch nosuchverb; echo rc=$?",
-              env, tmp_path)
+def test_fetch_exits_with_fetchsyncs_status(
+    shell: str, generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
+    out = run(
+        shell,
+        generated[shell],
+        "fetch --version; echo rc=$?; fetch nosuchverb; echo rc=$?",
+        env,
+        tmp_path,
+    )
     lines = out.stdout.splitlines()
     assert lines[0].startswith("fetchsync, version ") and lines[1] == "rc=0"
     assert lines[2] == "rc=2" and "No such command 'nosuchverb'" in out.stderr
 
 
-def test_no_fetch_leaves_the_fetch_command_out(shell: str, env: dict[str, str],
-                                               tmp_path: Path) -> None:
+def test_no_fetch_leaves_the_fetch_command_out(
+    shell: str, env: dict[str, str], tmp_path: Path
+) -> None:
     code = _generate(shell, "--no-fetch")
     assert "function fetch " not in code and " fetch\n" not in code
     out = run(shell, code, "type fetch >/dev/null 2>&1; echo rc=$?; uf 2", env, tmp_path)
     assert out.stdout.splitlines() == ["rc=1", "http://fetch2:11311"]
 
 
-def test_bash_completion_of_fetch(generated: dict[str, str], env: dict[str, str],
-                                  tmp_path: Path) -> None:
+def test_bash_completion_of_fetch(
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     body = """
 complete -p fetch
 complete_words() { COMPREPLY=(); COMP_WORDS=("$@"); COMP_CWORD=$(($# - 1));
@@ -411,8 +486,9 @@ complete_words fetch de
     assert lines[3].split() == ["debug-snapshot"]
 
 
-def test_zsh_completion_of_fetch(generated: dict[str, str], env: dict[str, str],
-                                 tmp_path: Path) -> None:
+def test_zsh_completion_of_fetch(
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     _need("zsh")
     body = """
 print -r -- "registered: ${_comps[fetch]}"
@@ -420,8 +496,9 @@ function _describe { print -rl -- "${(@P)3}"; }
 function compadd { print -r -- "compadd $*"; }
 words=(fetch pu); CURRENT=2; _fetchsync_completion
 """
-    out = run("zsh", generated["zsh"], body, env, tmp_path,
-              setup="autoload -Uz compinit; compinit -u -D")
+    out = run(
+        "zsh", generated["zsh"], body, env, tmp_path, setup="autoload -Uz compinit; compinit -u -D"
+    )
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     assert lines[0] == "registered: _fetchsync_completion"
@@ -430,33 +507,44 @@ words=(fetch pu); CURRENT=2; _fetchsync_completion
 
 # --- --robot completion ---------------------------------------------------------------------
 
+
 def _robot_home(home: Path) -> Path:
     ssh = home / ".ssh"
     ssh.mkdir(parents=True)
     (ssh / "config").write_text(
         "# my robots\nHost lab-fetch3 freight0\n    HostName 10.0.0.3\n"
-        "Host *.corp !bad\n    User me\nhost=tiago1\nMatch host x\n")
+        "Host *.corp !bad\n    User me\nhost=tiago1\nMatch host x\n"
+    )
     (ssh / "known_hosts").write_text(
         "fetch42,10.1.1.42 ssh-ed25519 AAAA\n"
         "|1|aGFzaGVk|c2FsdA== ssh-ed25519 AAAA\n"
         "[odd-port]:2222 ssh-ed25519 AAAA\n"
         "[port22]:22 ssh-ed25519 AAAA\n"
         "@cert-authority *.corp ssh-ed25519 AAAA\n"
-        "@revoked fetch-revoked ssh-ed25519 AAAA\n")
+        "@revoked fetch-revoked ssh-ed25519 AAAA\n"
+    )
     return home
 
 
-@pytest.mark.parametrize(("typed", "expected"), [
-    ("", ["lab-fetch3", "freight0", "tiago1", "fetch42", "10.1.1.42", "port22"]
-     + [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(1, 10)]),
-    ("fr", ["freight0"] + [f"freight{i}" for i in range(1, 10)]),
-    ("fetch", ["fetch42"] + [f"fetch{i}" for i in range(10)]),
-    ("fetch4", ["fetch42"] + [f"fetch4{i}" for i in range(10) if i != 2]),
-    ("lab", ["lab-fetch3"] + [f"lab{i}" for i in range(10)]),
-    ("-o", []),
-])
+@pytest.mark.parametrize(
+    ("typed", "expected"),
+    [
+        (
+            "",
+            ["lab-fetch3", "freight0", "tiago1", "fetch42", "10.1.1.42", "port22"]
+            + [f"fetch{i}" for i in range(10)]
+            + [f"freight{i}" for i in range(1, 10)],
+        ),
+        ("fr", ["freight0"] + [f"freight{i}" for i in range(1, 10)]),
+        ("fetch", ["fetch42"] + [f"fetch{i}" for i in range(10)]),
+        ("fetch4", ["fetch42"] + [f"fetch4{i}" for i in range(10) if i != 2]),
+        ("lab", ["lab-fetch3"] + [f"lab{i}" for i in range(10)]),
+        ("-o", []),
+    ],
+)
 def test_robot_names_from_ssh_config_known_hosts_and_fetch_tools(
-        tmp_path: Path, typed: str, expected: list[str]) -> None:
+    tmp_path: Path, typed: str, expected: list[str]
+) -> None:
     from fetchsync.chores.shell import robot_names
 
     home = _robot_home(tmp_path)
@@ -467,22 +555,31 @@ def test_robot_names_without_ssh_files(tmp_path: Path) -> None:
     from fetchsync.chores.shell import robot_names
 
     assert robot_names("f", home=tmp_path, global_known_hosts=str(tmp_path / "none")) == (
-        [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(10)])
+        [f"fetch{i}" for i in range(10)] + [f"freight{i}" for i in range(10)]
+    )
 
 
 @pytest.mark.parametrize("verb", ["push", "run", "create-account", "snapshot", "debug-snapshot"])
 def test_robot_option_completes_in_every_robot_verb(tmp_path: Path, verb: str) -> None:
     home = _robot_home(tmp_path)
     result = CliRunner().invoke(
-        cli, [], prog_name="fetchsync",
-        env={"_FETCHSYNC_COMPLETE": "bash_complete", "COMP_WORDS": f"fetch {verb} --robot la",
-             "COMP_CWORD": "3", "HOME": str(home)})
+        cli,
+        [],
+        prog_name="fetchsync",
+        env={
+            "_FETCHSYNC_COMPLETE": "bash_complete",
+            "COMP_WORDS": f"fetch {verb} --robot la",
+            "COMP_CWORD": "3",
+            "HOME": str(home),
+        },
+    )
     assert result.exit_code == 0
     assert result.output.splitlines()[0] == "plain,lab-fetch3"
 
 
-def test_fetch_robot_completion_through_bash(generated: dict[str, str], env: dict[str, str],
-                                             tmp_path: Path) -> None:
+def test_fetch_robot_completion_through_bash(
+    generated: dict[str, str], env: dict[str, str], tmp_path: Path
+) -> None:
     _robot_home(tmp_path)  # env's HOME is tmp_path
     body = """
 COMP_WORDS=(fetch push --robot frei); COMP_CWORD=3

@@ -24,8 +24,6 @@ import pytest
 from click.testing import CliRunner
 from sshd import SSHHome
 
-from fetchsync.cli import cli
-from fetchsync.errors import ConfigError, UsageError
 from fetchsync.chores.snapshot import (
     DEFAULT_COLLECTORS,
     MISSING,
@@ -44,6 +42,8 @@ from fetchsync.chores.snapshot import (
     select_collectors,
     take_snapshot,
 )
+from fetchsync.cli import cli
+from fetchsync.errors import ConfigError, UsageError
 
 SYSTEM_NAMES = [c.name for c in DEFAULT_COLLECTORS if c.kind == "system"]
 
@@ -79,20 +79,39 @@ def test_default_set_is_valid_and_covers_the_issue():
     for c in DEFAULT_COLLECTORS:
         c.validate()
     names = set(SYSTEM_NAMES)
-    assert {"uname", "os_release", "uptime", "meminfo", "df", "top", "dmesg", "journal",
-            "ip_addr", "ip_route", "lsusb", "lspci", "dpkg_ros"} <= names
+    assert {
+        "uname",
+        "os_release",
+        "uptime",
+        "meminfo",
+        "df",
+        "top",
+        "dmesg",
+        "journal",
+        "ip_addr",
+        "ip_route",
+        "lsusb",
+        "lspci",
+        "dpkg_ros",
+    } <= names
     shared = {"ros_nodes", "ros_topics", "ros_services", "ros_params"}
     assert {c.name for c in DEFAULT_COLLECTORS if c.kind == "ros1"} == shared
     # ROS 2 adds its doctor's report and the logs (issue 26)
     assert {c.name for c in DEFAULT_COLLECTORS if c.kind == "ros2"} == shared | {
-        "ros_doctor", "ros_log"}
+        "ros_doctor",
+        "ros_log",
+    }
     assert {c.name for c in DEFAULT_COLLECTORS if c.needs_sudo} == {"dmesg", "journal"}
 
 
 def test_only_skip_extra_and_replacing_a_default():
     chosen = select_collectors(only=["uname", "ros_nodes"], extra=[parse_extra("x=echo 1")])
     assert [(c.name, c.kind) for c in chosen] == [
-        ("uname", "system"), ("ros_nodes", "ros1"), ("ros_nodes", "ros2"), ("x", "system")]
+        ("uname", "system"),
+        ("ros_nodes", "ros1"),
+        ("ros_nodes", "ros2"),
+        ("x", "system"),
+    ]
     chosen = select_collectors(skip=["ros_nodes", "dmesg"])
     assert "dmesg" not in {c.name for c in chosen} and "ros_nodes" not in {c.name for c in chosen}
     # an extra with a default's name replaces it (both ROS variants), in place
@@ -107,19 +126,27 @@ def test_only_skip_extra_and_replacing_a_default():
 
 def test_config_file_toml_and_json(tmp_path):
     toml = tmp_path / "snap.toml"
-    toml.write_text('skip = ["lspci"]\n[[collectors]]\nname = "charger"\n'
-                    'command = "rosrun fetch_drivers read_board 0x3f"\nkind = "ros1"\n'
-                    'timeout = 20\nneeds_sudo = true\n')
+    toml.write_text(
+        'skip = ["lspci"]\n[[collectors]]\nname = "charger"\n'
+        'command = "rosrun fetch_drivers read_board 0x3f"\nkind = "ros1"\n'
+        "timeout = 20\nneeds_sudo = true\n"
+    )
     cfg = load_config(toml)
     chosen = select_collectors(config=cfg)
-    assert Collector("charger", "rosrun fetch_drivers read_board 0x3f", 20.0, True, "ros1") in chosen
+    assert (
+        Collector("charger", "rosrun fetch_drivers read_board 0x3f", 20.0, True, "ros1") in chosen
+    )
     assert "lspci" not in {c.name for c in chosen}
     js = tmp_path / "snap.json"
     js.write_text(json.dumps({"defaults": False, "collectors": [{"name": "a", "command": "true"}]}))
     assert select_collectors(config=load_config(js)) == (Collector("a", "true"),)
-    for text in ('{"collectors": [{"name": "a"}]}', '{"bogus": 1}', "[1]",
-                 '{"collectors": [{"name": "a", "command": "x", "kind": "ros3"}]}',
-                 '{"collectors": [{"name": "a", "command": "x", "timeout": 0}]}'):
+    for text in (
+        '{"collectors": [{"name": "a"}]}',
+        '{"bogus": 1}',
+        "[1]",
+        '{"collectors": [{"name": "a", "command": "x", "kind": "ros3"}]}',
+        '{"collectors": [{"name": "a", "command": "x", "timeout": 0}]}',
+    ):
         js.write_text(text)
         with pytest.raises(ConfigError):
             load_config(js)
@@ -135,8 +162,10 @@ def test_classify():
 
 
 def test_probe_output_parsing_ignores_login_noise_and_picks_a_distro():
-    info = parse_probe("Welcome!\nuid=1000\nuser=fetch\ntimeout=yes\nsudo=password\n"
-                       "ros=1 /opt/ros/melodic\nros=1 /opt/ros/noetic\nros_distro=\n")
+    info = parse_probe(
+        "Welcome!\nuid=1000\nuser=fetch\ntimeout=yes\nsudo=password\n"
+        "ros=1 /opt/ros/melodic\nros=1 /opt/ros/noetic\nros_distro=\n"
+    )
     assert (info.uid, info.user, info.has_timeout, info.sudo) == (1000, "fetch", True, "password")
     assert info.ros == RosInstall(1, "noetic", "/opt/ros/noetic")
     info = parse_probe("uid=0\nros=1 /opt/ros/noetic\nros=2 /opt/ros/foxy\nros_distro=foxy\n")
@@ -167,8 +196,15 @@ def test_archive_name():
 def test_list_needs_no_robot():
     result = CliRunner().invoke(cli, ["snapshot", "--list", "--only", "uname", "--json"])
     assert result.exit_code == 0, result.output
-    assert json.loads(result.output) == [{"name": "uname", "kind": "system", "timeout": 10.0,
-                                          "needs_sudo": False, "command": "uname -a"}]
+    assert json.loads(result.output) == [
+        {
+            "name": "uname",
+            "kind": "system",
+            "timeout": 10.0,
+            "needs_sudo": False,
+            "command": "uname -a",
+        }
+    ]
 
 
 # --- against the real sshd robot -----------------------------------------------------------------
@@ -176,9 +212,18 @@ def test_list_needs_no_robot():
 
 @pytest.fixture
 def snap_env(ssh_home: SSHHome, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
-    for var in ("FETCH_ROBOT", "FETCH_USER", "FETCHSYNC_USER", "ROS_MASTER_URI", "ROS_DISTRO",
-                "FETCHSYNC_WORKSPACE", "FETCH_WORKSPACE", "FETCHSYNC_REMOTE_WORKSPACE",
-                "FETCH_REMOTE_WORKSPACE", "FETCHSYNC_SUDO_PASSWORD"):
+    for var in (
+        "FETCH_ROBOT",
+        "FETCH_USER",
+        "FETCHSYNC_USER",
+        "ROS_MASTER_URI",
+        "ROS_DISTRO",
+        "FETCHSYNC_WORKSPACE",
+        "FETCH_WORKSPACE",
+        "FETCHSYNC_REMOTE_WORKSPACE",
+        "FETCH_REMOTE_WORKSPACE",
+        "FETCHSYNC_SUDO_PASSWORD",
+    ):
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("FETCHSYNC_ROBOT", "robot")
     return ssh_home
@@ -199,8 +244,10 @@ def test_default_snapshot_lists_every_system_command(snap_env, tmp_path, monkeyp
     archive = only_archive(tmp_path)
     assert re.fullmatch(r"snapshot-robot-\d{8}-\d{6}\.tar\.gz", archive.name)
     summary = result.stdout.strip().splitlines()[-1]
-    assert re.match(r"snapshot: \d+ ok, \d+ failed, \d+ missing.*; "
-                    + re.escape(archive.name) + r" \(\d", summary), summary
+    assert re.match(
+        r"snapshot: \d+ ok, \d+ failed, \d+ missing.*; " + re.escape(archive.name) + r" \(\d",
+        summary,
+    ), summary
     manifest, files = read_archive(archive)
     entries = by_name(manifest)
     assert [n for n in entries if n in SYSTEM_NAMES] == SYSTEM_NAMES
@@ -219,9 +266,19 @@ def test_default_snapshot_lists_every_system_command(snap_env, tmp_path, monkeyp
 
 @pytest.mark.ssh
 def test_missing_tool_and_only_and_extra(snap_env, tmp_path):
-    result = run_cli("--output", str(tmp_path), "--only", "uname", "--only", "df",
-                     "--extra", "greet=echo hello-$((6*7))",
-                     "--extra", "nope=fetchsync-no-such-tool-xyz --version", "--json")
+    result = run_cli(
+        "--output",
+        str(tmp_path),
+        "--only",
+        "uname",
+        "--only",
+        "df",
+        "--extra",
+        "greet=echo hello-$((6*7))",
+        "--extra",
+        "nope=fetchsync-no-such-tool-xyz --version",
+        "--json",
+    )
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     manifest, files = read_archive(Path(report["archive"]))
@@ -238,9 +295,17 @@ def test_timeout_kills_the_command_on_the_robot(snap_env, tmp_path):
     # A unique argument to find the sleeping process (and its shell) by.
     marker = f"1000.{os.getpid()}{secrets.randbelow(10**6)}"
     config = tmp_path / "slow.json"
-    config.write_text(json.dumps({"defaults": False, "collectors": [
-        {"name": "sleeper", "command": f"sleep {marker}; echo never", "timeout": 1},
-        {"name": "quick", "command": "echo done"}]}))
+    config.write_text(
+        json.dumps(
+            {
+                "defaults": False,
+                "collectors": [
+                    {"name": "sleeper", "command": f"sleep {marker}; echo never", "timeout": 1},
+                    {"name": "quick", "command": "echo done"},
+                ],
+            }
+        )
+    )
     result = run_cli("--output", str(tmp_path), "--config", str(config))
     assert result.exit_code == 0, result.output
     manifest, files = read_archive(only_archive(tmp_path))
@@ -248,8 +313,9 @@ def test_timeout_kills_the_command_on_the_robot(snap_env, tmp_path):
     assert entries["sleeper"]["status"] == "timeout"
     assert entries["quick"]["status"] == OK and files["quick.txt"] == b"done\n"
     assert "timeout: sleeper" in result.stderr
-    left = subprocess.run(["pgrep", "-af", f"sleep {marker}"], check=False,
-                          capture_output=True, text=True)
+    left = subprocess.run(
+        ["pgrep", "-af", f"sleep {marker}"], check=False, capture_output=True, text=True
+    )
     assert left.returncode == 1, f"still running on the robot: {left.stdout}"
 
 
@@ -263,7 +329,8 @@ def fake_ros(root: Path, distro: str, version: int) -> Path:
     bin_dir.mkdir(parents=True)
     (prefix / "setup.bash").write_text(
         f'export PATH="{bin_dir}:$PATH"; export ROS_DISTRO={distro} ROS_VERSION={version}\n'
-        'echo "noise from setup" >&2\n')
+        'echo "noise from setup" >&2\n'
+    )
 
     def tool(name: str, body: str) -> None:
         path = bin_dir / name
@@ -275,15 +342,21 @@ def fake_ros(root: Path, distro: str, version: int) -> Path:
         for name in ("rosnode", "rostopic", "rosservice", "rosparam"):
             tool(name, f'echo "{name} $* ($ROS_DISTRO)"\n')
         # rosbag record -q --duration=D -O FILE TOPICS...
-        tool("rosbag", 'shift; out=; topics=; while [ $# -gt 0 ]; do case $1 in -O) out=$2; shift;;'
-             ' -*) ;; *) topics="$topics $1";; esac; shift; done\n'
-             'echo "bag of$topics" > "$out"\necho "[ INFO] Recording" >&2\n')
+        tool(
+            "rosbag",
+            "shift; out=; topics=; while [ $# -gt 0 ]; do case $1 in -O) out=$2; shift;;"
+            ' -*) ;; *) topics="$topics $1";; esac; shift; done\n'
+            'echo "bag of$topics" > "$out"\necho "[ INFO] Recording" >&2\n',
+        )
     else:
         # ros2 bag record -o DIR TOPICS...: records until SIGINT, like the real one
-        tool("ros2", 'if [ "$1 $2" = "bag record" ]; then shift 3; d=$1; shift; mkdir -p "$d";'
-             ' echo "topics: $*" > "$d/metadata.yaml"; trap \'echo closed >> "$d/metadata.yaml";'
-             ' exit 0\' INT; while :; do sleep 0.1; done; fi\n'
-             'echo "ros2 $* ($ROS_DISTRO)"\n')
+        tool(
+            "ros2",
+            'if [ "$1 $2" = "bag record" ]; then shift 3; d=$1; shift; mkdir -p "$d";'
+            ' echo "topics: $*" > "$d/metadata.yaml"; trap \'echo closed >> "$d/metadata.yaml";'
+            " exit 0' INT; while :; do sleep 0.1; done; fi\n"
+            'echo "ros2 $* ($ROS_DISTRO)"\n',
+        )
     return prefix
 
 
@@ -302,15 +375,27 @@ def test_ros1_commands_bag_and_overlay(robot_transport, tmp_path):
     ws = tmp_path / "ws"
     (ws / "devel").mkdir(parents=True)
     (ws / "devel" / "setup.bash").write_text("export OVERLAY_MARK=from-the-overlay\n")
-    collectors = select_collectors(only=["uname", "ros_nodes", "ros_params"], extra=[
-        Collector("overlay", "echo $OVERLAY_MARK", kind="ros")])
-    snap = take_snapshot(robot_transport, robot="robot", collectors=collectors,
-                         output=tmp_path, ros_root=str(tmp_path / "ros"), overlay=str(ws),
-                         bag_topics=["/diagnostics", "robot_state"], bag_duration=1)
+    collectors = select_collectors(
+        only=["uname", "ros_nodes", "ros_params"],
+        extra=[Collector("overlay", "echo $OVERLAY_MARK", kind="ros")],
+    )
+    snap = take_snapshot(
+        robot_transport,
+        robot="robot",
+        collectors=collectors,
+        output=tmp_path,
+        ros_root=str(tmp_path / "ros"),
+        overlay=str(ws),
+        bag_topics=["/diagnostics", "robot_state"],
+        bag_duration=1,
+    )
     manifest, files = read_archive(snap.archive)
     entries = by_name(manifest)
-    assert manifest["ros"] == {"version": 1, "distro": "noetic",
-                               "prefix": str(tmp_path / "ros" / "noetic")}
+    assert manifest["ros"] == {
+        "version": 1,
+        "distro": "noetic",
+        "prefix": str(tmp_path / "ros" / "noetic"),
+    }
     assert files["ros_nodes.txt"] == b"rosnode list (noetic)\n"
     assert files["ros_params.txt"] == b"rosparam get / (noetic)\n"
     assert "ros_nodes.stderr.txt" not in files  # the setup's noise is not the command's
@@ -325,9 +410,15 @@ def test_ros1_commands_bag_and_overlay(robot_transport, tmp_path):
 def test_ros2_commands_and_bag_stopped_by_sigint(robot_transport, tmp_path):
     fake_ros(tmp_path / "ros", "humble", 2)
     collectors = select_collectors(only=["ros_topics"])
-    snap = take_snapshot(robot_transport, robot="robot", collectors=collectors,
-                         output=tmp_path / "out.tar.gz", ros_root=str(tmp_path / "ros"),
-                         bag_topics=["/tf"], bag_duration=1)
+    snap = take_snapshot(
+        robot_transport,
+        robot="robot",
+        collectors=collectors,
+        output=tmp_path / "out.tar.gz",
+        ros_root=str(tmp_path / "ros"),
+        bag_topics=["/tf"],
+        bag_duration=1,
+    )
     assert snap.archive == tmp_path / "out.tar.gz"
     manifest, files = read_archive(snap.archive)
     entries = by_name(manifest)
@@ -362,8 +453,9 @@ def sudo_user(snap_env: SSHHome) -> Iterator[tuple[str, str]]:
     sudoers = Path(f"/etc/sudoers.d/fetchsync-test-{name}")
     subprocess.run(["useradd", "-m", "-s", "/bin/bash", name], check=True, capture_output=True)
     try:
-        subprocess.run(["chpasswd"], input=f"{name}:{password}\n", text=True, check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["chpasswd"], input=f"{name}:{password}\n", text=True, check=True, capture_output=True
+        )
         sudoers.write_text(f"{name} ALL=(ALL:ALL) ALL\n")
         sudoers.chmod(0o440)
         home = Path(os.path.expanduser(f"~{name}"))
@@ -380,10 +472,18 @@ def sudo_user(snap_env: SSHHome) -> Iterator[tuple[str, str]]:
 
 def sudo_config(tmp_path: Path) -> Path:
     config = tmp_path / "sudo.json"
-    config.write_text(json.dumps({"defaults": False, "collectors": [
-        {"name": "root_id", "command": "id -u", "needs_sudo": True},
-        {"name": "slow_root_id", "command": "sleep 2; id -u", "needs_sudo": True},
-        {"name": "my_id", "command": "id -un"}]}))
+    config.write_text(
+        json.dumps(
+            {
+                "defaults": False,
+                "collectors": [
+                    {"name": "root_id", "command": "id -u", "needs_sudo": True},
+                    {"name": "slow_root_id", "command": "sleep 2; id -u", "needs_sudo": True},
+                    {"name": "my_id", "command": "id -un"},
+                ],
+            }
+        )
+    )
     return config
 
 
@@ -395,17 +495,26 @@ def test_sudo_password_goes_on_stdin_never_in_a_command_line(sudo_user, tmp_path
 
     def watch() -> None:
         while not stop.is_set():
-            out = subprocess.run(["ps", "-eo", "args"], check=False, capture_output=True,
-                                 text=True).stdout
+            out = subprocess.run(
+                ["ps", "-eo", "args"], check=False, capture_output=True, text=True
+            ).stdout
             seen.extend(line for line in out.splitlines() if password in line)
             stop.wait(0.02)
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     try:
-        result = run_cli("--user", name, "--sudo", "--output", str(tmp_path), "--json",
-                         "--config", str(sudo_config(tmp_path)),
-                         env={"FETCHSYNC_SUDO_PASSWORD": password})
+        result = run_cli(
+            "--user",
+            name,
+            "--sudo",
+            "--output",
+            str(tmp_path),
+            "--json",
+            "--config",
+            str(sudo_config(tmp_path)),
+            env={"FETCHSYNC_SUDO_PASSWORD": password},
+        )
     finally:
         stop.set()
         watcher.join()
@@ -425,8 +534,15 @@ def test_sudo_password_goes_on_stdin_never_in_a_command_line(sudo_user, tmp_path
 def test_sudo_wrong_or_no_password(sudo_user, tmp_path):
     name, password = sudo_user
     config = str(sudo_config(tmp_path))
-    result = run_cli("--user", name, "--output", str(tmp_path), "--config", config,
-                     env={"FETCHSYNC_SUDO_PASSWORD": password + "x"})
+    result = run_cli(
+        "--user",
+        name,
+        "--output",
+        str(tmp_path),
+        "--config",
+        config,
+        env={"FETCHSYNC_SUDO_PASSWORD": password + "x"},
+    )
     assert result.exit_code == 2 and "refused the password" in result.stderr
     assert password not in result.output
     assert list(tmp_path.glob("snapshot-*")) == []
@@ -468,16 +584,21 @@ def _read_zip(path: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
     return json.loads(files["manifest.json"]), files
 
 
-FAKE_ROSBAG = ('[ "$1" = record ] || exit 2; out=; args="$*"; while [ $# -gt 0 ]; do '
-               'case $1 in -O) out=$2; shift;; esac; shift; done; echo "$args" > "$out"\n')
+FAKE_ROSBAG = (
+    '[ "$1" = record ] || exit 2; out=; args="$*"; while [ $# -gt 0 ]; do '
+    'case $1 in -O) out=$2; shift;; esac; shift; done; echo "$args" > "$out"\n'
+)
 
 
 @pytest.mark.ssh
 def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
     name, password = sudo_user
     _fake_tools(name, {"read_board": 'echo "board $1"\n', "rosbag": FAKE_ROSBAG})
-    result = CliRunner().invoke(cli, ["debug-snapshot", "--user", name, "--output", str(tmp_path)],
-                                env={"FETCHSYNC_SUDO_PASSWORD": password})
+    result = CliRunner().invoke(
+        cli,
+        ["debug-snapshot", "--user", name, "--output", str(tmp_path)],
+        env={"FETCHSYNC_SUDO_PASSWORD": password},
+    )
     assert result.exit_code == 0, result.output
     (archive,) = tmp_path.glob("snapshot-robot-*.zip")
     manifest, files = _read_zip(archive)
@@ -487,19 +608,28 @@ def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
     assert result.stderr.splitlines()[0] == f"snapshot {name}@robot \u2192 {tmp_path}"
     assert manifest["sudo"] == "password" and entries["dmesg"]["sudo"] is True
     # the five board queries, through the robot's read_board
-    for entry, address in (("charger", "0x3f"), ("mainboard", "0x00"), ("wheel_left", "0x11"),
-                           ("wheel_right", "0x12"), ("gripper", "0x80")):
+    for entry, address in (
+        ("charger", "0x3f"),
+        ("mainboard", "0x00"),
+        ("wheel_left", "0x11"),
+        ("wheel_right", "0x12"),
+        ("gripper", "0x80"),
+    ):
         assert files[f"read_board_{entry}.txt"] == f"board {address}\n".encode()
     # fetch_tools' 10 s bag of its four topics
     assert entries["rosbag"]["status"] == OK
-    assert files["rosbag/snapshot.bag"] == (b"record -q --duration=10 -O snapshot.bag /robot_state "
-                                            b"/diagnostics /diagnostics_agg /battery_state\n")
+    assert files["rosbag/snapshot.bag"] == (
+        b"record -q --duration=10 -O snapshot.bag /robot_state "
+        b"/diagnostics /diagnostics_agg /battery_state\n"
+    )
     assert b"fakebin" in files["env.txt"] and b"MemTotal" in files["meminfo.txt"]
     # what this machine lacks is skipped, each with a note saying what was absent
-    for item, absent in (("robot_log", "/var/log/ros/robot.log"),
-                         ("robot.service_status", "/lib/systemd/system/robot.service"),
-                         ("roscore.service", "/lib/systemd/system/roscore.service"),
-                         ("ps4joy.service_status", "/lib/systemd/system/ps4joy.service")):
+    for item, absent in (
+        ("robot_log", "/var/log/ros/robot.log"),
+        ("robot.service_status", "/lib/systemd/system/robot.service"),
+        ("roscore.service", "/lib/systemd/system/roscore.service"),
+        ("ps4joy.service_status", "/lib/systemd/system/ps4joy.service"),
+    ):
         assert entries[item]["status"] == "skipped", entries[item]
         assert entries[item]["error"] == f"not on the robot: {absent}"
         assert f"{item}.txt" not in files and f"{item}.stderr.txt" not in files
@@ -513,8 +643,11 @@ def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
 def test_debug_snapshot_logs_in_as_fetch_like_fetch_tools(sudo_user, tmp_path):
     name, _password = sudo_user
     # FETCH_USER is the developer's account; fetch_tools' debug-snapshot used `fetch` anyway
-    result = CliRunner().invoke(cli, ["debug-snapshot", "--output", str(tmp_path)],
-                                env={"FETCH_USER": name, "FETCHSYNC_USER": name})
+    result = CliRunner().invoke(
+        cli,
+        ["debug-snapshot", "--output", str(tmp_path)],
+        env={"FETCH_USER": name, "FETCHSYNC_USER": name},
+    )
     assert result.exit_code == 3
     assert "permission denied for fetch@robot" in result.stderr, result.stderr
 
@@ -534,8 +667,18 @@ esac
 def test_generic_profile_collects_ros2_counterparts(sudo_user, tmp_path):
     name, _password = sudo_user
     home = _fake_tools(name, {"ros2": FAKE_ROS2})
-    only = ["--only", "uname", "--only", "ros_doctor", "--only", "ros_nodes",
-            "--only", "ros_topics", "--only", "ros_log"]
+    only = [
+        "--only",
+        "uname",
+        "--only",
+        "ros_doctor",
+        "--only",
+        "ros_nodes",
+        "--only",
+        "ros_topics",
+        "--only",
+        "ros_log",
+    ]
     # no ~/.ros/log yet: skipped, said so
     result = run_cli("--user", name, "--output", str(tmp_path / "one.tar.gz"), *only)
     assert result.exit_code == 0, result.output

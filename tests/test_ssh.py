@@ -626,12 +626,22 @@ def test_match_exec_in_the_ssh_config_runs_its_command(tmp_path: Path) -> None:
     """paramiko runs ``Match exec`` itself (with invoke): a config using it resolves.
     In a new interpreter: invoke reads its stdin, which pytest holds."""
     config = tmp_path / "config"
-    config.write_text('Match host robot exec "true"\n    HostName 10.1.2.3\n'
-                      'Match host robot exec "false"\n    User nobody-here\n'
-                      "Host robot\n    User fetch\n")
-    code = ("from fetchsync.link.ssh import load_ssh_config; "
-            f"found = load_ssh_config({str(config)!r}).lookup('robot'); "
-            "print(found['hostname'], found['user'])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, timeout=60, stdin=subprocess.DEVNULL)
+    config.write_text(
+        'Match host robot exec "true"\n    HostName 10.1.2.3\n'
+        'Match host robot exec "false"\n    User nobody-here\n'
+        "Host robot\n    User fetch\n"
+    )
+    code = (
+        "from fetchsync.link.ssh import load_ssh_config; "
+        f"found = load_ssh_config({str(config)!r}).lookup('robot'); "
+        "print(found['hostname'], found['user'])"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
     assert out.stdout.split() == ["10.1.2.3", "fetch"]

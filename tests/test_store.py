@@ -24,8 +24,16 @@ def h(data: bytes) -> str:
 
 
 def write(path: str, data: bytes, *, expect: str = M.ABSENT, at: int = 0) -> M.Op:
-    return M.Op(M.WRITE, path, expect=expect, mode=0o644, hash=h(data), size=len(data),
-                source=M.SRC_DATA, blob=(at, len(data)))
+    return M.Op(
+        M.WRITE,
+        path,
+        expect=expect,
+        mode=0o644,
+        hash=h(data),
+        size=len(data),
+        source=M.SRC_DATA,
+        blob=(at, len(data)),
+    )
 
 
 @pytest.fixture
@@ -48,7 +56,9 @@ def test_write_lands_whole_and_leaves_no_temporary(store):
 
 
 def test_content_not_matching_its_hash_is_refused(store):
-    op = M.Op(M.WRITE, "a.txt", expect=M.ABSENT, hash=h(b"other"), size=5, source=M.SRC_DATA, blob=(0, 5))
+    op = M.Op(
+        M.WRITE, "a.txt", expect=M.ABSENT, hash=h(b"other"), size=5, source=M.SRC_DATA, blob=(0, 5)
+    )
     [r] = store.apply([op], b"hello")
     assert not r.ok and not (src(store) / "a.txt").exists()
 
@@ -65,7 +75,9 @@ def test_a_file_changed_here_is_kept_in_conflicts_before_replacement(store):
 def test_refuse_policy_leaves_the_robot_version(store):
     store.apply([write("a.txt", b"v1")], b"v1")
     (src(store) / "a.txt").write_bytes(b"edited")
-    [r] = store.apply([write("a.txt", b"v2", expect=M.expect_file(h(b"v1")))], b"v2", policy="refuse")
+    [r] = store.apply(
+        [write("a.txt", b"v2", expect=M.expect_file(h(b"v1")))], b"v2", policy="refuse"
+    )
     assert r.code == M.CONFLICT and (src(store) / "a.txt").read_bytes() == b"edited"
 
 
@@ -99,21 +111,39 @@ def test_no_write_through_a_symlinked_directory(store, tmp_path):
 @pytest.mark.parametrize("path", ["../escape", "/etc/passwd", "a/../../b"])
 def test_paths_out_of_the_root_are_protocol_errors(store, path):
     with pytest.raises(ProtocolError):
-        M.Op.from_wire({"k": "write", "p": path, "e": "-", "h": "00", "s": 1, "src": "data", "bl": [0, 1]})
+        M.Op.from_wire(
+            {"k": "write", "p": path, "e": "-", "h": "00", "s": 1, "src": "data", "bl": [0, 1]}
+        )
 
 
 def test_delta_against_the_wrong_base_is_a_base_mismatch(store):
     store.apply([write("a.txt", b"v1")], b"v1")
-    op = M.Op(M.WRITE, "a.txt", expect=M.expect_file(h(b"v1")), hash=h(b"v2"), size=2,
-              source=M.SRC_DELTA, base=h(b"not v1"), blob=(0, 0))
+    op = M.Op(
+        M.WRITE,
+        "a.txt",
+        expect=M.expect_file(h(b"v1")),
+        hash=h(b"v2"),
+        size=2,
+        source=M.SRC_DELTA,
+        base=h(b"not v1"),
+        blob=(0, 0),
+    )
     [r] = store.apply([op], b"")
     assert r.code == M.BASE_MISMATCH and (src(store) / "a.txt").read_bytes() == b"v1"
 
 
 def test_copy_reuses_content_held_here(store):
     store.apply([write("a.txt", b"payload")], b"payload")
-    op = M.Op(M.WRITE, "b.txt", expect=M.ABSENT, hash=h(b"payload"), size=7, source=M.SRC_COPY,
-              base=h(b"payload"), from_path="a.txt")
+    op = M.Op(
+        M.WRITE,
+        "b.txt",
+        expect=M.ABSENT,
+        hash=h(b"payload"),
+        size=7,
+        source=M.SRC_COPY,
+        base=h(b"payload"),
+        from_path="a.txt",
+    )
     [r] = store.apply([op], b"")
     assert r.ok and (src(store) / "b.txt").read_bytes() == b"payload"
 
@@ -170,8 +200,16 @@ def test_a_rename_copies_before_the_source_is_deleted(store):
     store.apply([write("old.bin", data)], data)
     for i in range(20):
         new, old = f"new{i}.bin", ("old.bin" if i == 0 else f"new{i - 1}.bin")
-        copy = M.Op(M.WRITE, new, expect=M.ABSENT, hash=h(data), size=len(data), source=M.SRC_COPY,
-                    base=h(data), from_path=old)
+        copy = M.Op(
+            M.WRITE,
+            new,
+            expect=M.ABSENT,
+            hash=h(data),
+            size=len(data),
+            source=M.SRC_COPY,
+            base=h(data),
+            from_path=old,
+        )
         results = store.apply([copy, M.Op(M.DELETE, old, expect=M.expect_file(h(data)))], b"")
         assert [r.code for r in results] == [M.OK, M.OK]
         assert (src(store) / new).read_bytes() == data and not (src(store) / old).exists()
@@ -192,6 +230,7 @@ def test_a_damaged_index_costs_a_new_epoch_not_the_files(tmp_path, damage):
     index = Path(s.meta) / "index"
     if damage is None:  # a valid marshal stream of the wrong shape
         import marshal
+
         index.write_bytes(marshal.dumps({"v": 2, "algorithm": ALG, "synced": [], "cache": {}}))
     else:
         index.write_bytes(damage)
@@ -231,8 +270,13 @@ def test_each_save_appends_a_record_and_a_reopen_replays_them(tmp_path):
     snapshot = (Path(s.meta) / "index").read_bytes()
     for i in range(5):
         data = b"v%d" % (i + 2)
-        s.apply([write("a.txt", data, expect=M.expect_file(h(b"v%d" % (i + 1)))),
-                 write(f"f{i}.txt", data)], data + data)
+        s.apply(
+            [
+                write("a.txt", data, expect=M.expect_file(h(b"v%d" % (i + 1)))),
+                write(f"f{i}.txt", data),
+            ],
+            data + data,
+        )
         s.save_index()
     s.apply([M.Op(M.DELETE, "f0.txt", expect=M.expect_file(h(b"v2")))], b"")
     s.save_index()
@@ -305,7 +349,10 @@ def test_another_writers_saves_are_seen_when_the_lock_is_taken(tmp_path):
 def test_a_rename_that_fails_at_commit_leaves_no_temporary(store):
     # found by the fuzzer: a symlink written, then a directory made at the same path
     # in the same batch; the symlink's rename into place fails at commit
-    ops = [M.Op(M.SYMLINK, "b", expect=M.ABSENT, target="a"), M.Op(M.MKDIR, "b", expect=M.ABSENT, mode=0o755)]
+    ops = [
+        M.Op(M.SYMLINK, "b", expect=M.ABSENT, target="a"),
+        M.Op(M.MKDIR, "b", expect=M.ABSENT, mode=0o755),
+    ]
     results = store.apply(ops, b"")
     # the directory stood where the symlink goes at commit: it fails, or the directory is kept
     assert len(results) == 2 and (not results[0].ok or results[0].preserved)
@@ -332,9 +379,19 @@ def umask(monkeypatch):
 def test_files_and_directories_get_the_mode_asked_whatever_the_umask(store, umask, mask, mode):
     umask(mask)
     dir_mode = mode & 0o777 | 0o700
-    ops = [M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=dir_mode),
-           M.Op(M.WRITE, "d/f", expect=M.ABSENT, mode=mode, hash=h(b"x"), size=1, source=M.SRC_DATA,
-                blob=(0, 1))]
+    ops = [
+        M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=dir_mode),
+        M.Op(
+            M.WRITE,
+            "d/f",
+            expect=M.ABSENT,
+            mode=mode,
+            hash=h(b"x"),
+            size=1,
+            source=M.SRC_DATA,
+            blob=(0, 1),
+        ),
+    ]
     results = store.apply(ops, b"x")
     assert all(r.ok for r in results)
     assert os.lstat(src(store) / "d").st_mode & 0o7777 == dir_mode
@@ -355,11 +412,13 @@ def test_results_done_as_asked_travel_as_one_number(store):
     the full result with the operation in hand."""
     store.apply([write("old.txt", b"v1"), write("c.txt", b"c", at=2)], b"v1c")
     (src(store) / "old.txt").write_bytes(b"edited on the robot")
-    ops = [M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o750),
-           write("d/f", b"data"),
-           M.Op(M.SYMLINK, "d/l", expect=M.ABSENT, target="f"),
-           M.Op(M.CHMOD, "c.txt", expect=M.expect_file(h(b"c")), mode=0o600),
-           write("old.txt", b"v2", expect=M.expect_file(h(b"v1")), at=4)]
+    ops = [
+        M.Op(M.MKDIR, "d", expect=M.ABSENT, mode=0o750),
+        write("d/f", b"data"),
+        M.Op(M.SYMLINK, "d/l", expect=M.ABSENT, target="f"),
+        M.Op(M.CHMOD, "c.txt", expect=M.expect_file(h(b"c")), mode=0o600),
+        write("old.txt", b"v2", expect=M.expect_file(h(b"v1")), at=4),
+    ]
     results = store.apply(ops, b"datav2")
     assert all(r.ok for r in results)
     wire_form = [r.to_wire(op) for r, op in zip(results, ops)]
@@ -386,13 +445,26 @@ def test_large_files_land_whole_with_their_modes(store):
     big1, big2 = os.urandom(LARGE), os.urandom(LARGE + 12345)
     small = b"small\n"
     blob = big1 + small + big2
-    ops = [write("a/big1.bin", big1), write("a/small.txt", small, at=len(big1)),
-           M.Op(M.WRITE, "a/run.sh", expect=M.ABSENT, mode=0o4755, hash=h(big2), size=len(big2),
-                source=M.SRC_DATA, blob=(len(big1) + len(small), len(big2)))]
+    ops = [
+        write("a/big1.bin", big1),
+        write("a/small.txt", small, at=len(big1)),
+        M.Op(
+            M.WRITE,
+            "a/run.sh",
+            expect=M.ABSENT,
+            mode=0o4755,
+            hash=h(big2),
+            size=len(big2),
+            source=M.SRC_DATA,
+            blob=(len(big1) + len(small), len(big2)),
+        ),
+    ]
     results = store.apply([M.Op(M.MKDIR, "a", expect=M.ABSENT, mode=0o755)] + ops, blob)
     assert [r.code for r in results] == [M.OK] * 4
     root = src(store)
-    assert (root / "a/big1.bin").read_bytes() == big1 and (root / "a/small.txt").read_bytes() == small
+    assert (root / "a/big1.bin").read_bytes() == big1 and (
+        root / "a/small.txt"
+    ).read_bytes() == small
     assert (root / "a/run.sh").read_bytes() == big2
     assert os.stat(root / "a/run.sh").st_mode & 0o7777 == 0o4755  # past the umask, by fchmod
     assert not [p for p in root.rglob("*") if "fetchsync-tmp" in p.name]
@@ -407,8 +479,12 @@ def tiny_store(tmp_path: Path):
         pytest.skip("mounting a tmpfs needs root")
     where = tmp_path / "tiny"
     where.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)],
-                      capture_output=True).returncode != 0:
+    if (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("cannot mount a tmpfs here")
     s = Store(str(where / "ws"), algorithm=ALG)
     s.lock()
@@ -421,8 +497,14 @@ def test_a_large_write_that_fails_fails_its_operation_only(tiny_store):
     big1, big2 = os.urandom(LARGE + 1000), os.urandom(LARGE + 2000)
     small = b"still written\n"
     blob = big1 + big2 + small
-    results = tiny_store.apply([write("big1.bin", big1), write("big2.bin", big2, at=len(big1)),
-                                write("small.txt", small, at=len(big1) + len(big2))], blob)
+    results = tiny_store.apply(
+        [
+            write("big1.bin", big1),
+            write("big2.bin", big2, at=len(big1)),
+            write("small.txt", small, at=len(big1) + len(big2)),
+        ],
+        blob,
+    )
     assert [r.code for r in results] == [M.OK, M.NO_SPACE, M.OK]
     assert "big2.bin" in results[1].message
     root = src(tiny_store)

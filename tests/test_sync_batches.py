@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
-from fetchsync.sync import engine as sync
-from fetchsync.link.connection import Connection
-from fetchsync.sync.state import State
-from fetchsync.link.transport import LocalTransport
 from helpers import tree_of
+
+from fetchsync.link.connection import Connection
+from fetchsync.link.transport import LocalTransport
+from fetchsync.sync import engine as sync
+from fetchsync.sync.state import State
 
 
 @pytest.fixture
@@ -24,8 +24,9 @@ def syncer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
             (src / f"pkg{d}" / f"f{f}.txt").write_text(f"{d} {f}\n" * (50 + f * d))
     conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
     state = State(tmp_path / "state.sqlite")
-    s = sync.Syncer(conn, state, local_root=str(src), remote_workspace="~/ws",
-                    rules=sync.build_rules())
+    s = sync.Syncer(
+        conn, state, local_root=str(src), remote_workspace="~/ws", rules=sync.build_rules()
+    )
     yield s, src, tmp_path / "robot-home" / "ws" / "src"
     conn.close()
     state.close()
@@ -45,12 +46,16 @@ def test_a_push_of_many_batches_lands_whole_in_one_round(syncer):
 
 
 @pytest.mark.parametrize("deflate", ["isal", "zlib"])
-def test_compressed_batches_inflate_on_the_robot_from_either_compressor(syncer, monkeypatch, deflate):
+def test_compressed_batches_inflate_on_the_robot_from_either_compressor(
+    syncer, monkeypatch, deflate
+):
     """The laptop deflates with ISA-L when it can, else with zlib; the robot's
     standard library inflates both."""
     import zlib
+
     if deflate == "isal":
         from isal import isal_zlib  # a dependency: never skipped
+
         monkeypatch.setattr(sync, "_deflate", isal_zlib)
     else:
         monkeypatch.setattr(sync, "_deflate", zlib)
@@ -70,8 +75,13 @@ def test_another_writer_between_batches_is_detected_and_survived(syncer, tmp_pat
     other_src = tmp_path / "other" / "src"
     other_src.mkdir(parents=True)
     (other_src / "theirs.txt").write_text("theirs\n")
-    sync.Syncer(other, other_state, local_root=str(other_src), remote_workspace="~/ws",
-                rules=sync.build_rules(), ).push(confirm_deletions=True)  # it replaces everything
+    sync.Syncer(
+        other,
+        other_state,
+        local_root=str(other_src),
+        remote_workspace="~/ws",
+        rules=sync.build_rules(),
+    ).push(confirm_deletions=True)  # it replaces everything
     other.close()
     other_state.close()
     # our next push must notice, re-list, and still end identical, keeping their work aside
@@ -95,7 +105,9 @@ def test_binary_files_keep_no_signature_yet_an_edit_still_travels_as_a_delta(syn
     (src / "pkg0" / "mesh.stl").write_bytes(mesh[:150_000] + b"edited" + mesh[150_006:])
     report = s.push()
     assert report.errors == [] and report.files == 1
-    assert (robot_src / "pkg0" / "mesh.stl").read_bytes() == (src / "pkg0" / "mesh.stl").read_bytes()
+    assert (robot_src / "pkg0" / "mesh.stl").read_bytes() == (
+        src / "pkg0" / "mesh.stl"
+    ).read_bytes()
     # the robot signed its copy and only the changed region travelled
     assert report.bytes_sent < 60_000, report.bytes_sent
 
@@ -206,7 +218,9 @@ def test_same_tree_compares_every_path_and_entry():
 
     a = {"d": M.Listed("d", "d", 0o755), "d/f": M.Listed("d/f", "f", 0o644, 3, hash="ab")}
     assert sync._same_tree(a, dict(a))
-    assert sync._same_tree(a, {k: M.Listed(*v) for k, v in a.items()})  # equal, not the same objects
+    assert sync._same_tree(
+        a, {k: M.Listed(*v) for k, v in a.items()}
+    )  # equal, not the same objects
     assert not sync._same_tree(a, {**a, "d/f": a["d/f"]._replace(mode=0o600)})
     assert not sync._same_tree(a, {**a, "d/g": a["d/f"]._replace(path="d/g")})
     assert not sync._same_tree(a, {"d": a["d"]})

@@ -22,9 +22,19 @@ def h(data: bytes) -> str:
     return hashing.digest(ALG, data).hex()
 
 
-def write(path: str, data: bytes, *, expect: str = M.ABSENT, at: int = 0, mode: int = 0o644) -> M.Op:
-    return M.Op(M.WRITE, path, expect=expect, mode=mode, hash=h(data), size=len(data),
-                source=M.SRC_DATA, blob=(at, len(data)))
+def write(
+    path: str, data: bytes, *, expect: str = M.ABSENT, at: int = 0, mode: int = 0o644
+) -> M.Op:
+    return M.Op(
+        M.WRITE,
+        path,
+        expect=expect,
+        mode=mode,
+        hash=h(data),
+        size=len(data),
+        source=M.SRC_DATA,
+        blob=(at, len(data)),
+    )
 
 
 def mkdir(path: str) -> M.Op:
@@ -38,8 +48,13 @@ def snapshot(top: Path) -> dict[str, bytes | str]:
         for name in dirs + files:
             full = Path(dirpath) / name
             rel = str(full.relative_to(top))
-            out[rel] = (os.readlink(full) if full.is_symlink() else
-                        "dir" if full.is_dir() else full.read_bytes())
+            out[rel] = (
+                os.readlink(full)
+                if full.is_symlink()
+                else "dir"
+                if full.is_dir()
+                else full.read_bytes()
+            )
     return out
 
 
@@ -67,17 +82,22 @@ def test_a_package_swapped_for_a_symlink_to_ssh_between_saves_is_refused(store, 
     of ``pkg/authorized_keys`` must not reach ``~/.ssh`` (the old endpoint had cached
     that ``pkg`` was a directory, and overwrote the keys)."""
     before = snapshot(ssh_dir)
-    assert all(r.ok for r in store.apply([mkdir("pkg"), write("pkg/authorized_keys", b"v1")], b"v1"))
+    assert all(
+        r.ok for r in store.apply([mkdir("pkg"), write("pkg/authorized_keys", b"v1")], b"v1")
+    )
     store.unlock()
     root = Path(store.root)
     os.rename(root / "pkg", root / "pkg.moved")
     os.symlink(ssh_dir, root / "pkg")
     store.lock()
-    ops = [write("pkg/authorized_keys", b"attacker", expect=M.expect_file(h(b"v1"))),
-           write("pkg/new", b"attacker", at=0), mkdir("pkg/sub"),
-           M.Op(M.SYMLINK, "pkg/l", expect=M.ABSENT, target="/etc"),
-           M.Op(M.CHMOD, "pkg/authorized_keys", expect=M.expect_file(h(b"v1")), mode=0o777),
-           M.Op(M.DELETE, "pkg/authorized_keys", expect=M.expect_file(h(b"v1")))]
+    ops = [
+        write("pkg/authorized_keys", b"attacker", expect=M.expect_file(h(b"v1"))),
+        write("pkg/new", b"attacker", at=0),
+        mkdir("pkg/sub"),
+        M.Op(M.SYMLINK, "pkg/l", expect=M.ABSENT, target="/etc"),
+        M.Op(M.CHMOD, "pkg/authorized_keys", expect=M.expect_file(h(b"v1")), mode=0o777),
+        M.Op(M.DELETE, "pkg/authorized_keys", expect=M.expect_file(h(b"v1"))),
+    ]
     results = store.apply(ops, b"attacker")
     assert [r.code for r in results] == [M.PATH_ERROR] * len(ops)
     assert all("symlink" in r.message for r in results)
@@ -108,6 +128,7 @@ def test_a_symlinked_trash_conflicts_or_tmp_is_never_followed(store, tmp_path, w
     meta = Path(store.meta)
     if (meta / where).exists():
         import shutil
+
         shutil.rmtree(meta / where)
     os.symlink(outside, meta / where)
     (Path(store.root) / "a").write_bytes(b"edited on the robot")
@@ -157,11 +178,14 @@ def test_a_directory_swapped_for_a_symlink_in_a_loop_never_redirects_a_write(sto
     try:
         for i in range(150):
             data = b"round %d\n" % i
-            ops = [write("pkg/f%d" % (i % 7), data, expect=M.ABSENT), mkdir("pkg/d%d" % i),
-                   write("pkg/d%d/x" % i, data),
-                   M.Op(M.SYMLINK, "pkg/l%d" % i, expect=M.ABSENT, target="x"),
-                   M.Op(M.CHMOD, "pkg/f%d" % (i % 7), expect=M.expect_file(h(data)), mode=0o600),
-                   M.Op(M.DELETE, "pkg/l%d" % i, expect=M.expect_link("x"))]
+            ops = [
+                write("pkg/f%d" % (i % 7), data, expect=M.ABSENT),
+                mkdir("pkg/d%d" % i),
+                write("pkg/d%d/x" % i, data),
+                M.Op(M.SYMLINK, "pkg/l%d" % i, expect=M.ABSENT, target="x"),
+                M.Op(M.CHMOD, "pkg/f%d" % (i % 7), expect=M.expect_file(h(data)), mode=0o600),
+                M.Op(M.DELETE, "pkg/l%d" % i, expect=M.expect_link("x")),
+            ]
             store.apply(ops, data)
     finally:
         stop.set()
@@ -199,9 +223,14 @@ def test_pushes_through_the_local_robot_never_write_outside_src_under_a_swap_rac
     outside = robot_home / ".ssh"
     outside.mkdir(parents=True)
     (outside / "authorized_keys").write_text("the real key\n")
-    env = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home), XDG_STATE_HOME=str(tmp_path / "st"),
-               FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-               FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    env = dict(
+        os.environ,
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
+        XDG_STATE_HOME=str(tmp_path / "st"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
         env.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -223,9 +252,14 @@ def test_a_symlinked_fetchsync_fails_a_push_with_one_line(tmp_path):
     outside.mkdir()
     (robot_home / "robot_ws" / "src").mkdir(parents=True)
     os.symlink(outside, robot_home / "robot_ws" / ".fetchsync")
-    env = dict(os.environ, FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home), XDG_STATE_HOME=str(tmp_path / "st"),
-               FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-               FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    env = dict(
+        os.environ,
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
+        XDG_STATE_HOME=str(tmp_path / "st"),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
         env.pop(k, None)
     make_workspace(tmp_path / "ws")
@@ -249,8 +283,10 @@ def test_a_chmod_after_a_robot_side_edit_keeps_the_edit(store):
     assert (Path(store.workspace) / r.preserved).read_bytes() == b"fixed on the robot\n"
     assert path.read_bytes() == b"fixed on the robot\n" and path.stat().st_mode & 0o777 == 0o644
     # the laptop's next round sends it whole, even against what it now knows: the edit stays kept
-    [r2] = store.apply([write("run.sh", b"v1", expect=M.expect_file(h(b"fixed on the robot\n")),
-                              mode=0o755)], b"v1")
+    [r2] = store.apply(
+        [write("run.sh", b"v1", expect=M.expect_file(h(b"fixed on the robot\n")), mode=0o755)],
+        b"v1",
+    )
     assert r2.ok and path.read_bytes() == b"v1"
     assert (Path(store.workspace) / r.preserved).read_bytes() == b"fixed on the robot\n"
 
@@ -258,8 +294,9 @@ def test_a_chmod_after_a_robot_side_edit_keeps_the_edit(store):
 def test_a_chmod_with_the_refuse_policy_is_refused(store):
     assert store.apply([write("run.sh", b"v1")], b"v1")[0].ok
     (Path(store.root) / "run.sh").write_bytes(b"edited")
-    [r] = store.apply([M.Op(M.CHMOD, "run.sh", expect=M.expect_file(h(b"v1")), mode=0o755)], b"",
-                      policy="refuse")
+    [r] = store.apply(
+        [M.Op(M.CHMOD, "run.sh", expect=M.expect_file(h(b"v1")), mode=0o755)], b"", policy="refuse"
+    )
     assert r.code == M.CONFLICT and (Path(store.root) / "run.sh").stat().st_mode & 0o777 == 0o644
 
 
@@ -280,8 +317,12 @@ def tiny(tmp_path: Path):
         pytest.skip("mounting a tmpfs needs root")
     where = tmp_path / "tiny"
     where.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)],
-                      capture_output=True).returncode != 0:
+    if (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("cannot mount a tmpfs here")
     yield where
     subprocess.run(["umount", "-l", str(where)], check=False)
@@ -331,8 +372,12 @@ def readonly_ws(tmp_path: Path):
         pytest.skip("mounting needs root")
     where = tmp_path / "ro"
     where.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(where)],
-                      capture_output=True).returncode != 0:
+    if (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(where)], capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("cannot mount a tmpfs here")
     (where / "ws" / "src" / "pkg").mkdir(parents=True)
     (where / "ws" / "src" / "pkg" / "a.txt").write_bytes(b"hello\n")
@@ -341,7 +386,9 @@ def readonly_ws(tmp_path: Path):
     subprocess.run(["umount", "-l", str(where)], check=False)
 
 
-def test_a_readonly_open_lists_and_reads_a_readonly_workspace_and_writes_nothing(readonly_ws, tmp_path):
+def test_a_readonly_open_lists_and_reads_a_readonly_workspace_and_writes_nothing(
+    readonly_ws, tmp_path
+):
     home = tmp_path / "home"
     home.mkdir()
     with Endpoint(str(home)) as ep:
@@ -380,7 +427,9 @@ def test_a_readonly_open_creates_nothing(tmp_path):
         assert f.type == 2
         f = ep.request({"op": "list"})
         assert f.type == 2 and [e[0] for e in f.header["entries"]] == ["f"]
-        f = ep.request({"op": "list", "mode": "drift", "epoch": f.header["epoch"], "gen": f.header["gen"]})
+        f = ep.request(
+            {"op": "list", "mode": "drift", "epoch": f.header["epoch"], "gen": f.header["gen"]}
+        )
         assert f.type == 2
     assert sorted(os.listdir(ws)) == ["src"]
     assert sorted(os.listdir(ws / "src")) == ["f"]

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from helpers import fetchsync, make_workspace, tree_of
 
 
@@ -30,8 +29,12 @@ class Watch:
     def __init__(self, env: dict, log: Path) -> None:
         self.env = env
         self.log = log
-        self.proc = subprocess.Popen([sys.executable, "-m", "fetchsync", "watch"], env=env,
-                                     stdout=open(log, "wb"), stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "fetchsync", "watch"],
+            env=env,
+            stdout=open(log, "wb"),
+            stderr=subprocess.STDOUT,
+        )
 
     def status(self) -> dict:
         out = fetchsync("status", "--json", env=self.env, check=False)
@@ -70,9 +73,14 @@ def local_env(tmp_path: Path, runtime: Path) -> dict:
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
-             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     make_workspace(tmp_path / "ws")
     return e
 
@@ -83,17 +91,27 @@ def robot_env(request, tmp_path: Path, runtime: Path) -> dict:
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
         e.pop(k, None)
-    e.update(XDG_STATE_HOME=str(tmp_path / "state"), XDG_RUNTIME_DIR=str(runtime),
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"))
+    e.update(
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+    )
     if request.param == "local":
-        e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), FETCHSYNC_ROBOT="local",
-                 FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+        e.update(
+            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+            FETCHSYNC_ROBOT="local",
+            FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+        )
     else:
         home = request.getfixturevalue("ssh_home")
         remote = tmp_path / "robot-home" / "robot_ws"
         remote.parent.mkdir()
-        e.update(HOME=str(home.home), FETCHSYNC_ROBOT="robot", FETCHSYNC_REMOTE_WORKSPACE=str(remote),
-                 FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"))
+        e.update(
+            HOME=str(home.home),
+            FETCHSYNC_ROBOT="robot",
+            FETCHSYNC_REMOTE_WORKSPACE=str(remote),
+            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        )
     make_workspace(tmp_path / "ws")
     return e
 
@@ -107,20 +125,22 @@ def watch(robot_env, tmp_path):
 
 
 def paths(env):
-    return Path(env["FETCHSYNC_WORKSPACE"]) / "src", Path(env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / "robot_ws" / "src"
+    return Path(env["FETCHSYNC_WORKSPACE"]) / "src", Path(
+        env["FETCHSYNC_LOCAL_ROBOT_HOME"]
+    ) / "robot_ws" / "src"
 
 
 def test_changes_are_mirrored_as_they_happen(watch, robot_env):
     src, robot = paths(robot_env)
     assert same(src, robot)  # the start reconciles
-    (src / "my_pkg/src/node.cpp").write_text("int main() { return 3; }\n")      # in place
-    tmp = src / "my_pkg/.config.yaml.tmp"                                      # write temp, rename
+    (src / "my_pkg/src/node.cpp").write_text("int main() { return 3; }\n")  # in place
+    tmp = src / "my_pkg/.config.yaml.tmp"  # write temp, rename
     tmp.write_text("a: 1\n")
     tmp.rename(src / "my_pkg/config.yaml")
-    (src / "my_pkg/scripts/run.py").chmod(0o700)                               # chmod
-    (src / "my_pkg/launch").rename(src / "my_pkg/launch2")                      # move a directory
-    (src / "my_pkg/link").symlink_to("package.xml")                            # symlink
-    (src / "my_pkg/CMakeLists.txt").unlink()                                   # delete
+    (src / "my_pkg/scripts/run.py").chmod(0o700)  # chmod
+    (src / "my_pkg/launch").rename(src / "my_pkg/launch2")  # move a directory
+    (src / "my_pkg/link").symlink_to("package.xml")  # symlink
+    (src / "my_pkg/CMakeLists.txt").unlink()  # delete
     wait_for(lambda: same(src, robot), what="the robot to match")
     assert not list(robot.rglob("*.tmp"))
 
@@ -145,7 +165,9 @@ def test_flush_returns_once_the_file_is_there(watch, robot_env):
 
 def test_status_push_and_a_second_agent(watch, robot_env):
     st = watch.status()
-    assert st["state"] == "live" and st["robot"] == robot_env["FETCHSYNC_ROBOT"] and st["pending"] == 0
+    assert (
+        st["state"] == "live" and st["robot"] == robot_env["FETCHSYNC_ROBOT"] and st["pending"] == 0
+    )
     out = fetchsync("push", "--json", env=robot_env)
     assert json.loads(out.stdout)["connection"] == "agent"
     second = fetchsync("watch", env=robot_env, check=False)
@@ -170,9 +192,14 @@ def test_link_loss_is_survived(proxied_home, fault_proxy, remote_dir, tmp_path, 
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
         e.pop(k, None)
-    e.update(HOME=str(proxied_home.home), FETCHSYNC_ROBOT="robot", XDG_RUNTIME_DIR=str(runtime),
-             FETCHSYNC_WORKSPACE=str(tmp_path / "ws"), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(proxied_home.home),
+        FETCHSYNC_ROBOT="robot",
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     make_workspace(tmp_path / "ws")
     src, robot = tmp_path / "ws" / "src", remote_dir / "src"
     w = Watch(e, tmp_path / "watch.log")

@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML, fetchsync
+from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
+from helpers import fetchsync
 
 from fetchsync.agent.builder import package_command, packages_of
 
@@ -60,7 +61,10 @@ def test_paths_map_to_the_nearest_package(tmp_path):
     (src / "stack/alpha_dir/src/a.cpp").write_text("")
     (src / "README").write_text("")
     assert packages_of(src, ["stack/alpha_dir/src/a.cpp"]) == {"alpha"}
-    assert packages_of(src, ["stack/alpha_dir/src/gone.cpp", "beta/package.xml"]) == {"alpha", "beta"}
+    assert packages_of(src, ["stack/alpha_dir/src/gone.cpp", "beta/package.xml"]) == {
+        "alpha",
+        "beta",
+    }
     assert packages_of(src, ["README", "stack/notes.txt", "nowhere/x"]) == set()
     assert packages_of(src, [], dirs=["stack"]) == {"alpha"}  # a subtree that arrived whole
     assert packages_of(src, [], dirs=["beta/include"]) == {"beta"}
@@ -68,12 +72,18 @@ def test_paths_map_to_the_nearest_package(tmp_path):
 
 def test_each_tool_builds_only_the_packages():
     assert package_command("catkin_make", {"b", "a"}, "-j4") == "catkin_make -j4 --pkg a b"
-    assert package_command("catkin_make", {"a"}, "", "Release") == \
-        "catkin_make --pkg a -DCMAKE_BUILD_TYPE=Release"
-    assert package_command("catkin", {"a", "b"}, "--cmake-args -DX=1", "Debug") == \
-        "catkin build a b --cmake-args -DCMAKE_BUILD_TYPE=Debug -DX=1"
-    assert package_command("colcon", {"a"}, "--symlink-install") == \
-        "colcon build --packages-above a --symlink-install"
+    assert (
+        package_command("catkin_make", {"a"}, "", "Release")
+        == "catkin_make --pkg a -DCMAKE_BUILD_TYPE=Release"
+    )
+    assert (
+        package_command("catkin", {"a", "b"}, "--cmake-args -DX=1", "Debug")
+        == "catkin build a b --cmake-args -DCMAKE_BUILD_TYPE=Debug -DX=1"
+    )
+    assert (
+        package_command("colcon", {"a"}, "--symlink-install")
+        == "colcon build --packages-above a --symlink-install"
+    )
     assert package_command("colcon", None, "") == "colcon build"
 
 
@@ -89,8 +99,9 @@ def short_runtime():
 
 @pytest.mark.ssh
 @pytest.mark.skipif(shutil.which("catkin_make") is None, reason="catkin not installed")
-def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(ssh_home, remote_dir, tmp_path,
-                                                                         short_runtime):
+def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(
+    ssh_home, remote_dir, tmp_path, short_runtime
+):
     runtime = short_runtime
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -102,19 +113,33 @@ def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(ssh_hom
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
         e.pop(k, None)
-    e.update(HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot", XDG_RUNTIME_DIR=str(runtime),
-             FETCHSYNC_WORKSPACE=str(ws), FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-             XDG_STATE_HOME=str(tmp_path / "state"))
+    e.update(
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_WORKSPACE=str(ws),
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+    )
     fetchsync("push", env=e)  # the robot holds the sources already: starting builds nothing
     log = tmp_path / "watch.log"
-    proc = subprocess.Popen([sys.executable, "-m", "fetchsync", "watch", SYSTEM_PYTHON], env=e,
-                            stdout=open(log, "wb"), stderr=subprocess.STDOUT)
-    out = lambda: log.read_text(errors="replace")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fetchsync", "watch", SYSTEM_PYTHON],
+        env=e,
+        stdout=open(log, "wb"),
+        stderr=subprocess.STDOUT,
+    )
+
+    def out() -> str:
+        return log.read_text(errors="replace")
+
     try:
         wait_for(lambda: " live: " in out(), 20, "live")
         # one package's file changes: that package only is built, its output streamed
         (src / "alpha/notes.txt").write_text("a change\n")
-        wait_for(lambda: "build: ok: alpha" in out() or "build failed" in out(), 40, "alpha's build")
+        wait_for(
+            lambda: "build: ok: alpha" in out() or "build failed" in out(), 40, "alpha's build"
+        )
         assert "build: ok: alpha" in out(), out()
         assert lines(logs / "alpha.log") == ["built"]
         assert not (logs / "beta.log").exists() and not (logs / "slow.log").exists()
@@ -124,8 +149,11 @@ def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(ssh_hom
         (src / "slow/notes.txt").write_text("a change\n")
         wait_for(lambda: lines(logs / "slow.log") == ["start"], 20, "the slow build to start")
         (src / "beta/notes.txt").write_text("a change\n")
-        wait_for(lambda: "build: ok: beta slow" in out() or "build failed" in out(), 30,
-                 "the second build")
+        wait_for(
+            lambda: "build: ok: beta slow" in out() or "build failed" in out(),
+            30,
+            "the second build",
+        )
         assert "build: cancelled (slow)" in out(), out()
         assert lines(logs / "beta.log") == ["built"]
         time.sleep(1.0)

@@ -12,16 +12,18 @@ import signal
 import stat
 import subprocess
 import time
-from pathlib import Path
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from fetchsync.agent.builder import lock_prelude
 
 pytestmark = pytest.mark.skipif(
-    os.geteuid() != 0 or not all(shutil.which(t) for t in ("useradd", "userdel", "runuser", "flock")),
-    reason="needs root, useradd, userdel, runuser and flock")
+    os.geteuid() != 0
+    or not all(shutil.which(t) for t in ("useradd", "userdel", "runuser", "flock")),
+    reason="needs root, useradd, userdel, runuser and flock",
+)
 
 WORKSPACE = "/home/fetch/noetic"
 
@@ -39,14 +41,22 @@ def other_user() -> Iterator[str]:
 def build(env: dict[str, str], timeout: float = 20) -> subprocess.CompletedProcess[str]:
     """The Builder's lock lines, then a stand-in build."""
     script = lock_prelude(WORKSPACE) + "\necho built"
-    return subprocess.run(["bash", "-c", script], env=env, capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    return subprocess.run(
+        ["bash", "-c", script],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 def squat(user: str, path: Path) -> subprocess.Popen:
     """``user`` creates ``path`` for everyone to open and holds its lock until killed."""
-    proc = subprocess.Popen(["runuser", "-u", user, "--", "sh", "-c",
-                             f"umask 000; exec flock {path} sleep 300"], start_new_session=True)
+    proc = subprocess.Popen(
+        ["runuser", "-u", user, "--", "sh", "-c", f"umask 000; exec flock {path} sleep 300"],
+        start_new_session=True,
+    )
     end = time.monotonic() + 10
     while not path.exists() and time.monotonic() < end:
         time.sleep(0.02)
@@ -87,8 +97,9 @@ def test_a_lock_directory_of_someone_else_is_not_used(tmp_path, other_user):
     # a runtime directory that is not ours, and a ~/.cache/fetchsync that is a link to the
     # other user's directory: neither is used, the build runs without a lock and says so
     theirs = Path(f"/home/{other_user}/trap")
-    subprocess.run(["runuser", "-u", other_user, "--", "mkdir", "-m", "777", str(theirs)],
-                   check=True)
+    subprocess.run(
+        ["runuser", "-u", other_user, "--", "mkdir", "-m", "777", str(theirs)], check=True
+    )
     home = tmp_path / "home"
     (home / ".cache").mkdir(parents=True)
     (home / ".cache/fetchsync").symlink_to(theirs)
@@ -101,8 +112,9 @@ def test_a_lock_directory_of_someone_else_is_not_used(tmp_path, other_user):
     (tmp_path / "home2").mkdir()
     assert build(env).stdout == "built\n"
     key = hashlib.sha256(WORKSPACE.encode()).hexdigest()[:16]
-    held = subprocess.Popen(["flock", str(tmp_path / f"home2/.cache/fetchsync/build-{key}.lock"),
-                             "sleep", "300"])
+    held = subprocess.Popen(
+        ["flock", str(tmp_path / f"home2/.cache/fetchsync/build-{key}.lock"), "sleep", "300"]
+    )
     try:
         time.sleep(0.3)
         with pytest.raises(subprocess.TimeoutExpired):

@@ -19,9 +19,14 @@ def agent_env(tmp_path: Path):
     e = dict(os.environ)
     for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
         e.pop(k, None)
-    e.update(FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"), XDG_STATE_HOME=str(tmp_path / "state"),
-             XDG_RUNTIME_DIR=str(runtime), FETCHSYNC_ROBOT="local", FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-             FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    e.update(
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        XDG_STATE_HOME=str(tmp_path / "state"),
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     src = make_workspace(tmp_path / "ws") / "src"
     (src / "many").mkdir()
     for i in range(40):
@@ -47,7 +52,9 @@ def test_watch_pauses_before_deleting_most_of_the_robots_files(agent_env, tmp_pa
         assert len(list((robot / "many").iterdir())) >= 40 - 20
         text = fetchsync("status", env=agent_env).stdout.decode()
         assert text.startswith("paused:") and "push --force" in text
-        wait_for(lambda: b"paused:" in (tmp_path / "watch.log").read_bytes(), what="the agent to say so")
+        wait_for(
+            lambda: b"paused:" in (tmp_path / "watch.log").read_bytes(), what="the agent to say so"
+        )
         flushed = fetchsync("flush", "--timeout", "5", env=agent_env, check=False)
         assert flushed.returncode != 0 and b"paused" in flushed.stderr
         # the confirmation: a forced push, which then has the agent look again

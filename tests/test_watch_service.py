@@ -32,13 +32,23 @@ def parse(text: str) -> dict[str, list[str]]:
 
 @pytest.fixture
 def env(local_env, tmp_path):  # noqa: F811
-    return dict(local_env, XDG_CONFIG_HOME=str(tmp_path / "config"),
-                SSH_AUTH_SOCK=f"{local_env['XDG_RUNTIME_DIR']}/keyring/ssh")
+    return dict(
+        local_env,
+        XDG_CONFIG_HOME=str(tmp_path / "config"),
+        SSH_AUTH_SOCK=f"{local_env['XDG_RUNTIME_DIR']}/keyring/ssh",
+    )
 
 
 def test_install_service_writes_a_unit_that_runs_this_watch(env, tmp_path):
-    out = fetchsync("watch", "--install-service", "--build", "--build-args=-j4 -DX=50%",
-                    "--exclude", "*.bag", env=env).stdout.decode()
+    out = fetchsync(
+        "watch",
+        "--install-service",
+        "--build",
+        "--build-args=-j4 -DX=50%",
+        "--exclude",
+        "*.bag",
+        env=env,
+    ).stdout.decode()
     [unit] = unit_files(env)
     assert unit.name.startswith("fetchsync-watch-local-ws-")
     assert f"systemctl --user enable --now {unit.name}" in out
@@ -52,15 +62,28 @@ def test_install_service_writes_a_unit_that_runs_this_watch(env, tmp_path):
     argv = shlex.split(keys["ExecStart"][0].replace("%%", "%"))
     assert os.path.isabs(argv[0]) and os.access(argv[0], os.X_OK)
     i = argv.index("watch")
-    assert argv[i:] == ["watch", "--robot", "local", "--workspace", str(tmp_path / "ws"),
-                        "--remote-workspace", "~/robot_ws", "--exclude", "*.bag",
-                        "--build=-j4 -DX=50%"]
+    assert argv[i:] == [
+        "watch",
+        "--robot",
+        "local",
+        "--workspace",
+        str(tmp_path / "ws"),
+        "--remote-workspace",
+        "~/robot_ws",
+        "--exclude",
+        "*.bag",
+        "--build=-j4 -DX=50%",
+    ]
     # the unit's command line runs: its --help
-    help_out = subprocess.run([*argv[:i], "watch", "--help"], capture_output=True, env=env, check=False)
+    help_out = subprocess.run(
+        [*argv[:i], "watch", "--help"], capture_output=True, env=env, check=False
+    )
     assert help_out.returncode == 0 and b"--install-service" in help_out.stdout
     analyze = shutil.which("systemd-analyze")
     if analyze:
-        check = subprocess.run([analyze, "verify", str(unit)], capture_output=True, text=True, check=False)
+        check = subprocess.run(
+            [analyze, "verify", str(unit)], capture_output=True, text=True, check=False
+        )
         assert check.returncode == 0, check.stderr
         assert unit.name not in check.stderr, check.stderr  # no warning about the unit itself
     # installing again rewrites the same unit; another workspace gets its own
@@ -100,11 +123,15 @@ def test_vim_save_hook_flushes_before_the_write_returns(local_env, tmp_path):  #
     bin_dir.mkdir()
     wrapper = bin_dir / "fetchsync"
     calls = tmp_path / "calls.log"
-    wrapper.write_text(f"#!/bin/sh\necho \"$*\" >> {calls}\n"
-                       f"exec {shlex.quote(sys.executable)} -m fetchsync \"$@\"\n")
+    wrapper.write_text(
+        f'#!/bin/sh\necho "$*" >> {calls}\nexec {shlex.quote(sys.executable)} -m fetchsync "$@"\n'
+    )
     wrapper.chmod(0o755)
-    env = dict(local_env, PATH=f"{bin_dir}:{local_env['PATH']}",
-               PYTHONPATH=str(Path(__file__).resolve().parent.parent))
+    env = dict(
+        local_env,
+        PATH=f"{bin_dir}:{local_env['PATH']}",
+        PYTHONPATH=str(Path(__file__).resolve().parent.parent),
+    )
     w = Watch(env, tmp_path / "watch.log")
     try:
         wait_for(lambda: w.status().get("state") == "live", what="the agent to be live")
@@ -112,9 +139,28 @@ def test_vim_save_hook_flushes_before_the_write_returns(local_env, tmp_path):  #
         edited = src / "my_pkg/src/node.cpp"
         # the README's hook, with the workspace's src/ as the pattern
         hook = f"autocmd BufWritePost {src}/* silent !fetchsync flush %:p"
-        vim = subprocess.run(["vim", "-N", "-u", "NONE", "-i", "NONE", "-es", "--cmd", hook,
-                              "-c", "call setline(1, 'int main() { return 7; }')", "-c", "wq",
-                              str(edited)], env=env, capture_output=True, timeout=30, check=False)
+        vim = subprocess.run(
+            [
+                "vim",
+                "-N",
+                "-u",
+                "NONE",
+                "-i",
+                "NONE",
+                "-es",
+                "--cmd",
+                hook,
+                "-c",
+                "call setline(1, 'int main() { return 7; }')",
+                "-c",
+                "wq",
+                str(edited),
+            ],
+            env=env,
+            capture_output=True,
+            timeout=30,
+            check=False,
+        )
         assert vim.returncode == 0, vim
         assert calls.read_text() == f"flush {edited}\n"  # the hook ran, with the saved file
         # no waiting: flush returned only once the saved file was on the robot

@@ -69,12 +69,15 @@ def test_clean_end_between_frames_is_none():
     assert reader_for(b"").read_frame() is None
 
 
-@pytest.mark.parametrize("mutate", [
-    lambda b: b[:9] + b"\xff\xff\xff\xff" + b[13:],     # header length out of range
-    lambda b: b[:4] + b"\x09" + b[5:],                  # unknown type
-    lambda b: b[:5] + b"\x80" + b[6:],                  # unknown flag
-    lambda b: b[:13] + b"{not json" + b[22:],           # header not JSON
-])
+@pytest.mark.parametrize(
+    "mutate",
+    [
+        lambda b: b[:9] + b"\xff\xff\xff\xff" + b[13:],  # header length out of range
+        lambda b: b[:4] + b"\x09" + b[5:],  # unknown type
+        lambda b: b[:5] + b"\x80" + b[6:],  # unknown flag
+        lambda b: b[:13] + b"{not json" + b[22:],  # header not JSON
+    ],
+)
 def test_corrupt_frames_are_protocol_errors(mutate):
     data = wire.encode_frame(wire.Frame(1, 1, {"k": "vvvvvvvvvv"}, b"blob"))
     with pytest.raises(ProtocolError):
@@ -134,23 +137,25 @@ class _Trickle:
         self.data, self.pos, self.step, self.into_calls = data, 0, step, 0
 
     def read1(self, n: int) -> bytes:
-        out = self.data[self.pos:self.pos + min(n, self.step)]
+        out = self.data[self.pos : self.pos + min(n, self.step)]
         self.pos += len(out)
         return out
 
     def readinto(self, view: memoryview) -> int:
         self.into_calls += 1
         out = self.read1(len(view))
-        view[:len(out)] = out
+        view[: len(out)] = out
         return len(out)
 
 
 @pytest.mark.parametrize("step", [1000, 300 * 1024, 1 << 30])
 def test_a_large_blob_is_read_in_place_whole(step):
     big = os.urandom(wire.DIRECT_MIN + 12345)
-    frames = [wire.Frame(wire.T_REQUEST, 1, {"op": "sync"}, big),
-              wire.Frame(wire.T_REQUEST, 2, {"op": "ping"}, b"small"),
-              wire.Frame(wire.T_REQUEST, 3, {"op": "sync"}, big[::-1])]
+    frames = [
+        wire.Frame(wire.T_REQUEST, 1, {"op": "sync"}, big),
+        wire.Frame(wire.T_REQUEST, 2, {"op": "ping"}, b"small"),
+        wire.Frame(wire.T_REQUEST, 3, {"op": "sync"}, big[::-1]),
+    ]
     data = b"".join(wire.encode_frame(f) for f in frames)
     stream = _Trickle(data, step)
     reader = wire.Reader(stream.read1, stream.readinto)

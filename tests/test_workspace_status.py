@@ -22,21 +22,43 @@ from fetchsync.chores.workspace_status import (
 )
 
 # a developer's git configuration (signing, hooks, default branch) stays out of the tests
-GIT_ENV = {"GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.com",
-           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@example.com",
-           "GIT_CONFIG_GLOBAL": os.devnull, "GIT_CONFIG_NOSYSTEM": "1"}
-ROBOT_VARS = ("FETCHSYNC_ROBOT", "FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER",
-              "FETCHSYNC_REMOTE_WORKSPACE", "FETCH_REMOTE_WORKSPACE")
+GIT_ENV = {
+    "GIT_AUTHOR_NAME": "t",
+    "GIT_AUTHOR_EMAIL": "t@example.com",
+    "GIT_COMMITTER_NAME": "t",
+    "GIT_COMMITTER_EMAIL": "t@example.com",
+    "GIT_CONFIG_GLOBAL": os.devnull,
+    "GIT_CONFIG_NOSYSTEM": "1",
+}
+ROBOT_VARS = (
+    "FETCHSYNC_ROBOT",
+    "FETCH_ROBOT",
+    "ROS_MASTER_URI",
+    "FETCHSYNC_USER",
+    "FETCH_USER",
+    "FETCHSYNC_REMOTE_WORKSPACE",
+    "FETCH_REMOTE_WORKSPACE",
+)
 
 
 def git(cwd: Path, *args: str) -> str:
-    proc = subprocess.run(["git", "-C", str(cwd), *args], capture_output=True, check=True,
-                          env={**os.environ, **GIT_ENV})
+    proc = subprocess.run(
+        ["git", "-C", str(cwd), *args],
+        capture_output=True,
+        check=True,
+        env={**os.environ, **GIT_ENV},
+    )
     return proc.stdout.decode().strip()
 
 
-def repo(path: Path, *, branch: str = "main", files: dict[str, str] | None = None,
-         commit: bool = True, git_dir: Path | None = None) -> Path:
+def repo(
+    path: Path,
+    *,
+    branch: str = "main",
+    files: dict[str, str] | None = None,
+    commit: bool = True,
+    git_dir: Path | None = None,
+) -> Path:
     path.mkdir(parents=True, exist_ok=True)
     extra = [f"--separate-git-dir={git_dir}"] if git_dir is not None else []
     git(path, "-c", f"init.defaultBranch={branch}", "init", "-q", *extra)
@@ -54,15 +76,15 @@ def ws(tmp_path: Path) -> Path:
     """src/ with every shape: nested repos, a .git file, dirty, detached, no commits, untracked."""
     src = tmp_path / "ws" / "src"
     alpha = repo(src / "alpha", files={"a.txt": "a\n", "b.txt": "b\n", "c.txt": "c\n"})
-    repo(alpha / "nested", branch="devel", files={"n.txt": "n\n"})   # a repository in a repository
+    repo(alpha / "nested", branch="devel", files={"n.txt": "n\n"})  # a repository in a repository
     beta = repo(src / "beta")
-    (beta / "README.md").write_text("changed\n")                      # dirty
+    (beta / "README.md").write_text("changed\n")  # dirty
     gamma = repo(src / "gamma")
-    git(gamma, "checkout", "-q", "--detach", "HEAD")                   # detached
-    repo(src / "delta", branch="wip", commit=False)                    # no commits yet
-    repo(src / "sub", git_dir=tmp_path / "sub.git")                    # .git is a file
+    git(gamma, "checkout", "-q", "--detach", "HEAD")  # detached
+    repo(src / "delta", branch="wip", commit=False)  # no commits yet
+    repo(src / "sub", git_dir=tmp_path / "sub.git")  # .git is a file
     assert (src / "sub" / ".git").is_file()
-    (src / "loose" / "inner").mkdir(parents=True)                      # untracked, holding a repo
+    (src / "loose" / "inner").mkdir(parents=True)  # untracked, holding a repo
     (src / "loose" / "notes.txt").write_text("notes\n")
     repo(src / "loose" / "inner", files={"i.txt": "i\n"})
     (src / "CMakeLists.txt").symlink_to("/opt/ros/noetic/share/catkin/cmake/toplevel.cmake")
@@ -97,9 +119,15 @@ def robot_column(proc: subprocess.CompletedProcess) -> dict[str, str]:
 # --------------------------------------------------------------------------- library
 def test_find_repositories_nested_submodule_like_and_untracked(ws: Path):
     assert find_repositories(ws / "src") == [
-        Found("alpha", True), Found("alpha/nested", True), Found("beta", True),
-        Found("delta", True), Found("gamma", True), Found("loose", False),
-        Found("loose/inner", True), Found("sub", True)]
+        Found("alpha", True),
+        Found("alpha/nested", True),
+        Found("beta", True),
+        Found("delta", True),
+        Found("gamma", True),
+        Found("loose", False),
+        Found("loose/inner", True),
+        Found("sub", True),
+    ]
 
 
 def test_src_that_is_a_repository_has_no_untracked_rows(tmp_path: Path):
@@ -140,10 +168,11 @@ def test_table_without_a_robot(ws: Path, tmp_path: Path):
     }
 
 
-def test_untracked_files_do_not_make_a_repository_dirty_but_staged_ones_do(ws: Path,
-                                                                        tmp_path: Path):
+def test_untracked_files_do_not_make_a_repository_dirty_but_staged_ones_do(
+    ws: Path, tmp_path: Path
+):
     env = base_env(ws, tmp_path)
-    (ws / "src/alpha/new.txt").write_text("new\n")    # untracked (the nested repo is too)
+    (ws / "src/alpha/new.txt").write_text("new\n")  # untracked (the nested repo is too)
     assert table(status(env))[1]["alpha"][1].endswith("-dirty") is False
     git(ws / "src/alpha", "add", "new.txt")
     assert table(status(env))[1]["alpha"][1].endswith("-dirty")
@@ -162,9 +191,26 @@ def test_a_broken_repository_is_a_row_and_a_note(ws: Path, tmp_path: Path):
 def test_json_shape(ws: Path, tmp_path: Path):
     rows = json.loads(status(base_env(ws, tmp_path), "--json").stdout)
     by_path = {r["path"]: r for r in rows}
-    assert [r["path"] for r in rows] == ["alpha", "alpha/nested", "beta", "delta", "gamma",
-                                         "loose", "loose/inner", "sub"]
-    assert set(rows[0]) == {"path", "git", "branch", "detached", "sha", "dirty", "error", "packages"}
+    assert [r["path"] for r in rows] == [
+        "alpha",
+        "alpha/nested",
+        "beta",
+        "delta",
+        "gamma",
+        "loose",
+        "loose/inner",
+        "sub",
+    ]
+    assert set(rows[0]) == {
+        "path",
+        "git",
+        "branch",
+        "detached",
+        "sha",
+        "dirty",
+        "error",
+        "packages",
+    }
     assert by_path["beta"]["dirty"] is True and by_path["alpha"]["dirty"] is False
     assert by_path["gamma"]["branch"] is None and by_path["gamma"]["detached"] is True
     assert by_path["delta"]["sha"] is None and by_path["delta"]["branch"] == "wip"
@@ -177,19 +223,24 @@ def test_a_roscore_on_this_machine_is_no_robot(ws: Path, tmp_path: Path):
 
 
 def test_a_robot_named_explicitly_must_be_valid(ws: Path, tmp_path: Path):
-    proc = fetchsync("workspace-status", "--robot", "localhost", env=base_env(ws, tmp_path),
-                     check=False)
+    proc = fetchsync(
+        "workspace-status", "--robot", "localhost", env=base_env(ws, tmp_path), check=False
+    )
     assert proc.returncode == 2 and b"this machine" in proc.stderr
 
 
 # --------------------------------------------------------------------------- the local robot
 def test_robot_column_with_the_local_robot(ws: Path, tmp_path: Path):
     robot_home = tmp_path / "robot-home"
-    env = base_env(ws, tmp_path, FETCHSYNC_ROBOT="local",
-                   FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
-                   FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    env = base_env(
+        ws,
+        tmp_path,
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     assert set(robot_column(status(env)).values()) == {"not pushed yet"}
-    assert not (robot_home / "robot_ws").exists()          # looked at, not created
+    assert not (robot_home / "robot_ws").exists()  # looked at, not created
     fetchsync("push", env=env)
     assert set(robot_column(status(env)).values()) == {"in sync"}
     assert table(status(env, "--no-robot"))[0] == ["repository", "branch", "sha"]
@@ -201,12 +252,15 @@ def test_robot_column_with_the_local_robot(ws: Path, tmp_path: Path):
     column = robot_column(status(env))
     assert column.pop("alpha") == "2 paths differ"
     assert set(column.values()) == {"in sync"}
-    (src / "alpha/nested/more.txt").write_text("more\n")   # counted for the nested repository
-    (src / "loose/notes.txt").unlink()                     # and for the untracked directory
+    (src / "alpha/nested/more.txt").write_text("more\n")  # counted for the nested repository
+    (src / "loose/notes.txt").unlink()  # and for the untracked directory
     column = robot_column(status(env))
-    assert (column["alpha"], column["alpha/nested"], column["loose"]) == \
-        ("2 paths differ", "1 path differs", "1 path differs")
-    assert tree_of(robot_home / "robot_ws" / "src") == robot_tree   # status wrote nothing there
+    assert (column["alpha"], column["alpha/nested"], column["loose"]) == (
+        "2 paths differ",
+        "1 path differs",
+        "1 path differs",
+    )
+    assert tree_of(robot_home / "robot_ws" / "src") == robot_tree  # status wrote nothing there
 
     rows = {r["path"]: r for r in json.loads(status(env, "--json", "--exclude", "sub").stdout)}
     assert (rows["alpha"]["robot"], rows["alpha"]["differing"]) == ("differs", 2)
@@ -215,12 +269,16 @@ def test_robot_column_with_the_local_robot(ws: Path, tmp_path: Path):
 
 
 def test_a_push_from_elsewhere_is_compared_by_a_full_listing(ws: Path, tmp_path: Path):
-    env = base_env(ws, tmp_path, FETCHSYNC_ROBOT="local",
-                   FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-                   FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws")
+    env = base_env(
+        ws,
+        tmp_path,
+        FETCHSYNC_ROBOT="local",
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
+    )
     fetchsync("push", env=env)
     (ws / "src/beta/README.md").write_text("edited after the push\n")
-    env["XDG_STATE_HOME"] = str(tmp_path / "another-laptop")     # no state for this robot
+    env["XDG_STATE_HOME"] = str(tmp_path / "another-laptop")  # no state for this robot
     column = robot_column(status(env))
     assert column.pop("beta") == "1 path differs"
     assert set(column.values()) == {"in sync"}
@@ -229,8 +287,13 @@ def test_a_push_from_elsewhere_is_compared_by_a_full_listing(ws: Path, tmp_path:
 # --------------------------------------------------------------------------- the sshd robot
 @pytest.fixture
 def ssh_env(ssh_home, remote_dir, ws, tmp_path) -> dict[str, str]:
-    return base_env(ws, tmp_path, HOME=str(ssh_home.home), FETCHSYNC_ROBOT="robot",
-                    FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir))
+    return base_env(
+        ws,
+        tmp_path,
+        HOME=str(ssh_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+    )
 
 
 def _closed_port() -> int:
@@ -266,9 +329,15 @@ def test_an_unreachable_robot_is_a_column_not_a_failure(ssh_env, ssh_home):
 
 @pytest.mark.ssh
 def test_a_robot_that_does_not_answer_is_unreachable_after_the_timeout(
-        proxied_home, fault_proxy, remote_dir, ws, tmp_path):
-    env = base_env(ws, tmp_path, HOME=str(proxied_home.home), FETCHSYNC_ROBOT="robot",
-                   FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir))
+    proxied_home, fault_proxy, remote_dir, ws, tmp_path
+):
+    env = base_env(
+        ws,
+        tmp_path,
+        HOME=str(proxied_home.home),
+        FETCHSYNC_ROBOT="robot",
+        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
+    )
     fault_proxy.blackhole()
     t0 = time.monotonic()
     proc = status(env, "--timeout", "1")

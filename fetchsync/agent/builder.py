@@ -46,8 +46,8 @@ from fetchsync.chores.build import (
     marker_probe,
     split_probe,
 )
-from fetchsync.config import Target
 from fetchsync.chores.remote import ros_environment, script
+from fetchsync.config import Target
 
 log = logging.getLogger(__name__)
 
@@ -111,8 +111,9 @@ def packages_of(src: Path, paths: Iterable[str], dirs: Iterable[str] = ()) -> se
     return found
 
 
-def package_command(tool: str, packages: Iterable[str] | None, args: str = "",
-                    build_type: str = "default") -> str:
+def package_command(
+    tool: str, packages: Iterable[str] | None, args: str = "", build_type: str = "default"
+) -> str:
     """The command line that builds ``packages`` (all when None) with ``tool``."""
     args = args.strip()
     if packages is None:
@@ -145,35 +146,44 @@ def lock_prelude(workspace: str) -> str:
     runs without the lock and says so.
     """
     key = hashlib.sha256(workspace.encode("utf-8", "surrogateescape")).hexdigest()[:16]
-    return "\n".join([
-        "__fetchsync_lockdir=",
-        'if [ -n "${XDG_RUNTIME_DIR:-}" ] && [ -d "$XDG_RUNTIME_DIR" ] && '
-        '[ ! -L "$XDG_RUNTIME_DIR" ] && [ -O "$XDG_RUNTIME_DIR" ]; then',
-        '  __fetchsync_lockdir="$XDG_RUNTIME_DIR/fetchsync"',
-        "else",
-        '  __fetchsync_lockdir="$HOME/.cache/fetchsync"',
-        "fi",
-        '(umask 077; mkdir -p -- "$__fetchsync_lockdir") 2>/dev/null',
-        'if [ -d "$__fetchsync_lockdir" ] && [ ! -L "$__fetchsync_lockdir" ] && '
-        '[ -O "$__fetchsync_lockdir" ] && chmod 700 -- "$__fetchsync_lockdir" 2>/dev/null && '
-        "command -v flock >/dev/null 2>&1 && "
-        f'exec 9>>"$__fetchsync_lockdir/build-{key}.lock"; then',
-        "  flock 9",
-        "else",
-        '  echo "fetchsync: warning: no private directory for the build lock'
-        ' ($__fetchsync_lockdir); building without it" >&2',
-        "fi",
-        "unset __fetchsync_lockdir",
-    ])
+    return "\n".join(
+        [
+            "__fetchsync_lockdir=",
+            'if [ -n "${XDG_RUNTIME_DIR:-}" ] && [ -d "$XDG_RUNTIME_DIR" ] && '
+            '[ ! -L "$XDG_RUNTIME_DIR" ] && [ -O "$XDG_RUNTIME_DIR" ]; then',
+            '  __fetchsync_lockdir="$XDG_RUNTIME_DIR/fetchsync"',
+            "else",
+            '  __fetchsync_lockdir="$HOME/.cache/fetchsync"',
+            "fi",
+            '(umask 077; mkdir -p -- "$__fetchsync_lockdir") 2>/dev/null',
+            'if [ -d "$__fetchsync_lockdir" ] && [ ! -L "$__fetchsync_lockdir" ] && '
+            '[ -O "$__fetchsync_lockdir" ] && chmod 700 -- "$__fetchsync_lockdir" 2>/dev/null && '
+            "command -v flock >/dev/null 2>&1 && "
+            f'exec 9>>"$__fetchsync_lockdir/build-{key}.lock"; then',
+            "  flock 9",
+            "else",
+            '  echo "fetchsync: warning: no private directory for the build lock'
+            ' ($__fetchsync_lockdir); building without it" >&2',
+            "fi",
+            "unset __fetchsync_lockdir",
+        ]
+    )
 
 
 # --------------------------------------------------------------------------- the thread
 class Builder:
     """Builds on the robot, in its own thread and over its own connection."""
 
-    def __init__(self, target: Target, *, tool: str = "auto", build_type: str = "default",
-                 args: str = "", say: Callable[[str], None] | None = None,
-                 accept_fingerprint: str | None = None) -> None:
+    def __init__(
+        self,
+        target: Target,
+        *,
+        tool: str = "auto",
+        build_type: str = "default",
+        args: str = "",
+        say: Callable[[str], None] | None = None,
+        accept_fingerprint: str | None = None,
+    ) -> None:
         self.target = target
         self.tool = tool
         self.build_type = build_type
@@ -183,9 +193,9 @@ class Builder:
         self.src = target.workspace / "src"
         self.cond = threading.Condition()
         self.stopping = False
-        self.dirty: set[str] = set()   # packages to build
+        self.dirty: set[str] = set()  # packages to build
         self.dirty_all = False
-        self.carry: set[str] = set()   # packages of a failed build, built with the next batch
+        self.carry: set[str] = set()  # packages of a failed build, built with the next batch
         self.carry_all = False
         self.running: set[str] | None = None
         self.running_all = False
@@ -210,8 +220,9 @@ class Builder:
         self._thread.join(3.0)
         self._close_transport()
 
-    def submit_paths(self, paths: Iterable[str], dirs: Iterable[str] = (), *,
-                     whole: bool = False) -> None:
+    def submit_paths(
+        self, paths: Iterable[str], dirs: Iterable[str] = (), *, whole: bool = False
+    ) -> None:
         """A batch reached the robot: build what it touched (``whole``: everything)."""
         if whole:
             self.submit(None)
@@ -240,7 +251,9 @@ class Builder:
                 "state": self.state,
                 "tool": self._detected or self.tool,
                 "building": None if self.running is None else sorted(self.running),
-                "pending": "all" if self.dirty_all or self.carry_all else sorted(self.dirty | self.carry),
+                "pending": "all"
+                if self.dirty_all or self.carry_all
+                else sorted(self.dirty | self.carry),
                 "builds": self.builds,
                 "last": self.last,
             }
@@ -301,22 +314,25 @@ class Builder:
 
     def _build(self, packages: set[str] | None) -> str:
         from fetchsync.chores.build import TransportRunner
-        from fetchsync.link.connection import remote_python
         from fetchsync.chores.remote import wrap
+        from fetchsync.link.connection import remote_python
         from fetchsync.link.session import open_transport
 
         if self._transport is None:
-            self._transport = open_transport(self.target, accept_fingerprint=self.accept_fingerprint,
-                                             persistent=False)
+            self._transport = open_transport(
+                self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
+            )
         tool = self.tool
         if tool == "auto":
             if self._detected is None:
                 runner = TransportRunner(self._transport, where=self.target.robot)
                 markers, distros = split_probe(
-                    runner.probe(marker_probe(self.target.remote_workspace)))
+                    runner.probe(marker_probe(self.target.remote_workspace))
+                )
                 choice = choose_tool(markers, manifests(self.src), distros)
-                self.say(f"build: build tool: {choice.tool} ({choice.reason} on "
-                         f"{self.target.robot})")
+                self.say(
+                    f"build: build tool: {choice.tool} ({choice.reason} on {self.target.robot})"
+                )
                 self._detected = choice.tool
             tool = self._detected
         line = package_command(tool, packages, self.args, self.build_type)
@@ -366,22 +382,32 @@ class Builder:
         with self.cond:
             self.builds += 1
         if cancelled:
-            self.say(f"build: cancelled ({what}): newer changes arrived"
-                     if not self.stopping else f"build: stopped ({what})")
+            self.say(
+                f"build: cancelled ({what}): newer changes arrived"
+                if not self.stopping
+                else f"build: stopped ({what})"
+            )
             self._record(packages, "cancelled", None, seconds)
             return "cancelled"
         if status == 0:
             self.say(f"build: ok: {what} in {seconds:.1f}s")
             self._record(packages, "ok", 0, seconds)
             return "ok"
-        self.say(f"error: build failed ({what}) with exit status {status}; "
-                 "it is built again with the next change")
+        self.say(
+            f"error: build failed ({what}) with exit status {status}; "
+            "it is built again with the next change"
+        )
         self._record(packages, "failed", status, seconds)
         return "failed"
 
-    def _record(self, packages: set[str] | None, result: str, status: int | None,
-                seconds: float) -> None:
+    def _record(
+        self, packages: set[str] | None, result: str, status: int | None, seconds: float
+    ) -> None:
         with self.cond:
-            self.last = {"packages": "all" if packages is None else sorted(packages),
-                         "result": result, "exit_status": status, "seconds": round(seconds, 2),
-                         "finished": time.time()}
+            self.last = {
+                "packages": "all" if packages is None else sorted(packages),
+                "result": result,
+                "exit_status": status,
+                "seconds": round(seconds, 2),
+                "finished": time.time(),
+            }

@@ -172,8 +172,15 @@ class Coalescer:
         batch = c.take(now)            # the batch once due, else None
     """
 
-    def __init__(self, *, quiet: float = QUIET, cap: float = CAP, max_paths: int = MAX_PATHS,
-                 burst: int = BURST, burst_quiet: float = BURST_QUIET) -> None:
+    def __init__(
+        self,
+        *,
+        quiet: float = QUIET,
+        cap: float = CAP,
+        max_paths: int = MAX_PATHS,
+        burst: int = BURST,
+        burst_quiet: float = BURST_QUIET,
+    ) -> None:
         if min(quiet, cap, burst_quiet) < 0:
             raise ValueError("quiet, cap and burst_quiet must not be negative")
         if max_paths < 1 or burst < 1:
@@ -184,7 +191,7 @@ class Coalescer:
         self.burst = burst
         self.burst_quiet = max(quiet, burst_quiet)
         self._reset()
-        self._ended_at: float | None = None   # when the last batch taken ended, if a burst
+        self._ended_at: float | None = None  # when the last batch taken ended, if a burst
 
     def _reset(self) -> None:
         self._entries: dict[str, _Entry] = {}

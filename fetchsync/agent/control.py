@@ -171,7 +171,11 @@ def push(path: Path, *, timeout: float = 3600.0) -> dict[str, Any] | None:
     directly, which reaches the robot or fails within the connect timeout)."""
     reply = call(path, {"cmd": "push"}, timeout=timeout)
     if reply is not None and reply.get("offline"):
-        print(f"fetchsync: the watch agent cannot reach its robot ({reply.get('error')}); "
-              "pushing directly", file=sys.stderr, flush=True)
+        print(
+            f"fetchsync: the watch agent cannot reach its robot ({reply.get('error')}); "
+            "pushing directly",
+            file=sys.stderr,
+            flush=True,
+        )
         return None
     return reply

@@ -77,8 +77,9 @@ def agent_paths(target: Target) -> tuple[Path, Path]:
     from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
     from fetchsync.link.session import robot_id
 
-    key = hashlib.sha256(f"{robot_id(target)}\0{target.remote_workspace}".encode(
-        "utf-8", "surrogateescape")).hexdigest()[:20]
+    key = hashlib.sha256(
+        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape")
+    ).hexdigest()[:20]
     base = runtime_dir()
     sock = base / f"agent-{key}.sock"
     if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
@@ -95,7 +96,7 @@ class Pending:
     dirs: set[str] = field(default_factory=set)
     full: bool = False
     first: int = 0  # the first request merged in
-    seq: int = 0    # the last request merged in
+    seq: int = 0  # the last request merged in
 
     def empty(self) -> bool:
         return not (self.paths or self.dirs or self.full)
@@ -105,10 +106,18 @@ class Pending:
 
 
 class Agent:
-    def __init__(self, target: Target, *, rules: Any, policy: str = "preserve",
-                 accept_fingerprint: str | None = None, quiet: float | None = None,
-                 cap: float | None = None, on_event: Callable[[str], None] | None = None,
-                 build: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        target: Target,
+        *,
+        rules: Any,
+        policy: str = "preserve",
+        accept_fingerprint: str | None = None,
+        quiet: float | None = None,
+        cap: float | None = None,
+        on_event: Callable[[str], None] | None = None,
+        build: dict[str, Any] | None = None,
+    ) -> None:
         self.target = target
         self.rules = rules
         self.policy = policy
@@ -125,7 +134,7 @@ class Agent:
         # after them, and on a large tree each one costs seconds.
         self.pending = Pending()
         self.next_seq = 1
-        self.done_seq = 0       # every request up to this one is on the robot
+        self.done_seq = 0  # every request up to this one is on the robot
         self.failed: list[tuple[int, int, str]] = []  # (first, last request, why) of failed pushes
         self.state = "starting"
         self.offline_since: float | None = None
@@ -143,7 +152,9 @@ class Agent:
         if build is not None:
             from fetchsync.agent.builder import Builder
 
-            self.builder = Builder(target, say=self.say, accept_fingerprint=accept_fingerprint, **build)
+            self.builder = Builder(
+                target, say=self.say, accept_fingerprint=accept_fingerprint, **build
+            )
 
     # ------------------------------------------------------------------ lifecycle
     def acquire(self) -> None:
@@ -157,9 +168,11 @@ class Agent:
                 owner = os.read(fd, 200).decode("utf-8", "replace").strip()
             finally:
                 os.close(fd)
-            raise UsageError(f"an agent is already watching {self.src} for {self.target.robot} "
-                             f"({owner or 'pid unknown'}; socket {sock})",
-                             hint="stop it first, or use fetchsync status / flush")
+            raise UsageError(
+                f"an agent is already watching {self.src} for {self.target.robot} "
+                f"({owner or 'pid unknown'}; socket {sock})",
+                hint="stop it first, or use fetchsync status / flush",
+            ) from None
         os.ftruncate(fd, 0)
         os.write(fd, f"pid {os.getpid()}".encode())
         self._lock_fd = fd
@@ -207,8 +220,9 @@ class Agent:
             self.cond.notify_all()
 
     # ------------------------------------------------------------------ requests
-    def request(self, *, paths: set[str] | None = None, dirs: set[str] | None = None,
-                full: bool = False) -> int:
+    def request(
+        self, *, paths: set[str] | None = None, dirs: set[str] | None = None, full: bool = False
+    ) -> int:
         """Queue work; returns its sequence number for :meth:`wait_for`."""
         with self.cond:
             seq = self.next_seq
@@ -233,8 +247,11 @@ class Agent:
                     return True, ""
                 left = deadline - time.monotonic()
                 if left <= 0 or self.stop_event.is_set():
-                    why = (f"the robot is offline since {time.strftime('%H:%M:%S', time.localtime(self.offline_since))}"
-                           if self.offline_since else "timed out")
+                    why = (
+                        f"the robot is offline since {time.strftime('%H:%M:%S', time.localtime(self.offline_since))}"
+                        if self.offline_since
+                        else "timed out"
+                    )
                     return False, why
                 self.cond.wait(min(left, 0.5))
 
@@ -347,11 +364,12 @@ class Agent:
             return
         from fetchsync.link.connection import Connection
         from fetchsync.link.session import open_transport
-        from fetchsync.sync.state import open_state
         from fetchsync.sync.engine import Syncer
+        from fetchsync.sync.state import open_state
 
-        transport = open_transport(self.target, accept_fingerprint=self.accept_fingerprint,
-                                   persistent=False)
+        transport = open_transport(
+            self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
+        )
         try:
             conn = Connection.open(transport)
         except BaseException:
@@ -362,9 +380,14 @@ class Agent:
             if self._state.note:
                 self.say(f"note: {self._state.note}")
         self._transport, self._conn = transport, conn
-        self._syncer = Syncer(conn, self._state, local_root=self.src,
-                              remote_workspace=self.target.remote_workspace, rules=self.rules,
-                              policy=self.policy)
+        self._syncer = Syncer(
+            conn,
+            self._state,
+            local_root=self.src,
+            remote_workspace=self.target.remote_workspace,
+            rules=self.rules,
+            policy=self.policy,
+        )
         if self.offline_since is not None:
             self.say(f"back online after {time.monotonic() - self._offline_mono:.1f}s")
         with self.cond:
@@ -413,8 +436,11 @@ class Agent:
                 self.pending.dirs |= work.dirs
                 self.pending.full = True
                 self.pending.seq = max(self.pending.seq, work.seq)
-                self.pending.first = min(x for x in (self.pending.first, work.first) if x) \
-                    if (self.pending.first or work.first) else 0
+                self.pending.first = (
+                    min(x for x in (self.pending.first, work.first) if x)
+                    if (self.pending.first or work.first)
+                    else 0
+                )
             if self.offline_since is None:
                 self.offline_since = time.time()
                 self._offline_mono = time.monotonic()
@@ -435,11 +461,15 @@ class Agent:
             self.state = "live" if self.pending.empty() else "syncing"
             self.cond.notify_all()
         if report.changed or report.conflicts or report.errors:
-            line = (f"pushed {report.files} files, {report.dirs} dirs, {report.deleted} deleted "
-                    f"in {seconds * 1000:.0f} ms")
+            line = (
+                f"pushed {report.files} files, {report.dirs} dirs, {report.deleted} deleted "
+                f"in {seconds * 1000:.0f} ms"
+            )
             self.say(line)
             for c in report.conflicts:
-                self.say(f"conflict: {c['path']} was changed on the robot; kept in {c.get('kept', '')}")
+                self.say(
+                    f"conflict: {c['path']} was changed on the robot; kept in {c.get('kept', '')}"
+                )
             for e in report.errors:
                 self.say(f"error: {e['path']}: {e['error']}")
         if self.builder is not None and report.changed:

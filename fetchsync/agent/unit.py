@@ -31,10 +31,15 @@ def unit_name(target: Target) -> str:
     """``fetchsync-watch-<robot>-<workspace>-<hash>.service``, in systemd's unit name alphabet."""
     from fetchsync.link.session import robot_id
 
-    key = hashlib.sha256(f"{robot_id(target)}\0{target.remote_workspace}\0{target.workspace}".encode(
-        "utf-8", "surrogateescape")).hexdigest()[:8]
+    key = hashlib.sha256(
+        f"{robot_id(target)}\0{target.remote_workspace}\0{target.workspace}".encode(
+            "utf-8", "surrogateescape"
+        )
+    ).hexdigest()[:8]
+
     def slug(text: str) -> str:
         return re.sub(r"[^A-Za-z0-9_.]+", "_", text).strip("_.")[:40] or "x"
+
     return f"fetchsync-watch-{slug(target.robot)}-{slug(target.workspace.name)}-{key}.service"
 
 
@@ -61,7 +66,9 @@ def _env_value(value: str) -> str:
     return value.replace("%", "%%").replace("\\", "\\\\").replace('"', '\\"')
 
 
-def unit_text(target: Target, watch_args: Sequence[str], *, environ: dict[str, str] | None = None) -> str:
+def unit_text(
+    target: Target, watch_args: Sequence[str], *, environ: dict[str, str] | None = None
+) -> str:
     """The unit file running ``fetchsync watch`` for ``target`` with ``watch_args`` after the target."""
     env = os.environ if environ is None else environ
     argv = [*fetchsync_argv(), "watch", "--robot", target.robot]
@@ -93,7 +100,7 @@ def unit_text(target: Target, watch_args: Sequence[str], *, environ: dict[str, s
     if sock:
         if runtime and sock.startswith(runtime.rstrip("/") + "/"):
             # a socket in the runtime directory keeps its path across logins: %t is that directory
-            value = "%t/" + _env_value(sock[len(runtime.rstrip("/")) + 1:])
+            value = "%t/" + _env_value(sock[len(runtime.rstrip("/")) + 1 :])
         else:
             value = _env_value(sock)
         lines.append(f'Environment="SSH_AUTH_SOCK={value}"')
@@ -114,13 +121,15 @@ def install(target: Target, watch_args: Sequence[str]) -> tuple[Path, list[str]]
         "start it now and at each login with:",
         f"  systemctl --user daemon-reload && systemctl --user enable --now {name}",
         f"its output: journalctl --user -u {name} -f",
-        "to keep it running while logged out: loginctl enable-linger \"$USER\"",
+        'to keep it running while logged out: loginctl enable-linger "$USER"',
     ]
     sock = os.environ.get("SSH_AUTH_SOCK", "")
     runtime = os.environ.get("XDG_RUNTIME_DIR", "")
     if sock and not (runtime and sock.startswith(runtime.rstrip("/") + "/")):
-        notes.append(f"note: SSH_AUTH_SOCK ({sock}) may change at the next login; then run "
-                     "--install-service again, or use a key without a passphrase")
+        notes.append(
+            f"note: SSH_AUTH_SOCK ({sock}) may change at the next login; then run "
+            "--install-service again, or use a key without a passphrase"
+        )
     return path, notes
 
 
@@ -134,5 +143,7 @@ def uninstall(target: Target) -> tuple[Path, list[str]]:
     for p in (wanted, path):
         if p.is_symlink() or p.exists():
             p.unlink()
-    return path, [f"removed {path}",
-                  f"stop it with: systemctl --user stop {name} && systemctl --user daemon-reload"]
+    return path, [
+        f"removed {path}",
+        f"stop it with: systemctl --user stop {name} && systemctl --user daemon-reload",
+    ]

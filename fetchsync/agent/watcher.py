@@ -142,19 +142,23 @@ def _describe_sysctl(name: str) -> str:
 
 def _watch_limit_message(root: str, unwatched: int, first: str, *, rewatch: float) -> str:
     limit = _read_int(_SYSCTL + "max_user_watches")
-    text = (f"inotify watch limit reached ({_describe_sysctl('max_user_watches')}, shared by all "
-            f"of this user's programs)")
+    text = (
+        f"inotify watch limit reached ({_describe_sysctl('max_user_watches')}, shared by all "
+        f"of this user's programs)"
+    )
     userns = _read_int(_USERNS_WATCHES)
     if userns is not None and (limit is None or userns < limit):
         text += f"; this user namespace allows user.max_inotify_watches = {userns}"
     where = os.path.join(root, first) if first else root
     others = f" and {unwatched - 1} other(s)" if unwatched > 1 else ""
     suggested = max(524288, 2 * limit) if limit else 524288
-    return (f"{text}: {where}{others} not watched, so changes there are found only by a full "
-            f"rescan every {rewatch:g} s. Raise the limit: "
-            f"sudo sysctl fs.inotify.max_user_watches={suggested} (and put "
-            f"'fs.inotify.max_user_watches={suggested}' in /etc/sysctl.d/60-fetchsync.conf "
-            f"to keep it)")
+    return (
+        f"{text}: {where}{others} not watched, so changes there are found only by a full "
+        f"rescan every {rewatch:g} s. Raise the limit: "
+        f"sudo sysctl fs.inotify.max_user_watches={suggested} (and put "
+        f"'fs.inotify.max_user_watches={suggested}' in /etc/sysctl.d/60-fetchsync.conf "
+        f"to keep it)"
+    )
 
 
 class IgnoreFilter:
@@ -207,7 +211,7 @@ class IgnoreFilter:
                 self._forget(path)
                 return False
             slash = path.rfind("/")
-            if path[slash + 1:] != IGNORE_FILENAME:
+            if path[slash + 1 :] != IGNORE_FILENAME:
                 return False
             dirpath = path[:slash] if slash > 0 else ""
             if self._node(dirpath) is None:
@@ -249,8 +253,11 @@ class IgnoreFilter:
         try:
             text = read_ignore_file(self.root, dirpath)
         except (OSError, ValueError) as exc:
-            log.warning("cannot read %s: %s; treating it as empty",
-                        os.path.join(self.root, dirpath, IGNORE_FILENAME), exc)
+            log.warning(
+                "cannot read %s: %s; treating it as empty",
+                os.path.join(self.root, dirpath, IGNORE_FILENAME),
+                exc,
+            )
             text = None
         if text is not None:
             self._rules = self._rules.with_file(dirpath, text)
@@ -263,7 +270,7 @@ class IgnoreFilter:
         slash = dirpath.rfind("/")
         parent = self._node(dirpath[:slash] if slash > 0 else "")
         if parent is not None:
-            parent.pop(dirpath[slash + 1:], None)
+            parent.pop(dirpath[slash + 1 :], None)
         prefix = dirpath + "/"
         for d in [f for f in self._files if f == dirpath or f.startswith(prefix)]:
             self._rules = self._rules.without_file(d)
@@ -298,6 +305,7 @@ try:  # pragma: no cover - import guard
         WatchCallback,
         WatchDescriptor,
     )
+
     _WATCHDOG_ERROR: str | None = None
 except ImportError as _exc:  # pragma: no cover - depends on the platform and version
     _WATCHDOG_ERROR = str(_exc)
@@ -309,13 +317,22 @@ except ImportError as _exc:  # pragma: no cover - depends on the platform and ve
 
 # What the kernel is asked for: no IN_OPEN, IN_ACCESS or IN_CLOSE_NOWRITE,
 # which a build reading every source would otherwise flood the queue with.
-_EVENT_FILTER = None if _WATCHDOG_ERROR else [
-    FileCreatedEvent, DirCreatedEvent,
-    FileModifiedEvent, FileClosedEvent,   # IN_MODIFY, IN_CLOSE_WRITE
-    FileAttribEvent, DirAttribEvent,       # chmod (IN_ATTRIB)
-    FileDeletedEvent, DirDeletedEvent,
-    FileMovedEvent, DirMovedEvent,
-]
+_EVENT_FILTER = (
+    None
+    if _WATCHDOG_ERROR
+    else [
+        FileCreatedEvent,
+        DirCreatedEvent,
+        FileModifiedEvent,
+        FileClosedEvent,  # IN_MODIFY, IN_CLOSE_WRITE
+        FileAttribEvent,
+        DirAttribEvent,  # chmod (IN_ATTRIB)
+        FileDeletedEvent,
+        DirDeletedEvent,
+        FileMovedEvent,
+        DirMovedEvent,
+    ]
+)
 
 _KIND = {
     "created": CREATED,
@@ -328,8 +345,12 @@ _KIND = {
 
 # A directory moved out of the tree and back in is watched again under the
 # same watch descriptor; watchdog warns about that from its thread, harmlessly.
-warnings.filterwarnings("ignore", message="Callback with id .* already exists",
-                        category=RuntimeWarning, module=r"fetchsync\.agent\.watcher")
+warnings.filterwarnings(
+    "ignore",
+    message="Callback with id .* already exists",
+    category=RuntimeWarning,
+    module=r"fetchsync\.agent\.watcher",
+)
 
 
 class _Skipped(OSError):
@@ -344,12 +365,13 @@ class _InotifyFD(InotifyFD):  # type: ignore[misc,valid-type]
         self._watcher = watcher
 
     def handle_event(self, event: InotifyEvent) -> None:
-        super().handle_event(event)   # on overflow, watchdog rebuilds its watches here
+        super().handle_event(event)  # on overflow, watchdog rebuilds its watches here
         if event.is_queue_overflow:
             self._watcher._on_overflow()
 
-    def add_callback(self, path: bytes, mask: Mask, callback: WatchCallback,
-                     id_: CallbackId) -> WatchDescriptor:
+    def add_callback(
+        self, path: bytes, mask: Mask, callback: WatchCallback, id_: CallbackId
+    ) -> WatchDescriptor:
         if not self._watcher._wants_watch(path):
             raise _Skipped(errno.EPERM, "excluded by the ignore rules")
         try:
@@ -445,12 +467,19 @@ class Watcher:
     usual way to use it.
     """
 
-    def __init__(self, root: str, *, sink: Callable[[Item, float], None],
-                 rules: IgnoreRules | None = None, rewatch: float = REWATCH) -> None:
+    def __init__(
+        self,
+        root: str,
+        *,
+        sink: Callable[[Item, float], None],
+        rules: IgnoreRules | None = None,
+        rewatch: float = REWATCH,
+    ) -> None:
         if _WATCHDOG_ERROR is not None or not sys.platform.startswith("linux"):
             raise FetchsyncError(
                 "watching needs Linux inotify through watchdog >= 7.1",
-                hint=_WATCHDOG_ERROR or f"this platform is {sys.platform}")
+                hint=_WATCHDOG_ERROR or f"this platform is {sys.platform}",
+            )
         real = os.path.realpath(root)  # the root may be a link; nothing below it is followed
         if not os.path.isdir(real):
             raise ConfigError(f"cannot watch {root}: not a directory")
@@ -468,7 +497,7 @@ class Watcher:
         self._root_lost = False
         self._root_id: tuple[int, int] | None = None
         self._next_root_check = 0.0
-        self._restart_now = ""      # why to start over at the next maintain()
+        self._restart_now = ""  # why to start over at the next maintain()
         self._next_attempt = 0.0
         self._limit_warned = False
         self._overflow_warned_at: float | None = None
@@ -503,12 +532,21 @@ class Watcher:
             except OSError as exc:
                 raise FetchsyncError(
                     f"cannot watch {self.root}: {exc.strerror or exc}",
-                    hint=(f"too many inotify instances; {_describe_sysctl('max_user_instances')}"
-                          if exc.errno == errno.EMFILE else None)) from exc
+                    hint=(
+                        f"too many inotify instances; {_describe_sysctl('max_user_instances')}"
+                        if exc.errno == errno.EMFILE
+                        else None
+                    ),
+                ) from exc
             fd.start()
             observer = _Observer(fd)
-            observer.schedule(_Handler(self), self.root, recursive=True,
-                              event_filter=_EVENT_FILTER, follow_symlink=False)
+            observer.schedule(
+                _Handler(self),
+                self.root,
+                recursive=True,
+                event_filter=_EVENT_FILTER,
+                follow_symlink=False,
+            )
             self._starting = True
             try:
                 observer.start()
@@ -523,7 +561,8 @@ class Watcher:
                     raise ConfigError(f"cannot watch {self.root}: it is gone") from exc
                 else:
                     raise FetchsyncError(
-                        f"cannot watch {self.root}: {exc.strerror or exc}") from exc
+                        f"cannot watch {self.root}: {exc.strerror or exc}"
+                    ) from exc
             else:
                 self._observer = observer
                 self._fd = fd
@@ -532,8 +571,9 @@ class Watcher:
         now = time.monotonic()
         self._next_attempt = now + self.rewatch
         if self._unwatched:
-            message = _watch_limit_message(self.root, self._unwatched, self._first_unwatched,
-                                           rewatch=self.rewatch)
+            message = _watch_limit_message(
+                self.root, self._unwatched, self._first_unwatched, rewatch=self.rewatch
+            )
             if not self._limit_warned:
                 log.warning("%s", message)
                 self._limit_warned = True
@@ -599,7 +639,7 @@ class Watcher:
     def _relative(self, path: str) -> str | None:
         """``path`` relative to the root; "" for the root; None outside it."""
         if path.startswith(self._prefix):
-            return path[len(self._prefix):]
+            return path[len(self._prefix) :]
         return "" if path.rstrip("/") == self.root.rstrip("/") else None
 
     def _wants_watch(self, path: bytes) -> bool:
@@ -626,8 +666,11 @@ class Watcher:
         if rel == "":
             if kind in (DELETED, MOVED):
                 self._root_lost = True
-                log.warning("%s was deleted or moved away; watching it again every %g s",
-                            self.root, self.rewatch)
+                log.warning(
+                    "%s was deleted or moved away; watching it again every %g s",
+                    self.root,
+                    self.rewatch,
+                )
                 self._sink(Rescan(f"{self.root} was deleted or moved away"), now)
             return  # the root's own mode is not synced
         if is_dir and kind == CREATED and os.path.islink(full):
@@ -641,8 +684,10 @@ class Watcher:
 
     def _on_overflow(self) -> None:
         now = time.monotonic()
-        message = (f"inotify event queue overflowed ({_describe_sysctl('max_queued_events')}): "
-                   f"changes were lost; rescanning {self.root}")
+        message = (
+            f"inotify event queue overflowed ({_describe_sysctl('max_queued_events')}): "
+            f"changes were lost; rescanning {self.root}"
+        )
         last = self._overflow_warned_at
         if last is None or now - last > _OVERFLOW_WARN_INTERVAL:
             log.warning("%s", message)
@@ -667,9 +712,16 @@ class Watcher:
         self._sink(Rescan(message), time.monotonic())
 
 
-def batches(root: str, *, rules: IgnoreRules | None = None, quiet: float = QUIET, cap: float = CAP,
-            max_paths: int = MAX_PATHS, rewatch: float = REWATCH,
-            stop_event: threading.Event | None = None) -> Generator[Batch, None, None]:
+def batches(
+    root: str,
+    *,
+    rules: IgnoreRules | None = None,
+    quiet: float = QUIET,
+    cap: float = CAP,
+    max_paths: int = MAX_PATHS,
+    rewatch: float = REWATCH,
+    stop_event: threading.Event | None = None,
+) -> Generator[Batch, None, None]:
     """Yield batches of what changes under ``root``, until ``stop_event`` is set or the generator
     is closed.
 

@@ -128,11 +128,20 @@ class AccountRequest:
             "groups": list(self.groups),
             "key": self.key,
             "password": self.password,
-            "skeleton": [{"path": f.path, "type": f.kind, "mode": f.mode,
-                          "data": base64.b64encode(f.data).decode("ascii")}
-                         for f in (sk.files if sk else ())],
-            "init": (base64.b64encode(sk.init).decode("ascii")
-                     if sk is not None and sk.init is not None else None),
+            "skeleton": [
+                {
+                    "path": f.path,
+                    "type": f.kind,
+                    "mode": f.mode,
+                    "data": base64.b64encode(f.data).decode("ascii"),
+                }
+                for f in (sk.files if sk else ())
+            ],
+            "init": (
+                base64.b64encode(sk.init).decode("ascii")
+                if sk is not None and sk.init is not None
+                else None
+            ),
             "env": self.env,
             "workspace": self.workspace,
             "ros_snippet": self.ros_snippet,
@@ -199,8 +208,10 @@ class RobotAccount:
 
 def check_user_name(name: str) -> str:
     if not _USER_NAME.match(name):
-        raise UsageError(f"invalid user name {name!r}: lower-case letters, digits, '_' and '-', "
-                         "starting with a letter or '_', at most 32")
+        raise UsageError(
+            f"invalid user name {name!r}: lower-case letters, digits, '_' and '-', "
+            "starting with a letter or '_', at most 32"
+        )
     return name
 
 
@@ -219,6 +230,7 @@ def check_password(password: str, *, what: str) -> str:
 
 
 # --- the skeleton ---------------------------------------------------------------------------
+
 
 def builtin_skeleton() -> Path | None:
     """The built-in skeleton: ``skeleton/`` of a checkout, else where the wheel installed it."""
@@ -257,8 +269,9 @@ def find_skeleton(option: str | os.PathLike[str] | None = None) -> Path:
             return path
     builtin = builtin_skeleton()
     if builtin is None:
-        raise ConfigError("the built-in skeleton is missing from this installation",
-                          hint="pass --skeleton DIR")
+        raise ConfigError(
+            "the built-in skeleton is missing from this installation", hint="pass --skeleton DIR"
+        )
     return builtin
 
 
@@ -268,8 +281,9 @@ def is_legacy_skeleton(path: Path) -> bool:
     set-up, ``~/.bashrc.d/40-ros-setup.sh``, which their ``.bashrc`` reads."""
     resolved = Path(os.path.abspath(path))
     legacy = Path(os.path.abspath(os.path.expanduser(SKELETON_SEARCH[1])))
-    return resolved == legacy or (resolved.name == "robot_skeleton"
-                                  and resolved.parent.name == "resources")
+    return resolved == legacy or (
+        resolved.name == "robot_skeleton" and resolved.parent.name == "resources"
+    )
 
 
 def load_skeleton(root: Path) -> Skeleton:
@@ -291,8 +305,9 @@ def load_skeleton(root: Path) -> Skeleton:
                     log.warning("skeleton: leaving out %s, a link to a directory", full)
                     dirnames.remove(name)
                     continue
-                files.append(SkeletonFile((rel_dir / name).as_posix(), "dir",
-                                          full.stat().st_mode & 0o7777))
+                files.append(
+                    SkeletonFile((rel_dir / name).as_posix(), "dir", full.stat().st_mode & 0o7777)
+                )
             for name in sorted(filenames):
                 full = Path(dirpath) / name
                 if not full.is_file():
@@ -301,8 +316,10 @@ def load_skeleton(root: Path) -> Skeleton:
                 data = full.read_bytes()
                 total += len(data)
                 if total > MAX_SKELETON_BYTES:
-                    raise ConfigError(f"the skeleton {root} is larger than "
-                                      f"{MAX_SKELETON_BYTES // (1024 * 1024)} MiB")
+                    raise ConfigError(
+                        f"the skeleton {root} is larger than "
+                        f"{MAX_SKELETON_BYTES // (1024 * 1024)} MiB"
+                    )
                 rel = (rel_dir / name).as_posix()
                 if rel == INIT_SCRIPT:
                     init = data
@@ -314,6 +331,7 @@ def load_skeleton(root: Path) -> Skeleton:
 
 
 # --- the public key -------------------------------------------------------------------------
+
 
 def find_public_key(option: str | os.PathLike[str] | None = None) -> Path | None:
     """The public key to install: ``--key FILE`` (its ``.pub`` when given the private
@@ -355,11 +373,13 @@ def read_public_key(path: Path) -> str:
 
 # --- the admin session ----------------------------------------------------------------------
 
+
 class AdminSession:
     """Root on the robot through an admin login: directly or through ``sudo -S``."""
 
-    def __init__(self, transport: Transport, *, admin: str, robot: str,
-                 python: str = "python3") -> None:
+    def __init__(
+        self, transport: Transport, *, admin: str, robot: str, python: str = "python3"
+    ) -> None:
         self.transport = transport
         self.admin = admin
         self.robot = robot
@@ -372,14 +392,21 @@ class AdminSession:
         lines = out.decode("utf-8", "replace").splitlines()
         uid_line = next((line for line in lines if line.strip().isdigit()), None)
         if status != 0 or uid_line is None:
-            raise RemoteError(f"cannot look up {user} on {self.robot} as {self.admin}: "
-                              f"{err.decode('utf-8', 'replace').strip() or f'exit {status}'}")
+            raise RemoteError(
+                f"cannot look up {user} on {self.robot} as {self.admin}: "
+                f"{err.decode('utf-8', 'replace').strip() or f'exit {status}'}"
+            )
         entry = next((line.split(":") for line in lines if line.startswith(user + ":")), None)
         if entry is None or len(entry) < 7:
-            return RobotAccount(admin_is_root=uid_line.strip() == "0", exists=False, uid=None,
-                                home=None)
-        return RobotAccount(admin_is_root=uid_line.strip() == "0", exists=True,
-                            uid=int(entry[2]) if entry[2].isdigit() else None, home=entry[5])
+            return RobotAccount(
+                admin_is_root=uid_line.strip() == "0", exists=False, uid=None, home=None
+            )
+        return RobotAccount(
+            admin_is_root=uid_line.strip() == "0",
+            exists=True,
+            uid=int(entry[2]) if entry[2].isdigit() else None,
+            home=entry[5],
+        )
 
     def sudo_asks_password(self) -> bool:
         """False when the admin's sudo needs no password (NOPASSWD)."""
@@ -395,18 +422,27 @@ class AdminSession:
         text = err.decode("utf-8", "replace")
         who = f"{self.admin} on {self.robot}"
         if status == 127 or "not found" in text:
-            raise RemoteError(f"sudo is not installed on {self.robot}",
-                              hint="log in as root: --admin-user root")
+            raise RemoteError(
+                f"sudo is not installed on {self.robot}", hint="log in as root: --admin-user root"
+            )
         if "not in the sudoers" in text or "not allowed" in text or "may not run sudo" in text:
             raise ConnectError(f"{who} may not use sudo", hint="pass --admin-user with an admin")
         if "incorrect password" in text or "Sorry, try again" in text or "no password" in text:
-            raise ConnectError(f"sudo refused the password of {who}",
-                               hint="check FETCHSYNC_ADMIN_PASSWORD or what you typed")
+            raise ConnectError(
+                f"sudo refused the password of {who}",
+                hint="check FETCHSYNC_ADMIN_PASSWORD or what you typed",
+            )
         detail = text.strip().splitlines()[-1] if text.strip() else f"exit {status}"
         raise RemoteError(f"sudo failed for {who}: {detail}")
 
-    def apply(self, request: AccountRequest, *, sudo: bool, sudo_password: str | None,
-              on_stderr: Callable[[bytes], None]) -> AccountReport:
+    def apply(
+        self,
+        request: AccountRequest,
+        *,
+        sudo: bool,
+        sudo_password: str | None,
+        on_stderr: Callable[[bytes], None],
+    ) -> AccountReport:
         """Run the account program as root (through sudo with ``sudo``); stream its
         stderr; return its report."""
         program = _PROGRAM.read_bytes()
@@ -416,15 +452,24 @@ class AdminSession:
             command = "sudo -k -S -p '' " + command
         if sudo and sudo_password is not None:
             head = sudo_password.encode("utf-8") + b"\n" + b"-\n" * _SUDO_PADDING
-        stdin = (head + BEGIN + str(len(program)).encode("ascii") + b"\n" + program
-                 + request.to_json() + b"\n")
+        stdin = (
+            head
+            + BEGIN
+            + str(len(program)).encode("ascii")
+            + b"\n"
+            + program
+            + request.to_json()
+            + b"\n"
+        )
         out, err, status = _run(self.transport.exec(command), stdin, on_stderr=on_stderr)
         del stdin, head
         result = _parse_result(out)
         if result is None:
             detail = err.decode("utf-8", "replace").strip()
-            raise RemoteError(f"the account program on {self.robot} gave no result "
-                              f"(exit {status})" + (f": {detail[-500:]}" if detail else ""))
+            raise RemoteError(
+                f"the account program on {self.robot} gave no result "
+                f"(exit {status})" + (f": {detail[-500:]}" if detail else "")
+            )
         if "traceback" in result:
             log.debug("robot traceback:\n%s", result["traceback"])
         return AccountReport.from_robot(result, robot=self.robot)
@@ -434,7 +479,7 @@ def _parse_result(out: bytes) -> dict[str, Any] | None:
     for line in reversed(out.splitlines()):
         if line.startswith(_RESULT_PREFIX):
             try:
-                data = json.loads(line[len(_RESULT_PREFIX):].decode("utf-8"))
+                data = json.loads(line[len(_RESULT_PREFIX) :].decode("utf-8"))
             except ValueError as exc:
                 raise ProtocolError(f"unreadable result from the account program: {exc}") from exc
             if not isinstance(data, dict):
@@ -443,8 +488,9 @@ def _parse_result(out: bytes) -> dict[str, Any] | None:
     return None
 
 
-def _run(chan: Channel, stdin: bytes, *,
-         on_stderr: Callable[[bytes], None] | None = None) -> tuple[bytes, bytes, int]:
+def _run(
+    chan: Channel, stdin: bytes, *, on_stderr: Callable[[bytes], None] | None = None
+) -> tuple[bytes, bytes, int]:
     """Feed ``stdin``, close it, collect stdout and stderr (streamed to ``on_stderr``)."""
     err_chunks: list[bytes] = []
 

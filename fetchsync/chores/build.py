@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from fetchsync.errors import FetchsyncError
 from fetchsync.chores.remote import ros_environment, script, shell_path
+from fetchsync.errors import FetchsyncError
 
 if TYPE_CHECKING:
     from fetchsync.config import Target
@@ -53,10 +53,19 @@ MARKERS = (
 """Paths, relative to a workspace, whose presence tells how it is built."""
 
 _CATKIN_TOOLS_MARKERS = (".catkin_tools",)
-_COLCON_MARKERS = ("build/COLCON_IGNORE", "install/COLCON_IGNORE", "log/COLCON_IGNORE",
-                   "install/.colcon_install_layout", "colcon.meta")
-_CATKIN_MAKE_MARKERS = (".catkin_workspace", "src/CMakeLists.txt", "build/catkin_make.cache",
-                        "devel/.catkin")
+_COLCON_MARKERS = (
+    "build/COLCON_IGNORE",
+    "install/COLCON_IGNORE",
+    "log/COLCON_IGNORE",
+    "install/.colcon_install_layout",
+    "colcon.meta",
+)
+_CATKIN_MAKE_MARKERS = (
+    ".catkin_workspace",
+    "src/CMakeLists.txt",
+    "build/catkin_make.cache",
+    "devel/.catkin",
+)
 
 ROS1, ROS2 = "ros1", "ros2"
 """Prefixes of the probe's lines naming a distribution under /opt/ros (``ros2:humble``)."""
@@ -135,8 +144,9 @@ def ros2_reason(text: str) -> str | None:
     return None
 
 
-def choose_tool(markers: Collection[str], manifests: Iterable[str] = (),
-                distros: Collection[str] = ()) -> Choice:
+def choose_tool(
+    markers: Collection[str], manifests: Iterable[str] = (), distros: Collection[str] = ()
+) -> Choice:
     """The build tool for a workspace with these ``markers``, package manifests and ROS.
 
     A workspace configured for catkin_tools (``.catkin_tools/``) uses
@@ -150,8 +160,11 @@ def choose_tool(markers: Collection[str], manifests: Iterable[str] = (),
     from :func:`marker_probe`): ROS 2 only means colcon; else catkin_make.
     """
     found = set(markers)
-    for tool, names in ((CATKIN_TOOLS, _CATKIN_TOOLS_MARKERS), (COLCON, _COLCON_MARKERS),
-                        (CATKIN_MAKE, _CATKIN_MAKE_MARKERS)):
+    for tool, names in (
+        (CATKIN_TOOLS, _CATKIN_TOOLS_MARKERS),
+        (COLCON, _COLCON_MARKERS),
+        (CATKIN_MAKE, _CATKIN_MAKE_MARKERS),
+    ):
         hit = next((m for m in names if m in found), None)
         if hit is not None:
             return Choice(tool, f"the workspace has {hit}")
@@ -172,8 +185,9 @@ def choose_tool(markers: Collection[str], manifests: Iterable[str] = (),
     return Choice(CATKIN_MAKE, "nothing tells: catkin_make, as fetch_tools")
 
 
-def detect_tool(markers: Collection[str], manifests: Iterable[str] = (),
-                distros: Collection[str] = ()) -> str:
+def detect_tool(
+    markers: Collection[str], manifests: Iterable[str] = (), distros: Collection[str] = ()
+) -> str:
     """The tool :func:`choose_tool` picks."""
     return choose_tool(markers, manifests, distros).tool
 
@@ -189,11 +203,13 @@ def marker_probe(workspace: str, *, ros_root: str = "/opt/ros") -> str:
     have an ament index)."""
     names = " ".join(shlex.quote(m) for m in MARKERS)
     root = shlex.quote(ros_root)
-    return (f"for d in {root}/*/; do if [ -f \"${{d}}setup.bash\" ]; then "
-            f'n=$(basename "$d"); if [ -d "${{d}}share/ament_index" ]; then '
-            f'printf "{ROS2}:%s\\n" "$n"; else printf "{ROS1}:%s\\n" "$n"; fi; fi; done; '
-            f"cd {shell_path(workspace)} 2>/dev/null || exit 0; for m in {names}; do "
-            'if [ -e "$m" ] || [ -L "$m" ]; then printf "%s\\n" "$m"; fi; done')
+    return (
+        f'for d in {root}/*/; do if [ -f "${{d}}setup.bash" ]; then '
+        f'n=$(basename "$d"); if [ -d "${{d}}share/ament_index" ]; then '
+        f'printf "{ROS2}:%s\\n" "$n"; else printf "{ROS1}:%s\\n" "$n"; fi; fi; done; '
+        f"cd {shell_path(workspace)} 2>/dev/null || exit 0; for m in {names}; do "
+        'if [ -e "$m" ] || [ -L "$m" ]; then printf "%s\\n" "$m"; fi; done'
+    )
 
 
 def split_probe(output: str) -> tuple[set[str], set[str]]:
@@ -234,11 +250,10 @@ def build_command(tool: str, args: str = "", build_type: str = "default") -> str
         return f"{line} {define}"
     # catkin build and colcon take CMake's arguments after --cmake-args; colcon
     # keeps only the last such option, so join an existing one
-    last = None
-    for last in _CMAKE_ARGS.finditer(line):
-        pass
+    matches = list(_CMAKE_ARGS.finditer(line))
+    last = matches[-1] if matches else None
     if last is not None:
-        return f"{line[:last.end()]} {define}{line[last.end():]}"
+        return f"{line[: last.end()]} {define}{line[last.end() :]}"
     return f"{line} --cmake-args {define}"
 
 
@@ -246,9 +261,21 @@ SUDO_PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
 """Where ``--install-deps`` takes the robot user's sudo password from without a terminal."""
 
 # What rosdep needs of the environment and sudo's env_reset drops (none of them secret).
-_ROSDEP_VARS = ("PATH", "PYTHONPATH", "ROS_DISTRO", "ROS_VERSION", "ROS_PYTHON_VERSION",
-                "ROS_PACKAGE_PATH", "ROS_HOME", "ROS_OS_OVERRIDE", "ROSDEP_SOURCE_PATH",
-                "ROSDISTRO_INDEX_URL", "AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH", "APT_CONFIG")
+_ROSDEP_VARS = (
+    "PATH",
+    "PYTHONPATH",
+    "ROS_DISTRO",
+    "ROS_VERSION",
+    "ROS_PYTHON_VERSION",
+    "ROS_PACKAGE_PATH",
+    "ROS_HOME",
+    "ROS_OS_OVERRIDE",
+    "ROSDEP_SOURCE_PATH",
+    "ROSDISTRO_INDEX_URL",
+    "AMENT_PREFIX_PATH",
+    "CMAKE_PREFIX_PATH",
+    "APT_CONFIG",
+)
 
 
 def sudo_line(line: str) -> str:
@@ -260,13 +287,15 @@ def sudo_line(line: str) -> str:
     in a command line or the environment: sudo reads it from the channel.
     """
     names = " ".join(_ROSDEP_VARS)
-    return ('export ROS_HOME="${ROS_HOME:-$HOME/.ros}"\n'
-            "__fetchsync_env=()\n"
-            f"for __fetchsync_var in {names}; do\n"
-            '  if [ -n "${!__fetchsync_var+x}" ]; then '
-            '__fetchsync_env+=("$__fetchsync_var=${!__fetchsync_var}"); fi\n'
-            "done\n"
-            f"exec sudo -S -p '' -- env \"${{__fetchsync_env[@]}}\" {line}")
+    return (
+        'export ROS_HOME="${ROS_HOME:-$HOME/.ros}"\n'
+        "__fetchsync_env=()\n"
+        f"for __fetchsync_var in {names}; do\n"
+        '  if [ -n "${!__fetchsync_var+x}" ]; then '
+        '__fetchsync_env+=("$__fetchsync_var=${!__fetchsync_var}"); fi\n'
+        "done\n"
+        f"exec sudo -S -p '' -- env \"${{__fetchsync_env[@]}}\" {line}"
+    )
 
 
 def deps_commands() -> list[str]:
@@ -274,8 +303,9 @@ def deps_commands() -> list[str]:
     return ["rosdep update", "rosdep install --from-paths src --ignore-src -y"]
 
 
-def plan(request: BuildRequest, *, workspace: str, tool: str,
-         sudo_password: str | None = None) -> list[Step]:
+def plan(
+    request: BuildRequest, *, workspace: str, tool: str, sudo_password: str | None = None
+) -> list[Step]:
     """The steps ``request`` takes in ``workspace`` (``~`` for the home there), built with ``tool``.
 
     With ``sudo_password``, ``rosdep install`` runs as root through ``sudo -S``
@@ -291,21 +321,41 @@ def plan(request: BuildRequest, *, workspace: str, tool: str,
     if request.install_deps:
         env = ros_environment(workspace)
         update, install = deps_commands()
-        steps.append(Step(what=update, script=script(update, environment=env, directory=workspace),
-                          program="rosdep"))
+        steps.append(
+            Step(
+                what=update,
+                script=script(update, environment=env, directory=workspace),
+                program="rosdep",
+            )
+        )
         if sudo_password is None:
-            steps.append(Step(what=install, program="rosdep",
-                              script=script(install, environment=env, directory=workspace)))
+            steps.append(
+                Step(
+                    what=install,
+                    program="rosdep",
+                    script=script(install, environment=env, directory=workspace),
+                )
+            )
         else:
-            steps.append(Step(what=f"sudo {install}", program="rosdep", password=sudo_password,
-                              script=script(sudo_line(install), environment=env,
-                                            directory=workspace)))
+            steps.append(
+                Step(
+                    what=f"sudo {install}",
+                    program="rosdep",
+                    password=sudo_password,
+                    script=script(sudo_line(install), environment=env, directory=workspace),
+                )
+            )
     spaces: tuple[str, ...] = () if tool == COLCON else ("devel",)
     env = ros_environment(workspace, spaces=spaces)
     for args in request.builds:
         line = build_command(tool, args, request.build_type)
-        steps.append(Step(what=line, script=script(line, environment=env, directory=workspace),
-                          program=line.split()[0]))
+        steps.append(
+            Step(
+                what=line,
+                script=script(line, environment=env, directory=workspace),
+                program=line.split()[0],
+            )
+        )
     return steps
 
 
@@ -351,18 +401,23 @@ class TransportRunner:
     stderr: int = 2
 
     def run(self, step: Step) -> int:
-        from fetchsync.console import NO_STATUS, attach
         from fetchsync.chores.remote import wrap
+        from fetchsync.console import NO_STATUS, attach
 
-        channel = self.transport.exec(wrap(step.script, tty=self.pty, python=self.python),
-                                      pty=self.pty)
+        channel = self.transport.exec(
+            wrap(step.script, tty=self.pty, python=self.python), pty=self.pty
+        )
         try:
             if step.password is not None:
                 # sudo -S reads its first line; the command after it sees the end of stdin
                 channel.send_all(step.password.encode("utf-8") + b"\n")
-            status = attach(channel, pty=self.pty,
-                            stdin=0 if self.pty and step.password is None else None,
-                            stdout=self.stdout, stderr=self.stderr)
+            status = attach(
+                channel,
+                pty=self.pty,
+                stdin=0 if self.pty and step.password is None else None,
+                stdout=self.stdout,
+                stderr=self.stderr,
+            )
         finally:
             channel.close()
         return 255 if status == NO_STATUS else status
@@ -384,8 +439,9 @@ class TransportRunner:
         return b"".join(chunks).decode("utf-8", "replace")
 
 
-def execute(steps: Sequence[Step], runner: Runner, *,
-            announce: Callable[[str], None] | None = None) -> None:
+def execute(
+    steps: Sequence[Step], runner: Runner, *, announce: Callable[[str], None] | None = None
+) -> None:
     """Run ``steps`` in order; raise :class:`BuildError` at the first that fails."""
     for step in steps:
         if announce is not None:
@@ -401,26 +457,39 @@ def _failure(step: Step, status: int, where: str) -> BuildError:
         if step.program == "rosdep":
             hint = f"is rosdep installed on {where} (python3-rosdep)?"
         else:
-            hint = (f"is {step.program} installed on {where}, and ROS under /opt/ros? "
-                    "--build-tool chooses another tool")
+            hint = (
+                f"is {step.program} installed on {where}, and ROS under /opt/ros? "
+                "--build-tool chooses another tool"
+            )
     elif step.what.startswith("rosdep update"):
         hint = f"rosdep update downloads the rosdep sources: is {where} online?"
     elif step.program == "rosdep":
-        hint = (f"rosdep installs system packages with sudo on {where}, which needs a "
-                f"terminal to ask for a password, {SUDO_PASSWORD_VAR}, or a sudoers rule")
-    return BuildError(f"{step.what} failed on {where} with exit status {status}",
-                      exit_code=status, hint=hint)
+        hint = (
+            f"rosdep installs system packages with sudo on {where}, which needs a "
+            f"terminal to ask for a password, {SUDO_PASSWORD_VAR}, or a sudoers rule"
+        )
+    return BuildError(
+        f"{step.what} failed on {where} with exit status {status}", exit_code=status, hint=hint
+    )
 
 
 def _announcer(stream: int) -> Callable[[str], None]:
     def announce(text: str) -> None:
         os.write(stream, f"fetchsync: {text}\n".encode())
+
     return announce
 
 
-def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
-                   accept_fingerprint: str | None = None, quiet_stdout: bool = False,
-                   stdout: int | None = None, stderr: int = 2) -> None:
+def build_on_robot(
+    target: Target,
+    request: BuildRequest,
+    *,
+    src: Path,
+    accept_fingerprint: str | None = None,
+    quiet_stdout: bool = False,
+    stdout: int | None = None,
+    stderr: int = 2,
+) -> None:
     """Run ``request`` in the target's remote workspace, as ``push --build`` does.
 
     ``src`` is the local ``src/`` just pushed (the robot's is the same): its
@@ -433,12 +502,23 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
     from fetchsync.link.session import open_transport
 
     out = stdout if stdout is not None else 2 if quiet_stdout else 1
-    pty = (stdout is None and not quiet_stdout and not target.is_local and sys.stdin.isatty()
-           and sys.stdout.isatty())
+    pty = (
+        stdout is None
+        and not quiet_stdout
+        and not target.is_local
+        and sys.stdin.isatty()
+        and sys.stdout.isatty()
+    )
     transport = open_transport(target, accept_fingerprint=accept_fingerprint, persistent=False)
     try:
-        runner = TransportRunner(transport, where=target.robot, pty=pty, stdout=out,
-                                 python=remote_python(), stderr=stderr)
+        runner = TransportRunner(
+            transport,
+            where=target.robot,
+            pty=pty,
+            stdout=out,
+            python=remote_python(),
+            stderr=stderr,
+        )
         tool = request.tool
         announce = _announcer(stderr)
         password = None
@@ -449,8 +529,7 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
             choice = choose_tool(markers, manifests(src), distros)
             announce(f"build tool: {choice.tool} ({choice.reason} on {target.robot})")
             tool = choice.tool
-        steps = plan(request, workspace=target.remote_workspace, tool=tool,
-                     sudo_password=password)
+        steps = plan(request, workspace=target.remote_workspace, tool=tool, sudo_password=password)
         execute(steps, runner, announce=announce)
     finally:
         transport.close()
@@ -459,35 +538,44 @@ def build_on_robot(target: Target, request: BuildRequest, *, src: Path,
 def deps_probe(workspace: str) -> str:
     """A command printing whether rosdep is found in ``workspace``'s ROS environment, the
     user's uid, and whether sudo needs a password (``rosdep=missing``, ``uid=N``, ``sudo=...``)."""
-    body = ("command -v rosdep >/dev/null 2>&1 || echo rosdep=missing\n"
-            'echo "uid=$(id -u)"\n'
-            "if ! command -v sudo >/dev/null 2>&1; then echo sudo=missing\n"
-            "elif sudo -n true </dev/null >/dev/null 2>&1; then echo sudo=nopasswd\n"
-            "else echo sudo=password; fi")
-    lines = script(body, environment=ros_environment(workspace, announce=False),
-                   directory=workspace)
+    body = (
+        "command -v rosdep >/dev/null 2>&1 || echo rosdep=missing\n"
+        'echo "uid=$(id -u)"\n'
+        "if ! command -v sudo >/dev/null 2>&1; then echo sudo=missing\n"
+        "elif sudo -n true </dev/null >/dev/null 2>&1; then echo sudo=nopasswd\n"
+        "else echo sudo=password; fi"
+    )
+    lines = script(
+        body, environment=ros_environment(workspace, announce=False), directory=workspace
+    )
     return f"bash -c {shlex.quote(lines)}"
 
 
 def _rosdep_sudo(runner: TransportRunner, workspace: str, *, pty: bool) -> str | None:
     """The sudo password ``rosdep install`` needs on the robot, None when it needs none or
     can ask on our terminal; a one-line error when rosdep is missing or nothing can answer."""
-    facts = dict(line.split("=", 1) for line in runner.probe(deps_probe(workspace)).split()
-                 if "=" in line)
+    facts = dict(
+        line.split("=", 1) for line in runner.probe(deps_probe(workspace)).split() if "=" in line
+    )
     where = runner.where
     if facts.get("rosdep") == "missing":
-        raise BuildError(f"rosdep is not installed on {where}", exit_code=127,
-                         hint=f"on {where}: sudo apt install python3-rosdep && sudo rosdep init")
+        raise BuildError(
+            f"rosdep is not installed on {where}",
+            exit_code=127,
+            hint=f"on {where}: sudo apt install python3-rosdep && sudo rosdep init",
+        )
     if facts.get("uid") == "0" or facts.get("sudo") != "password" or pty:
         return None  # root; sudo without a password (or none at all); sudo asks on our terminal
     from fetchsync.chores.account import check_password
 
     password = os.environ.get(SUDO_PASSWORD_VAR)
     if not password:
-        raise BuildError(f"rosdep install needs sudo on {where}, which asks for a password, "
-                         "and there is no terminal to type it on", exit_code=2,
-                         hint=f"run it at a terminal, or set {SUDO_PASSWORD_VAR} "
-                              "(sent to sudo on its stdin)")
+        raise BuildError(
+            f"rosdep install needs sudo on {where}, which asks for a password, "
+            "and there is no terminal to type it on",
+            exit_code=2,
+            hint=f"run it at a terminal, or set {SUDO_PASSWORD_VAR} (sent to sudo on its stdin)",
+        )
     return check_password(password, what="sudo password")
 
 

@@ -65,7 +65,7 @@ STYLE_TOOLS = {ROSLINT: ROSLINT_TOOLS, AMENT: AMENT_TOOLS}
 STYLE_NOTES = {
     ROSLINT: "fetch_tools' rules: pep8 at 79 columns, roslint's cpplint, catkin_lint -W2",
     AMENT: "ament_lint_common's rules: ament_cpplint, ament_pep257, and flake8 with "
-           "ament_flake8's settings (ament_flake8 itself needs an older flake8)",
+    "ament_flake8's settings (ament_flake8 itself needs an older flake8)",
 }
 
 # Lines: pep8's default (fetch_tools passed none), roslint's cpplint wrapper,
@@ -87,11 +87,31 @@ PYCODESTYLE_IGNORE = ("E266", "W504")
 CPPLINT_FILTER = "+,-runtime/references,-runtime/threadsafe_fn"
 
 # ament_flake8's configuration (ament_flake8/configuration/ament_flake8.ini)
-AMENT_FLAKE8_IGNORE = ("B902", "C816", "D100", "D101", "D102", "D103", "D104", "D105", "D106",
-                       "D107", "D203", "D212", "D404", "I202")
+AMENT_FLAKE8_IGNORE = (
+    "B902",
+    "C816",
+    "D100",
+    "D101",
+    "D102",
+    "D103",
+    "D104",
+    "D105",
+    "D106",
+    "D107",
+    "D203",
+    "D212",
+    "D404",
+    "I202",
+)
 # ament_cpplint's filters, used when ament_cpplint itself is not installed
-AMENT_CPPLINT_FILTERS = ("-build/c++11", "-runtime/references", "-whitespace/braces",
-                         "-whitespace/indent", "-whitespace/parens", "-whitespace/semicolon")
+AMENT_CPPLINT_FILTERS = (
+    "-build/c++11",
+    "-runtime/references",
+    "-whitespace/braces",
+    "-whitespace/indent",
+    "-whitespace/parens",
+    "-whitespace/semicolon",
+)
 
 # Directories catkin (and colcon) skip: linting them would report packages
 # that are never built.
@@ -101,7 +121,9 @@ _CPPLINT_LINE = re.compile(
     r"^(?P<path>.+?):(?P<line>\d+):  (?P<message>.*)  \[(?P<code>[^\]]+)\] \[\d\]$"
 )
 _PY_SHEBANG = re.compile(rb"^#!.*\bpython[0-9.]*\b")
-_FLAKE8_LINE = re.compile(r"^(?P<path>.+?):(?P<line>\d+):(?P<col>\d+): (?P<code>[A-Z]+\d+) (?P<message>.*)$")
+_FLAKE8_LINE = re.compile(
+    r"^(?P<path>.+?):(?P<line>\d+):(?P<col>\d+): (?P<code>[A-Z]+\d+) (?P<message>.*)$"
+)
 _PEP257_LINE = re.compile(r"^(?P<path>.+?):(?P<line>\d+) .*?: (?P<code>D\d+): (?P<message>.*)$")
 _CPPLINT_CHUNK = 50
 
@@ -154,8 +176,13 @@ class LintReport:
             style = next(iter(self.styles))
             return f"lint: style {style} ({STYLE_NOTES[style]})"
         parts = [f"{style} for {', '.join(names)}" for style, names in self.styles.items()]
-        return "lint: style " + "; ".join(parts) + " (" + "; ".join(
-            f"{style}: {STYLE_NOTES[style]}" for style in self.styles) + ")"
+        return (
+            "lint: style "
+            + "; ".join(parts)
+            + " ("
+            + "; ".join(f"{style}: {STYLE_NOTES[style]}" for style in self.styles)
+            + ")"
+        )
 
     @property
     def total(self) -> int:
@@ -171,8 +198,12 @@ class LintReport:
             tools[name] = {
                 "files": result.checked,
                 "findings": [
-                    {"path": display_path(f.path, base), "line": f.line, "code": f.code,
-                     "message": f.message}
+                    {
+                        "path": display_path(f.path, base),
+                        "line": f.line,
+                        "code": f.code,
+                        "message": f.message,
+                    }
                     for f in sorted(result.findings, key=Finding.sort_key)
                 ],
             }
@@ -218,9 +249,15 @@ def display_path(path: str, base: Path | None) -> str:
 # --------------------------------------------------------------------------- what to lint
 
 
-def lint(target: str, *, workspace: str | os.PathLike[str] | None = None,
-         tools: Iterable[str] | None = None, max_line_length: int | None = None,
-         style: str = AUTO, environ: Mapping[str, str] = os.environ) -> LintReport:
+def lint(
+    target: str,
+    *,
+    workspace: str | os.PathLike[str] | None = None,
+    tools: Iterable[str] | None = None,
+    max_line_length: int | None = None,
+    style: str = AUTO,
+    environ: Mapping[str, str] = os.environ,
+) -> LintReport:
     """Lint a file, a directory or a workspace package with the style of each package.
 
     ``style`` ``auto`` picks per package (:func:`package_style`); ``tools``
@@ -247,28 +284,35 @@ def lint(target: str, *, workspace: str | os.PathLike[str] | None = None,
             results[tool] = _run_tool(tool, part, max_line_length)
     if not results:
         # nothing of the chosen tools' style was found: say so per tool
-        for tool in [t for t in TOOLS if t in wanted and t in STYLE_TOOLS[
-                AMENT if style == AMENT else ROSLINT]]:
+        for tool in [
+            t
+            for t in TOOLS
+            if t in wanted and t in STYLE_TOOLS[AMENT if style == AMENT else ROSLINT]
+        ]:
             results[tool] = ToolResult()
     return LintReport(results, styles)
 
 
 def _run_tool(tool: str, part: Targets, max_line_length: int | None) -> ToolResult:
     if tool == PYCODESTYLE:
-        return run_pycodestyle(part.python_files,
-                               max_line_length=max_line_length or PEP8_MAX_LINE_LENGTH)
+        return run_pycodestyle(
+            part.python_files, max_line_length=max_line_length or PEP8_MAX_LINE_LENGTH
+        )
     if tool == CPPLINT:
-        return run_cpplint(part.cpp_files,
-                           max_line_length=max_line_length or ROSLINT_CPP_MAX_LINE_LENGTH)
+        return run_cpplint(
+            part.cpp_files, max_line_length=max_line_length or ROSLINT_CPP_MAX_LINE_LENGTH
+        )
     if tool == CATKIN_LINT:
         return run_catkin_lint(part.packages, search_path=part.search_path)
     if tool == FLAKE8:
-        return run_flake8(part.python_files,
-                          max_line_length=max_line_length or AMENT_FLAKE8_MAX_LINE_LENGTH)
+        return run_flake8(
+            part.python_files, max_line_length=max_line_length or AMENT_FLAKE8_MAX_LINE_LENGTH
+        )
     if tool == AMENT_PEP257:
         return run_pep257(part.python_files)
-    return run_ament_cpplint(part.cpp_files,
-                             max_line_length=max_line_length or AMENT_CPPLINT_MAX_LINE_LENGTH)
+    return run_ament_cpplint(
+        part.cpp_files, max_line_length=max_line_length or AMENT_CPPLINT_MAX_LINE_LENGTH
+    )
 
 
 def package_style(manifest_text: str) -> str:
@@ -319,8 +363,12 @@ def split_by_style(found: Targets, style: str) -> dict[str, Targets]:
     return dict(sorted(parts.items(), key=lambda kv: list(STYLE_TOOLS).index(kv[0])))
 
 
-def resolve_targets(target: str, *, workspace: str | os.PathLike[str] | None = None,
-                    environ: Mapping[str, str] = os.environ) -> Targets:
+def resolve_targets(
+    target: str,
+    *,
+    workspace: str | os.PathLike[str] | None = None,
+    environ: Mapping[str, str] = os.environ,
+) -> Targets:
     """What ``target`` (a file, a directory or a package name) asks to lint."""
     path = Path(target)
     found = Targets()
@@ -335,8 +383,10 @@ def resolve_targets(target: str, *, workspace: str | os.PathLike[str] | None = N
         elif kind == CPPLINT:
             found.cpp_files.append(path)
         else:
-            raise UsageError(f"cannot lint {target}: not a Python or C/C++ file, nor a package.xml "
-                             "or CMakeLists.txt of a package")
+            raise UsageError(
+                f"cannot lint {target}: not a Python or C/C++ file, nor a package.xml "
+                "or CMakeLists.txt of a package"
+            )
     elif path.is_dir():
         path = path.resolve()
         _collect(path, found)
@@ -465,32 +515,40 @@ def workspace_packages(src: Path) -> dict[str, list[Path]]:
 def find_package(name: str, src: Path) -> Path:
     """The directory of the package called ``name`` under ``src``; UsageError if none or several."""
     if not src.is_dir():
-        raise UsageError(f"cannot lint {name}: no such file or directory, and no workspace "
-                         f"sources at {src} to find a package by that name",
-                         hint="pass --workspace DIR")
+        raise UsageError(
+            f"cannot lint {name}: no such file or directory, and no workspace "
+            f"sources at {src} to find a package by that name",
+            hint="pass --workspace DIR",
+        )
     packages = workspace_packages(src)
     dirs = packages.get(name)
     if not dirs:
         close = difflib.get_close_matches(name, sorted(packages), n=5, cutoff=0.6)
         hint = f"did you mean {', '.join(close)}?" if close else None
-        raise UsageError(f"cannot lint {name}: no such file or directory, nor a package "
-                         f"of that name in {src}", hint=hint)
+        raise UsageError(
+            f"cannot lint {name}: no such file or directory, nor a package of that name in {src}",
+            hint=hint,
+        )
     if len(dirs) > 1:
         raise UsageError(f"package {name} is defined twice: {', '.join(sorted(map(str, dirs)))}")
     return dirs[0]
 
 
-def _workspace_src(target: str, workspace: str | os.PathLike[str] | None,
-                   environ: Mapping[str, str]) -> Path:
+def _workspace_src(
+    target: str, workspace: str | os.PathLike[str] | None, environ: Mapping[str, str]
+) -> Path:
     try:
         return resolve_workspace(workspace, environ=environ) / "src"
     except ConfigError as exc:
-        raise ConfigError(f"{target} is not a file or directory, so it names a package, "
-                          f"but {exc.message}", hint=exc.hint) from exc
+        raise ConfigError(
+            f"{target} is not a file or directory, so it names a package, but {exc.message}",
+            hint=exc.hint,
+        ) from exc
 
 
-def _search_path(path: Path, workspace: str | os.PathLike[str] | None,
-                 environ: Mapping[str, str]) -> list[Path]:
+def _search_path(
+    path: Path, workspace: str | os.PathLike[str] | None, environ: Mapping[str, str]
+) -> list[Path]:
     """Where catkin_lint finds the other packages: the enclosing ``src/`` and the workspace's."""
     found: list[Path] = []
     enclosing = enclosing_src(path)
@@ -528,14 +586,22 @@ def _run(args: Sequence[str]) -> subprocess.CompletedProcess[str]:
     env["PYTHONIOENCODING"] = "utf-8:surrogateescape"
     log.debug("running %s", " ".join(args[:6]))
     try:
-        return subprocess.run(list(args), stdin=subprocess.DEVNULL, capture_output=True,
-                              env=env, encoding="utf-8", errors="surrogateescape", check=False)
+        return subprocess.run(
+            list(args),
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            env=env,
+            encoding="utf-8",
+            errors="surrogateescape",
+            check=False,
+        )
     except OSError as exc:
         raise ConfigError(f"cannot run {args[0]}: {exc}") from exc
 
 
-def run_pycodestyle(files: Sequence[Path], *,
-                    max_line_length: int = PEP8_MAX_LINE_LENGTH) -> ToolResult:
+def run_pycodestyle(
+    files: Sequence[Path], *, max_line_length: int = PEP8_MAX_LINE_LENGTH
+) -> ToolResult:
     """pycodestyle on ``files`` as fetch_tools ran pep8 (see :data:`PYCODESTYLE_IGNORE`)."""
     result = ToolResult(checked=len(files))
     if not files:
@@ -549,69 +615,104 @@ def run_pycodestyle(files: Sequence[Path], *,
         def error(self, line_number: int, offset: int, text: str, check: Any) -> str | None:
             code: str | None = super().error(line_number, offset, text, check)
             if code:
-                findings.append(Finding(self.filename, line_number, PYCODESTYLE, code,
-                                        text[5:].strip()))
+                findings.append(
+                    Finding(self.filename, line_number, PYCODESTYLE, code, text[5:].strip())
+                )
             return code
 
-    guide = pycodestyle.StyleGuide(max_line_length=max_line_length,
-                                   ignore=list(PYCODESTYLE_IGNORE), reporter=_Collect, quiet=True)
+    guide = pycodestyle.StyleGuide(
+        max_line_length=max_line_length,
+        ignore=list(PYCODESTYLE_IGNORE),
+        reporter=_Collect,
+        quiet=True,
+    )
     for path in files:
         guide.input_file(str(path))
     return result
 
 
-def _in_chunks(base: Sequence[str], files: Sequence[Path]) -> list[subprocess.CompletedProcess[str]]:
+def _in_chunks(
+    base: Sequence[str], files: Sequence[Path]
+) -> list[subprocess.CompletedProcess[str]]:
     """``base + chunk`` for chunks of ``files``, a few at a time."""
-    chunks = [files[i:i + _CPPLINT_CHUNK] for i in range(0, len(files), _CPPLINT_CHUNK)]
+    chunks = [files[i : i + _CPPLINT_CHUNK] for i in range(0, len(files), _CPPLINT_CHUNK)]
     workers = max(1, min(len(chunks), os.cpu_count() or 1, 8))
     with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(lambda chunk: _run([*base, *(str(p) for p in chunk)]), chunks))
 
 
-def run_cpplint(files: Sequence[Path], *,
-                max_line_length: int = ROSLINT_CPP_MAX_LINE_LENGTH) -> ToolResult:
+def run_cpplint(
+    files: Sequence[Path], *, max_line_length: int = ROSLINT_CPP_MAX_LINE_LENGTH
+) -> ToolResult:
     """roslint's cpplint (:mod:`fetchsync.chores.roslint_cpplint`) with fetch_tools' filter."""
     result = ToolResult(checked=len(files))
     if not files:
         return result
     _require("cpplint", "cpplint")
-    base = [sys.executable, "-m", "fetchsync.chores.roslint_cpplint", "--output=emacs", "--quiet",
-            f"--linelength={max_line_length}", f"--filter={CPPLINT_FILTER}"]
+    base = [
+        sys.executable,
+        "-m",
+        "fetchsync.chores.roslint_cpplint",
+        "--output=emacs",
+        "--quiet",
+        f"--linelength={max_line_length}",
+        f"--filter={CPPLINT_FILTER}",
+    ]
     for proc in _in_chunks(base, files):
         result.findings.extend(parse_cpplint(proc.stderr, tool=CPPLINT))
     return result
 
 
-def run_ament_cpplint(files: Sequence[Path], *,
-                      max_line_length: int = AMENT_CPPLINT_MAX_LINE_LENGTH) -> ToolResult:
+def run_ament_cpplint(
+    files: Sequence[Path], *, max_line_length: int = AMENT_CPPLINT_MAX_LINE_LENGTH
+) -> ToolResult:
     """ament_cpplint on ``files``; cpplint with its filters where it is not installed."""
     result = ToolResult(checked=len(files))
     if not files:
         return result
     if importlib.util.find_spec("ament_cpplint") is not None:
-        base = [sys.executable, "-m", "ament_cpplint.main", "--output=emacs",
-                f"--linelength={max_line_length}"]
+        base = [
+            sys.executable,
+            "-m",
+            "ament_cpplint.main",
+            "--output=emacs",
+            f"--linelength={max_line_length}",
+        ]
     else:
         _require("cpplint", "cpplint")
         log.info("ament_cpplint is not installed: cpplint with its filters")
-        base = [sys.executable, "-m", "cpplint", "--output=emacs", "--quiet",
-                f"--linelength={max_line_length}", "--filter=" + ",".join(AMENT_CPPLINT_FILTERS)]
+        base = [
+            sys.executable,
+            "-m",
+            "cpplint",
+            "--output=emacs",
+            "--quiet",
+            f"--linelength={max_line_length}",
+            "--filter=" + ",".join(AMENT_CPPLINT_FILTERS),
+        ]
     for proc in _in_chunks(base, files):
         result.findings.extend(parse_cpplint(proc.stderr, tool=AMENT_CPPLINT))
     return result
 
 
-def run_flake8(files: Sequence[Path], *,
-               max_line_length: int = AMENT_FLAKE8_MAX_LINE_LENGTH) -> ToolResult:
+def run_flake8(
+    files: Sequence[Path], *, max_line_length: int = AMENT_FLAKE8_MAX_LINE_LENGTH
+) -> ToolResult:
     """flake8 with ament_flake8's settings; its plugins (docstrings, import order, quotes)
     check too where installed."""
     result = ToolResult(checked=len(files))
     if not files:
         return result
     _require("flake8", "flake8")
-    base = [sys.executable, "-m", "flake8", "--isolated", f"--max-line-length={max_line_length}",
-            "--extend-ignore=" + ",".join(AMENT_FLAKE8_IGNORE),
-            "--format=%(path)s:%(row)d:%(col)d: %(code)s %(text)s"]
+    base = [
+        sys.executable,
+        "-m",
+        "flake8",
+        "--isolated",
+        f"--max-line-length={max_line_length}",
+        "--extend-ignore=" + ",".join(AMENT_FLAKE8_IGNORE),
+        "--format=%(path)s:%(row)d:%(col)d: %(code)s %(text)s",
+    ]
     for proc in _in_chunks(base, files):
         for line in proc.stdout.splitlines():
             m = _FLAKE8_LINE.match(line)
@@ -619,11 +720,20 @@ def run_flake8(files: Sequence[Path], *,
                 if line.strip():
                     log.debug("flake8: %s", line)
                 continue
-            result.findings.append(Finding(m.group("path"), int(m.group("line")), FLAKE8,
-                                           m.group("code"), m.group("message")))
+            result.findings.append(
+                Finding(
+                    m.group("path"),
+                    int(m.group("line")),
+                    FLAKE8,
+                    m.group("code"),
+                    m.group("message"),
+                )
+            )
         if proc.returncode not in (0, 1):
-            why = next((ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()),
-                       f"exit status {proc.returncode}")
+            why = next(
+                (ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()),
+                f"exit status {proc.returncode}",
+            )
             result.findings.append(Finding(str(files[0]), None, FLAKE8, "failed", why.strip()))
     return result
 
@@ -641,8 +751,15 @@ def run_pep257(files: Sequence[Path]) -> ToolResult:
                 if line.strip():
                     log.debug("ament_pep257: %s", line)
                 continue
-            result.findings.append(Finding(m.group("path"), int(m.group("line")), AMENT_PEP257,
-                                           m.group("code"), m.group("message")))
+            result.findings.append(
+                Finding(
+                    m.group("path"),
+                    int(m.group("line")),
+                    AMENT_PEP257,
+                    m.group("code"),
+                    m.group("message"),
+                )
+            )
     return result
 
 
@@ -655,13 +772,21 @@ def parse_cpplint(output: str, *, tool: str = CPPLINT) -> list[Finding]:
             if line.strip():
                 log.debug("%s: %s", tool, line)
             continue
-        out.append(Finding(m.group("path"), int(m.group("line")) or None, tool,
-                           m.group("code"), m.group("message")))
+        out.append(
+            Finding(
+                m.group("path"),
+                int(m.group("line")) or None,
+                tool,
+                m.group("code"),
+                m.group("message"),
+            )
+        )
     return out
 
 
-def run_catkin_lint(packages: Mapping[Path, str], *,
-                    search_path: Sequence[Path] = ()) -> ToolResult:
+def run_catkin_lint(
+    packages: Mapping[Path, str], *, search_path: Sequence[Path] = ()
+) -> ToolResult:
     """catkin_lint on ``packages`` (offline), finding the others in ``search_path``."""
     result = ToolResult(checked=len(packages))
     if not packages:
@@ -677,8 +802,10 @@ def run_catkin_lint(packages: Mapping[Path, str], *,
     report = _last_json(proc.stdout)
     first = str(min(packages))
     if report is None:
-        why = next((ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()),
-                   f"exit status {proc.returncode}")
+        why = next(
+            (ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()),
+            f"exit status {proc.returncode}",
+        )
         result.findings.append(Finding(first, None, CATKIN_LINT, "failed", why.strip()))
         return result
     dirs = {name: path for path, name in packages.items()}
@@ -690,8 +817,15 @@ def run_catkin_lint(packages: Mapping[Path, str], *,
             if location.get("file"):
                 where = os.path.join(where, location["file"])
             line = location.get("line")
-            result.findings.append(Finding(where, int(line) if line else None, CATKIN_LINT,
-                                           str(entry.get("id", "")), str(entry.get("text", ""))))
+            result.findings.append(
+                Finding(
+                    where,
+                    int(line) if line else None,
+                    CATKIN_LINT,
+                    str(entry.get("id", "")),
+                    str(entry.get("text", "")),
+                )
+            )
     return result
 
 

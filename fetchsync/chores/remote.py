@@ -50,8 +50,13 @@ def command_line(argv: Sequence[str]) -> str:
     return shlex.join(argv)
 
 
-def ros_environment(workspace: str | None, *, spaces: Sequence[str] = RUN_SPACES,
-                    ros_root: str = ROS_ROOT, announce: bool | None = None) -> str:
+def ros_environment(
+    workspace: str | None,
+    *,
+    spaces: Sequence[str] = RUN_SPACES,
+    ros_root: str = ROS_ROOT,
+    announce: bool | None = None,
+) -> str:
     """bash lines that source the ROS environment a command in ``workspace`` should see.
 
     See :mod:`fetchsync.chores.ros_setup` for which file; ``announce`` (default: when
@@ -77,7 +82,9 @@ def script(command: str, *, environment: str, directory: str | None = None) -> s
 @functools.cache
 def reaper_source() -> str:
     """The source of :mod:`fetchsync.robot.reaper`, as sent to the robot."""
-    return (Path(__file__).resolve().parent.parent / "robot" / "reaper.py").read_text(encoding="utf-8")
+    return (Path(__file__).resolve().parent.parent / "robot" / "reaper.py").read_text(
+        encoding="utf-8"
+    )
 
 
 def wrap(bash_script: str, *, tty: bool, python: str = "python3") -> str:
@@ -88,5 +95,7 @@ def wrap(bash_script: str, *, tty: bool, python: str = "python3") -> str:
     """
     bash = ["bash", "-c", bash_script]
     reaped = [python, "-c", reaper_source(), "tty" if tty else "pipe", *bash]
-    return (f"if command -v {shlex.quote(python)} >/dev/null 2>&1; "
-            f"then exec {shlex.join(reaped)}; else exec {shlex.join(bash)}; fi")
+    return (
+        f"if command -v {shlex.quote(python)} >/dev/null 2>&1; "
+        f"then exec {shlex.join(reaped)}; else exec {shlex.join(bash)}; fi"
+    )

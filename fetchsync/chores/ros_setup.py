@@ -39,8 +39,13 @@ def _quote_path(path: str) -> str:
     return shlex.quote(path)
 
 
-def environment(workspace: str | None, *, spaces: Sequence[str], ros_root: str = ROS_ROOT,
-                announce: bool = False) -> str:
+def environment(
+    workspace: str | None,
+    *,
+    spaces: Sequence[str],
+    ros_root: str = ROS_ROOT,
+    announce: bool = False,
+) -> str:
     """bash lines that source the ROS environment for a command in ``workspace``.
 
     See the module's docstring for the order. The helper variables
@@ -52,8 +57,10 @@ def environment(workspace: str | None, *, spaces: Sequence[str], ros_root: str =
         ws = workspace.rstrip("/") or "/"
         for space in spaces:
             setup = _quote_path(f"{ws}/{space}/setup.bash")
-            lines.append(f'if [ -z "$__fetchsync_setup" ] && [ -f {setup} ]; then '
-                         f"__fetchsync_setup={setup}; fi")
+            lines.append(
+                f'if [ -z "$__fetchsync_setup" ] && [ -f {setup} ]; then '
+                f"__fetchsync_setup={setup}; fi"
+            )
     lines += [
         'if [ -z "$__fetchsync_setup" ] && [ -n "${ROS_DISTRO:-}" ] && '
         f'[ -f {root}/"$ROS_DISTRO"/setup.bash ]; then',
@@ -66,17 +73,18 @@ def environment(workspace: str | None, *, spaces: Sequence[str], ros_root: str =
         '      __fetchsync_all="$__fetchsync_all $(basename "$__fetchsync_dir")"',
         "    fi",
         "  done",
-        '  set -- $__fetchsync_all',
+        "  set -- $__fetchsync_all",
         '  if [ "$#" -eq 1 ]; then',
         f'    __fetchsync_setup={root}/"$1"/setup.bash',
         '  elif [ "$#" -gt 1 ]; then',
     ]
     if workspace is not None:
         ws = workspace.rstrip("/") or "/"
-        built = " ".join(_quote_path(f"{ws}/{p}")
-                         for p in ("install/setup.bash", "devel/_setup_util.py"))
+        built = " ".join(
+            _quote_path(f"{ws}/{p}") for p in ("install/setup.bash", "devel/_setup_util.py")
+        )
         lines += [
-            "    for __fetchsync_dir in \"$@\"; do",
+            '    for __fetchsync_dir in "$@"; do',
             f"      if grep -qsE {root}/\"$__fetchsync_dir\"'([^A-Za-z0-9_.-]|$)' {built}; then",
             f'        __fetchsync_setup={root}/"$__fetchsync_dir"/setup.bash',
             "      fi",
@@ -101,7 +109,10 @@ def environment(workspace: str | None, *, spaces: Sequence[str], ros_root: str =
         '  . "$__fetchsync_setup"',
     ]
     if announce:
-        lines += ["else", f'  echo "fetchsync: no ROS setup file to source (none under {ros_root})" >&2']
+        lines += [
+            "else",
+            f'  echo "fetchsync: no ROS setup file to source (none under {ros_root})" >&2',
+        ]
     lines += [
         "fi",
         "unset __fetchsync_setup __fetchsync_all __fetchsync_dir",

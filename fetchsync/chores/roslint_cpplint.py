@@ -42,8 +42,9 @@ def _patch(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
-def _suppressing(error: Error, categories: Iterable[str] = (),
-                 messages: Iterable[str] = ()) -> Error:
+def _suppressing(
+    error: Error, categories: Iterable[str] = (), messages: Iterable[str] = ()
+) -> Error:
     """``error`` without these categories and without messages matching these patterns."""
     categories, messages = list(categories), list(messages)
 
@@ -51,6 +52,7 @@ def _suppressing(error: Error, categories: Iterable[str] = (),
         if category in categories or any(re.match(m, message) for m in messages):
             return
         error(filename, linenum, category, confidence, message)
+
     return report
 
 
@@ -61,8 +63,11 @@ def GetHeaderGuardCPPVariable(filename: str) -> str:  # noqa: N802 (cpplint's na
     while head:
         head, tail = os.path.split(head)
         parts.insert(0, tail)
-        if head.endswith("include") or os.path.exists(os.path.join(head, "package.xml")) \
-                or tail == "":
+        if (
+            head.endswith("include")
+            or os.path.exists(os.path.join(head, "package.xml"))
+            or tail == ""
+        ):
             break
     return re.sub(r"[-./\s]", "_", "_".join(parts)).upper()
 
@@ -75,37 +80,83 @@ def CheckBraces(filename: str, clean_lines: Any, linenum: int, error: Error) -> 
     m = re.match(r"^(.*){(.*)$", line)
     if m and not cpplint.IsBlankLine(m.group(1)):
         if not ("=" in line and re.match(r"\)( *){$", line)):
-            error(filename, linenum, "whitespace/braces", 4,
-                  "when starting a new scope, { should be on a line by itself")
+            error(
+                filename,
+                linenum,
+                "whitespace/braces",
+                4,
+                "when starting a new scope, { should be on a line by itself",
+            )
     m = re.match(r"^(.*)}(.*)$", line)
     if m and (not cpplint.IsBlankLine(m.group(1)) or not cpplint.IsBlankLine(m.group(2))):
         if m.group(2) != ";":
             error(filename, linenum, "whitespace/braces", 4, "} should be on a line by itself")
 
 
-def CheckIncludeLine(filename: str, clean_lines: Any, linenum: int, include_state: Any,  # noqa: N802
-                     error: Error) -> None:
-    _original["CheckIncludeLine"](filename, clean_lines, linenum, include_state, _suppressing(
-        error, ["build/include_order", "build/include_alpha", "readability/streams"]))
+def CheckIncludeLine(
+    filename: str,
+    clean_lines: Any,
+    linenum: int,
+    include_state: Any,  # noqa: N802
+    error: Error,
+) -> None:
+    _original["CheckIncludeLine"](
+        filename,
+        clean_lines,
+        linenum,
+        include_state,
+        _suppressing(error, ["build/include_order", "build/include_alpha", "readability/streams"]),
+    )
 
 
-def CheckSpacing(filename: str, clean_lines: Any, linenum: int, nesting_state: Any,  # noqa: N802
-                 error: Error) -> None:
-    _original["CheckSpacing"](filename, clean_lines, linenum, nesting_state,
-                              _suppressing(error, ["readability/braces", "whitespace/braces"]))
+def CheckSpacing(
+    filename: str,
+    clean_lines: Any,
+    linenum: int,
+    nesting_state: Any,  # noqa: N802
+    error: Error,
+) -> None:
+    _original["CheckSpacing"](
+        filename,
+        clean_lines,
+        linenum,
+        nesting_state,
+        _suppressing(error, ["readability/braces", "whitespace/braces"]),
+    )
 
 
-def ProcessLine(filename: str, file_extension: str, clean_lines: Any, line: int,  # noqa: N802
-                include_state: Any, function_state: Any, nesting_state: Any, error: Error,
-                extra_check_functions: Any = None, cppvar: Any = None) -> None:
-    _original["ProcessLine"](filename, file_extension, clean_lines, line, include_state,
-                             function_state, nesting_state,
-                             _suppressing(error, (), [r"(.*)should be indented \+1 space inside(.*)"]),
-                             [], cppvar)
+def ProcessLine(
+    filename: str,
+    file_extension: str,
+    clean_lines: Any,
+    line: int,  # noqa: N802
+    include_state: Any,
+    function_state: Any,
+    nesting_state: Any,
+    error: Error,
+    extra_check_functions: Any = None,
+    cppvar: Any = None,
+) -> None:
+    _original["ProcessLine"](
+        filename,
+        file_extension,
+        clean_lines,
+        line,
+        include_state,
+        function_state,
+        nesting_state,
+        _suppressing(error, (), [r"(.*)should be indented \+1 space inside(.*)"]),
+        [],
+        cppvar,
+    )
 
 
-def CheckEmptyBlockBody(filename: str, clean_lines: Any, linenum: int,  # noqa: N802
-                        error: Error) -> None:
+def CheckEmptyBlockBody(
+    filename: str,
+    clean_lines: Any,
+    linenum: int,  # noqa: N802
+    error: Error,
+) -> None:
     """Empty loop and conditional bodies, but a ROS-style ``} while (x);`` is fine."""
     line = clean_lines.elided[linenum]
     matched = re.match(r"\s*(for|while|if)\s*\(", line)
@@ -114,22 +165,39 @@ def CheckEmptyBlockBody(filename: str, clean_lines: Any, linenum: int,  # noqa: 
     end_line, end_linenum, end_pos = cpplint.CloseExpression(clean_lines, linenum, line.find("("))
     if end_pos >= 0 and re.match(r";", end_line[end_pos:]):
         if matched.group(1) == "if":
-            error(filename, end_linenum, "whitespace/empty_conditional_body", 5,
-                  "Empty conditional bodies should use {}")
-        elif matched.group(1) == "while" and linenum != 0 \
-                and "}" in clean_lines.elided[linenum - 1]:
+            error(
+                filename,
+                end_linenum,
+                "whitespace/empty_conditional_body",
+                5,
+                "Empty conditional bodies should use {}",
+            )
+        elif (
+            matched.group(1) == "while" and linenum != 0 and "}" in clean_lines.elided[linenum - 1]
+        ):
             return
         else:
-            error(filename, end_linenum, "whitespace/empty_loop_body", 5,
-                  "Empty loop bodies should use {} or continue")
+            error(
+                filename,
+                end_linenum,
+                "whitespace/empty_loop_body",
+                5,
+                "Empty loop bodies should use {} or continue",
+            )
 
 
 def install() -> None:
     """Apply roslint's patches to the imported cpplint (once)."""
     if _original:
         return
-    for func in (GetHeaderGuardCPPVariable, CheckBraces, CheckIncludeLine, CheckSpacing,
-                 ProcessLine, CheckEmptyBlockBody):
+    for func in (
+        GetHeaderGuardCPPVariable,
+        CheckBraces,
+        CheckIncludeLine,
+        CheckSpacing,
+        ProcessLine,
+        CheckEmptyBlockBody,
+    ):
         _patch(func)
     cpplint._line_length = 120  # type: ignore[attr-defined]
 

@@ -230,16 +230,17 @@ _ZSH_FETCH_COMPLETION = "compdef _fetchsync_completion fetch\n"
 # click's scripts use `complete -o nosort` and `compopt` (bash 4.4), and
 # `compdef`, which exists only after compinit: elsewhere, skip quietly rather
 # than print an error at every shell start-up.
-_BASH_GUARD = ('if (( BASH_VERSINFO[0] * 100 + BASH_VERSINFO[1] >= 404 )); then\n',
-               'fi\n')
-_ZSH_GUARD = ('if (( ${+functions[compdef]} )); then\n', 'fi\n')
+_BASH_GUARD = ("if (( BASH_VERSINFO[0] * 100 + BASH_VERSINFO[1] >= 404 )); then\n", "fi\n")
+_ZSH_GUARD = ("if (( ${+functions[compdef]} )); then\n", "fi\n")
 
 
 def check_shell(shell: str | None) -> str:
     """The shell name if fetchsync can initialise it, else a :class:`UsageError`."""
     if shell is None:
-        raise UsageError("name the shell to initialise: bash or zsh",
-                         hint='e.g. eval "$(fetchsync shell-init bash)" in ~/.bashrc')
+        raise UsageError(
+            "name the shell to initialise: bash or zsh",
+            hint='e.g. eval "$(fetchsync shell-init bash)" in ~/.bashrc',
+        )
     if shell not in SHELLS:
         raise UsageError(f"unsupported shell {shell!r}; choose bash or zsh")
     return shell
@@ -248,8 +249,10 @@ def check_shell(shell: str | None) -> str:
 def check_prefix(prefix: str, *, option: str) -> str:
     """The robot name prefix if it can start a host name, else a :class:`UsageError`."""
     if not _PREFIX_RE.fullmatch(prefix):
-        raise UsageError(f"{option} {prefix!r} is not a host name prefix "
-                         "(ASCII letters, digits, '.', '_', '-'; starting with a letter or digit)")
+        raise UsageError(
+            f"{option} {prefix!r} is not a host name prefix "
+            "(ASCII letters, digits, '.', '_', '-'; starting with a letter or digit)"
+        )
     return prefix
 
 
@@ -260,8 +263,9 @@ def helpers(*, prefix: str = DEFAULT_PREFIX, prefix_r: str = DEFAULT_PREFIX_R) -
     return _HELPERS.replace("@PREFIX_R@", prefix_r).replace("@PREFIX@", prefix)
 
 
-def completion(shell: str, command: click.Command, *, prog_name: str = PROG_NAME,
-               fetch: bool = True) -> str:
+def completion(
+    shell: str, command: click.Command, *, prog_name: str = PROG_NAME, fetch: bool = True
+) -> str:
     """click's completion script for ``command`` in ``shell`` (and for ``fetch`` with
     ``fetch``), guarded to where it works."""
     check_shell(shell)
@@ -274,14 +278,23 @@ def completion(shell: str, command: click.Command, *, prog_name: str = PROG_NAME
     script = comp.source_template % comp.source_vars()
     opening, closing = _BASH_GUARD if shell == "bash" else _ZSH_GUARD
     if fetch and prog_name == PROG_NAME:
-        script = script.rstrip("\n") + "\n" + (
-            _BASH_FETCH_COMPLETION if shell == "bash" else _ZSH_FETCH_COMPLETION)
+        script = (
+            script.rstrip("\n")
+            + "\n"
+            + (_BASH_FETCH_COMPLETION if shell == "bash" else _ZSH_FETCH_COMPLETION)
+        )
     return opening + script.rstrip("\n") + "\n" + closing
 
 
-def init_script(shell: str | None, command: click.Command, *, prefix: str = DEFAULT_PREFIX,
-                prefix_r: str = DEFAULT_PREFIX_R, prog_name: str = PROG_NAME,
-                fetch: bool = True) -> str:
+def init_script(
+    shell: str | None,
+    command: click.Command,
+    *,
+    prefix: str = DEFAULT_PREFIX,
+    prefix_r: str = DEFAULT_PREFIX_R,
+    prog_name: str = PROG_NAME,
+    fetch: bool = True,
+) -> str:
     """Everything ``fetchsync shell-init SHELL`` prints: the helpers, ``fetch``, completion."""
     name = check_shell(shell)
     code = helpers(prefix=prefix, prefix_r=prefix_r)
@@ -292,8 +305,10 @@ def init_script(shell: str | None, command: click.Command, *, prefix: str = DEFA
 
 # --- --robot completion ---------------------------------------------------------------------
 
-def complete_robot(ctx: click.Context | None, param: click.Parameter | None,
-                   incomplete: str) -> list[CompletionItem]:
+
+def complete_robot(
+    ctx: click.Context | None, param: click.Parameter | None, incomplete: str
+) -> list[CompletionItem]:
     """``--robot`` candidates: ssh config hosts, known_hosts names, then fetch_tools' numbers.
 
     Read at each completion (a Tab), never cached: a host added to the ssh
@@ -303,8 +318,9 @@ def complete_robot(ctx: click.Context | None, param: click.Parameter | None,
     return [CompletionItem(name) for name in robot_names(incomplete)]
 
 
-def robot_names(incomplete: str, *, home: Path | None = None,
-                global_known_hosts: str = GLOBAL_KNOWN_HOSTS) -> list[str]:
+def robot_names(
+    incomplete: str, *, home: Path | None = None, global_known_hosts: str = GLOBAL_KNOWN_HOSTS
+) -> list[str]:
     """The names :func:`complete_robot` offers for ``incomplete``, in order, once each."""
     base = home if home is not None else Path(os.path.expanduser("~"))
     ssh_dir = base / ".ssh"
@@ -363,8 +379,7 @@ def known_host_names(path: Path) -> Iterator[str]:
 
 
 def _is_host_name(name: str) -> bool:
-    return bool(name) and not name.startswith("-") and all(
-        c.isalnum() or c in "._-:" for c in name)
+    return bool(name) and not name.startswith("-") and all(c.isalnum() or c in "._-:" for c in name)
 
 
 def _lines(path: Path) -> Iterable[str]:
@@ -373,5 +388,8 @@ def _lines(path: Path) -> Iterable[str]:
             text = f.read(1 << 20)
     except OSError:
         return []
-    return [line.strip() for line in text.splitlines()
-            if line.strip() and not line.lstrip().startswith("#")]
+    return [
+        line.strip()
+        for line in text.splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]

@@ -120,8 +120,11 @@ class Collector:
 
     def validate(self) -> None:
         """Raise ConfigError when a field is out of range."""
-        if (not _NAME.match(self.name) or self.name in (BAG_NAME, "manifest")
-                or self.name.endswith(".stderr")):
+        if (
+            not _NAME.match(self.name)
+            or self.name in (BAG_NAME, "manifest")
+            or self.name.endswith(".stderr")
+        ):
             raise ConfigError(
                 f"invalid collector name {self.name!r}: letters, digits, '_', '.', '-' "
                 "(at most 64), starting with a letter or digit; not ending in .stderr, not "
@@ -144,10 +147,27 @@ class Collector:
         return self.kind == "ros" or self.kind == f"ros{ros_version}"
 
 
-def _c(name: str, command: str, timeout: float = DEFAULT_TIMEOUT, *, sudo: bool = False,
-       kind: str = "system", needs: str = "", absent: str = "", tar: bool = False) -> Collector:
-    return Collector(name=name, command=command, timeout=timeout, needs_sudo=sudo, kind=kind,
-                     needs=needs, absent=absent, tar=tar)
+def _c(
+    name: str,
+    command: str,
+    timeout: float = DEFAULT_TIMEOUT,
+    *,
+    sudo: bool = False,
+    kind: str = "system",
+    needs: str = "",
+    absent: str = "",
+    tar: bool = False,
+) -> Collector:
+    return Collector(
+        name=name,
+        command=command,
+        timeout=timeout,
+        needs_sudo=sudo,
+        kind=kind,
+        needs=needs,
+        absent=absent,
+        tar=tar,
+    )
 
 
 def _file(name: str, path: str, *, sudo: bool = False) -> Collector:
@@ -159,22 +179,29 @@ def _file(name: str, path: str, *, sudo: bool = False) -> Collector:
 def _unit(name: str) -> tuple[Collector, Collector]:
     """fetch_tools' pair for a systemd unit: its file and ``service NAME status``."""
     path = f"/lib/systemd/system/{name}.service"
-    return (_file(f"{name}.service", path),
-            _c(f"{name}.service_status", f"service {name} status", needs=f"[ -e {path} ]",
-               absent=path))
+    return (
+        _file(f"{name}.service", path),
+        _c(f"{name}.service_status", f"service {name} status", needs=f"[ -e {path} ]", absent=path),
+    )
 
 
 def _read_board(name: str, address: str) -> Collector:
     """Fetch's board query: ``read_board`` on PATH, else fetch_drivers' through rosrun."""
-    return _c(name, "if command -v read_board >/dev/null 2>&1; then read_board "
-              f"{address}; else rosrun fetch_drivers read_board {address}; fi", 15, kind="ros1",
-              needs="command -v read_board || rospack find fetch_drivers",
-              absent="read_board (fetch_drivers)")
+    return _c(
+        name,
+        "if command -v read_board >/dev/null 2>&1; then read_board "
+        f"{address}; else rosrun fetch_drivers read_board {address}; fi",
+        15,
+        kind="ros1",
+        needs="command -v read_board || rospack find fetch_drivers",
+        absent="read_board (fetch_drivers)",
+    )
 
 
 # The last day of ~/.ros/log, as a tar stream (find -type f: the `latest` links stay out).
-_ROS_LOG = ('cd "$HOME/.ros" && find log -type f -mtime -1 -print0 | '
-            'tar --null --no-recursion -T - -cf -')
+_ROS_LOG = (
+    'cd "$HOME/.ros" && find log -type f -mtime -1 -print0 | tar --null --no-recursion -T - -cf -'
+)
 
 
 DEFAULT_COLLECTORS: tuple[Collector, ...] = (
@@ -204,8 +231,15 @@ DEFAULT_COLLECTORS: tuple[Collector, ...] = (
     _c("ros_services", "ros2 service list -t", 15, kind="ros2"),
     _c("ros_params", "ros2 param list", 30, kind="ros2"),
     _c("ros_doctor", "ros2 doctor --report", 60, kind="ros2"),
-    _c("ros_log", _ROS_LOG, 30, kind="ros2", needs='[ -d "$HOME/.ros/log" ]', absent="~/.ros/log",
-       tar=True),
+    _c(
+        "ros_log",
+        _ROS_LOG,
+        30,
+        kind="ros2",
+        needs='[ -d "$HOME/.ros/log" ]',
+        absent="~/.ros/log",
+        tar=True,
+    ),
 )
 
 FETCH_BAG_TOPICS = ("/robot_state", "/diagnostics", "/diagnostics_agg", "/battery_state")
@@ -233,15 +267,24 @@ FETCH_COLLECTORS: tuple[Collector, ...] = (
     _c("iwconfig", "iwconfig"),
     _file("network_interfaces", "/etc/network/interfaces"),
     # root's only (mode 600) since Ubuntu 22.04: through sudo when there is a password
-    _c("netplan_full", "cat /etc/netplan/*.yaml", sudo=True, needs="ls /etc/netplan/*.yaml",
-       absent="/etc/netplan/*.yaml"),
+    _c(
+        "netplan_full",
+        "cat /etc/netplan/*.yaml",
+        sudo=True,
+        needs="ls /etc/netplan/*.yaml",
+        absent="/etc/netplan/*.yaml",
+    ),
     _c("hosts", "cat /etc/hosts"),
     _c("env", "env"),
     *_unit("roscore"),
     *_unit("robot"),
-    _c("robot.journalctl", "journalctl -u robot --no-pager", 20,
-       needs="[ -e /lib/systemd/system/robot.service ]",
-       absent="/lib/systemd/system/robot.service"),
+    _c(
+        "robot.journalctl",
+        "journalctl -u robot --no-pager",
+        20,
+        needs="[ -e /lib/systemd/system/robot.service ]",
+        absent="/lib/systemd/system/robot.service",
+    ),
     *_unit("ps3joy"),
     *_unit("ps4joy"),
     _read_board("read_board_charger", "0x3f"),
@@ -255,8 +298,10 @@ FETCH_COLLECTORS: tuple[Collector, ...] = (
     _file("robot_log", "/var/log/ros/robot.log", sudo=True),
 )
 
-PROFILES: dict[str, tuple[Collector, ...]] = {"generic": DEFAULT_COLLECTORS,
-                                              "fetch": FETCH_COLLECTORS}
+PROFILES: dict[str, tuple[Collector, ...]] = {
+    "generic": DEFAULT_COLLECTORS,
+    "fetch": FETCH_COLLECTORS,
+}
 """The collector sets by name; ``generic`` is the default."""
 
 
@@ -319,8 +364,10 @@ def load_config(path: str | os.PathLike[str]) -> SnapshotConfig:
             try:
                 import tomllib
             except ModuleNotFoundError as exc:  # Python 3.10
-                raise ConfigError(f"cannot read {p}: TOML needs Python 3.11 or newer",
-                                  hint="write it as JSON with a .json name") from exc
+                raise ConfigError(
+                    f"cannot read {p}: TOML needs Python 3.11 or newer",
+                    hint="write it as JSON with a .json name",
+                ) from exc
             data = tomllib.loads(raw.decode("utf-8"))
     except ConfigError:
         raise
@@ -334,28 +381,38 @@ def _config_from(data: Any, *, where: str) -> SnapshotConfig:
         raise ConfigError(f"{where}: expected a table (JSON object) at the top")
     unknown = set(data) - _CONFIG_KEYS
     if unknown:
-        raise ConfigError(f"{where}: unknown keys {', '.join(sorted(unknown))} "
-                          f"(known: {', '.join(sorted(_CONFIG_KEYS))})")
+        raise ConfigError(
+            f"{where}: unknown keys {', '.join(sorted(unknown))} "
+            f"(known: {', '.join(sorted(_CONFIG_KEYS))})"
+        )
     collectors = []
     for i, item in enumerate(data.get("collectors", [])):
         if not isinstance(item, dict):
             raise ConfigError(f"{where}: collectors[{i}] is not a table")
         bad = set(item) - _COLLECTOR_KEYS
         if bad or "name" not in item or "command" not in item:
-            raise ConfigError(f"{where}: collectors[{i}] needs name and command and may have "
-                              f"timeout, needs_sudo, kind (got {', '.join(sorted(item))})")
+            raise ConfigError(
+                f"{where}: collectors[{i}] needs name and command and may have "
+                f"timeout, needs_sudo, kind (got {', '.join(sorted(item))})"
+            )
         try:
-            c = Collector(name=str(item["name"]), command=str(item["command"]),
-                          timeout=float(item.get("timeout", DEFAULT_TIMEOUT)),
-                          needs_sudo=_bool(item.get("needs_sudo", False), where, "needs_sudo"),
-                          kind=str(item.get("kind", "system")))
+            c = Collector(
+                name=str(item["name"]),
+                command=str(item["command"]),
+                timeout=float(item.get("timeout", DEFAULT_TIMEOUT)),
+                needs_sudo=_bool(item.get("needs_sudo", False), where, "needs_sudo"),
+                kind=str(item.get("kind", "system")),
+            )
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: collectors[{i}]: {exc}") from exc
         c.validate()
         collectors.append(c)
-    return SnapshotConfig(collectors=tuple(collectors), only=_names(data.get("only", []), where),
-                          skip=_names(data.get("skip", []), where),
-                          defaults=_bool(data.get("defaults", True), where, "defaults"))
+    return SnapshotConfig(
+        collectors=tuple(collectors),
+        only=_names(data.get("only", []), where),
+        skip=_names(data.get("skip", []), where),
+        defaults=_bool(data.get("defaults", True), where, "defaults"),
+    )
 
 
 def _bool(value: Any, where: str, key: str) -> bool:
@@ -395,8 +452,10 @@ def select_collectors(
     extras = list(extra)
     unknown = (wanted | dropped) - known - {c.name for c in extras}
     if unknown:
-        raise UsageError(f"no collector named {', '.join(sorted(unknown))}",
-                         hint=f"known: {', '.join(sorted(known))}")
+        raise UsageError(
+            f"no collector named {', '.join(sorted(unknown))}",
+            hint=f"known: {', '.join(sorted(known))}",
+        )
     if wanted:
         chosen = [c for c in chosen if c.name in wanted]
     chosen = [c for c in chosen if c.name not in dropped]
@@ -455,20 +514,20 @@ def probe_command(*, ros_root: str = DEFAULT_ROS_ROOT, check_sudo: bool) -> str:
         '  if ! command -v sudo >/dev/null 2>&1; then echo "sudo=missing"\n'
         '  elif sudo -n true </dev/null >/dev/null 2>&1; then echo "sudo=nopasswd"\n'
         '  else echo "sudo=password"; fi\n'
-        'fi\n'
-        f'for f in {shlex.quote(ros_root.rstrip("/") or "/")}/*/setup.bash; do\n'
+        "fi\n"
+        f"for f in {shlex.quote(ros_root.rstrip('/') or '/')}/*/setup.bash; do\n"
         '  [ -f "$f" ] || continue; d=${f%/setup.bash}\n'
         '  if [ -e "$d/bin/ros2" ]; then echo "ros=2 $d"\n'
         '  elif [ -e "$d/bin/roscore" ] || [ -e "$d/bin/rosversion" ] || [ -d "$d/share/catkin" ]\n'
         '  then echo "ros=1 $d"; fi\n'
-        'done\n'
+        "done\n"
         'echo "ros_distro=${ROS_DISTRO:-}"\n'
         # ROS already on the login PATH (sourced by ~/.bashrc, a source build): used when
         # nothing is under the ROS root. Not rosversion: pip's rospkg installs one anywhere.
         'command -v ros2 >/dev/null 2>&1 && echo "ros_path=2"\n'
-        'for t in roscore rosbag rostopic rosnode; do\n'
+        "for t in roscore rosbag rostopic rosnode; do\n"
         '  if command -v $t >/dev/null 2>&1; then echo "ros_path=1"; break; fi\n'
-        'done\n'
+        "done\n"
     )
     return "sh -c " + shlex.quote(script)
 
@@ -487,7 +546,9 @@ def parse_probe(text: str) -> RobotInfo:
         elif key == "ros":
             version, _, prefix = value.partition(" ")
             if version in ("1", "2") and prefix.startswith("/"):
-                found.append(RosInstall(int(version), prefix.rstrip("/").rsplit("/", 1)[-1], prefix))
+                found.append(
+                    RosInstall(int(version), prefix.rstrip("/").rsplit("/", 1)[-1], prefix)
+                )
         elif key in ("uid", "user", "timeout", "sudo", "ros_distro"):
             values[key] = value.strip()
     try:
@@ -501,23 +562,41 @@ def parse_probe(text: str) -> RobotInfo:
     if ros is None and on_path:
         # Nothing to source: the login environment already has it (prefix "").
         ros = RosInstall(max(on_path), values.get("ros_distro", ""), "")
-    return RobotInfo(uid=uid, user=values.get("user", ""), has_timeout=values.get("timeout") == "yes",
-                     sudo=values.get("sudo") or None, ros=ros, ros_found=tuple(found))
+    return RobotInfo(
+        uid=uid,
+        user=values.get("user", ""),
+        has_timeout=values.get("timeout") == "yes",
+        sudo=values.get("sudo") or None,
+        ros=ros,
+        ros_found=tuple(found),
+    )
 
 
-def probe(transport: Transport, *, ros_root: str = DEFAULT_ROS_ROOT, check_sudo: bool = True,
-          timeout: float = 30.0) -> RobotInfo:
+def probe(
+    transport: Transport,
+    *,
+    ros_root: str = DEFAULT_ROS_ROOT,
+    check_sudo: bool = True,
+    timeout: float = 30.0,
+) -> RobotInfo:
     """Ask the robot who we are, whether it has ``timeout`` and sudo, and which ROS."""
-    job = _Job(name="probe", kind="system", command="probe", remote=probe_command(
-        ros_root=ros_root, check_sudo=check_sudo), deadline=timeout)
+    job = _Job(
+        name="probe",
+        kind="system",
+        command="probe",
+        remote=probe_command(ros_root=ros_root, check_sudo=check_sudo),
+        deadline=timeout,
+    )
     with tempfile.TemporaryDirectory(prefix="fetchsync-probe-") as tmp:
         result = _run(transport, job, Path(tmp), has_timeout=False)
         if result.link_lost:
             raise LinkLostError(result.error or "the link to the robot was lost")
         text = result.stdout.read_text(errors="replace") if result.stdout else ""
         if result.status != OK:
-            raise RemoteError(f"cannot probe the robot ({result.status}): "
-                                 f"{result.stderr_text() or result.error or 'no output'}")
+            raise RemoteError(
+                f"cannot probe the robot ({result.status}): "
+                f"{result.stderr_text() or result.error or 'no output'}"
+            )
     return parse_probe(text)
 
 
@@ -548,8 +627,14 @@ class SudoPlan:
         return self.password + b"\n" if self.mode == "password" and self.password else b""
 
 
-def plan_sudo(transport: Transport, info: RobotInfo, *, needed: Sequence[str], policy: str,
-              password: PasswordSource | None) -> SudoPlan:
+def plan_sudo(
+    transport: Transport,
+    info: RobotInfo,
+    *,
+    needed: Sequence[str],
+    policy: str,
+    password: PasswordSource | None,
+) -> SudoPlan:
     """Decide how the ``needed`` collectors run; ``policy`` is ``auto``, ``always`` or ``never``.
 
     Without a password (none given, no terminal), ``always`` is an error and
@@ -583,19 +668,33 @@ def plan_sudo(transport: Transport, info: RobotInfo, *, needed: Sequence[str], p
         log.info("sudo on the robot refused the password (attempt %d)", attempt + 1)
         refusal = refused
     if refusal:
-        raise ConfigError(f"sudo on the robot refused the password for {info.user}: {refusal}",
-                          hint="check FETCHSYNC_SUDO_PASSWORD, or pass --no-sudo")
+        raise ConfigError(
+            f"sudo on the robot refused the password for {info.user}: {refusal}",
+            hint="check FETCHSYNC_SUDO_PASSWORD, or pass --no-sudo",
+        )
     if policy == "always":
-        raise UsageError("--sudo needs the robot's sudo password and there is no terminal to "
-                         "ask it", hint="set FETCHSYNC_SUDO_PASSWORD")
-    return SudoPlan("none", note=f"{without} (sudo wants a password: pass --sudo in a terminal, "
-                                 "or set FETCHSYNC_SUDO_PASSWORD)")
+        raise UsageError(
+            "--sudo needs the robot's sudo password and there is no terminal to ask it",
+            hint="set FETCHSYNC_SUDO_PASSWORD",
+        )
+    return SudoPlan(
+        "none",
+        note=f"{without} (sudo wants a password: pass --sudo in a terminal, "
+        "or set FETCHSYNC_SUDO_PASSWORD)",
+    )
 
 
 def _check_password(transport: Transport, plan: SudoPlan) -> str | None:
     """None when sudo accepts the plan's password, else sudo's last line of complaint."""
-    job = _Job(name="sudo-check", kind="system", command="true",
-               remote=plan.prefix() + "true", deadline=20.0, stdin=plan.stdin(), sudo=True)
+    job = _Job(
+        name="sudo-check",
+        kind="system",
+        command="true",
+        remote=plan.prefix() + "true",
+        deadline=20.0,
+        stdin=plan.stdin(),
+        sudo=True,
+    )
     with tempfile.TemporaryDirectory(prefix="fetchsync-sudo-") as tmp:
         result = _run(transport, job, Path(tmp), has_timeout=False)
         if result.link_lost:
@@ -656,9 +755,15 @@ class CommandResult:
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "name": self.name, "kind": self.kind, "command": self.command, "status": self.status,
-            "exit_code": self.exit_code, "duration": round(self.duration, 3),
-            "bytes": self.bytes, "stderr_bytes": self.stderr_bytes, "sudo": self.sudo,
+            "name": self.name,
+            "kind": self.kind,
+            "command": self.command,
+            "status": self.status,
+            "exit_code": self.exit_code,
+            "duration": round(self.duration, 3),
+            "bytes": self.bytes,
+            "stderr_bytes": self.stderr_bytes,
+            "sudo": self.sudo,
             "files": list(self.files),
         }
         if self.truncated:
@@ -707,8 +812,9 @@ class _Drain(threading.Thread):
 
 
 def _run(transport: Transport, job: _Job, workdir: Path, *, has_timeout: bool) -> CommandResult:
-    result = CommandResult(name=job.name, kind=job.kind, command=job.command, status=FAILED,
-                           sudo=job.sudo, tar=job.tar)
+    result = CommandResult(
+        name=job.name, kind=job.kind, command=job.command, status=FAILED, sudo=job.sudo, tar=job.tar
+    )
     start = time.monotonic()
     try:
         chan: Channel = transport.exec(job.remote)
@@ -760,8 +866,9 @@ def _run(transport: Transport, job: _Job, workdir: Path, *, has_timeout: bool) -
     elif status is None:
         result.status = FAILED
     else:
-        result.status = classify(status, err.head, timeout=job.timeout if has_timeout else None,
-                                 elapsed=result.duration)
+        result.status = classify(
+            status, err.head, timeout=job.timeout if has_timeout else None, elapsed=result.duration
+        )
         absent = _ABSENT.search(err.head)
         if absent:
             result.status = SKIPPED
@@ -771,8 +878,9 @@ def _run(transport: Transport, job: _Job, workdir: Path, *, has_timeout: bool) -
     return result
 
 
-def classify(exit_code: int, stderr_head: bytes, *, timeout: float | None = None,
-             elapsed: float = 0.0) -> str:
+def classify(
+    exit_code: int, stderr_head: bytes, *, timeout: float | None = None, elapsed: float = 0.0
+) -> str:
     """``ok``, ``missing`` (127, or "not found"), ``timeout`` (``timeout``'s 124/137) or ``failed``."""
     if exit_code == 0:
         return OK
@@ -785,15 +893,18 @@ def classify(exit_code: int, stderr_head: bytes, *, timeout: float | None = None
     return FAILED
 
 
-def remote_command(collector: Collector, *, info: RobotInfo, sudo: SudoPlan,
-                   overlay: str | None = None) -> str:
+def remote_command(
+    collector: Collector, *, info: RobotInfo, sudo: SudoPlan, overlay: str | None = None
+) -> str:
     """The command line the robot runs for ``collector``; it never holds a password."""
     script = collector.command
     if collector.needs:
         # Absent: a line the classifier knows, and no output to keep.
-        script = (f"if ! {{ {collector.needs}; }} >/dev/null 2>&1; then "
-                  f"echo {shlex.quote(_ABSENT_MARK + (collector.absent or collector.needs))} >&2; "
-                  f"exit 0; fi; {script}")
+        script = (
+            f"if ! {{ {collector.needs}; }} >/dev/null 2>&1; then "
+            f"echo {shlex.quote(_ABSENT_MARK + (collector.absent or collector.needs))} >&2; "
+            f"exit 0; fi; {script}"
+        )
     shell = "sh"
     if collector.kind != "system":
         if info.ros is None:
@@ -824,13 +935,14 @@ def _ros_env_script(ros: RosInstall, overlay: str | None) -> str:
     collectors' stderr. (``run``'s ``fetchsync.chores.remote`` builds a similar
     environment; it was not in the repository yet when this was written.)
     """
-    parts = [f"source {shlex.quote(ros.prefix + '/setup.bash')} >/dev/null 2>&1"] if ros.prefix \
-        else []
+    parts = (
+        [f"source {shlex.quote(ros.prefix + '/setup.bash')} >/dev/null 2>&1"] if ros.prefix else []
+    )
     if overlay:
         ws = _shell_path(overlay)
         parts.append(
             f"for _f in {ws}/devel/setup.bash {ws}/devel_isolated/setup.bash "
-            f"{ws}/install/setup.bash; do if [ -f \"$_f\" ]; then source \"$_f\" >/dev/null 2>&1; "
+            f'{ws}/install/setup.bash; do if [ -f "$_f" ]; then source "$_f" >/dev/null 2>&1; '
             "break; fi; done; unset _f"
         )
     return "; ".join(parts) + "; " if parts else ""
@@ -845,8 +957,14 @@ def _shell_path(path: str) -> str:
     return shlex.quote(path)
 
 
-def bag_command(ros: RosInstall, topics: Sequence[str], duration: float, *, has_timeout: bool,
-                overlay: str | None = None) -> str:
+def bag_command(
+    ros: RosInstall,
+    topics: Sequence[str],
+    duration: float,
+    *,
+    has_timeout: bool,
+    overlay: str | None = None,
+) -> str:
     """Record ``topics`` for ``duration`` s into a temporary directory; print it as a tar stream."""
     quoted = " ".join(shlex.quote(t) for t in topics)
     d = f"{duration:g}"
@@ -860,7 +978,7 @@ def bag_command(ros: RosInstall, topics: Sequence[str], duration: float, *, has_
         record = f"timeout -s INT -k 10 {d} ros2 bag record -o snapshot_bag {quoted}"
     script = (
         _ros_env_script(ros, overlay)
-        + 'd=$(mktemp -d) || exit 1; trap \'rm -rf "$d"\' EXIT; '
+        + "d=$(mktemp -d) || exit 1; trap 'rm -rf \"$d\"' EXIT; "
         + f'(cd "$d" && {record}) </dev/null >&2; rc=$?; '
         + 'tar -C "$d" -cf - . || exit 1; '
         + ("exit $rc" if ros.version == 1 else '[ "$rc" = 124 ] && rc=0; exit $rc')
@@ -955,10 +1073,17 @@ def take_snapshot(
     runnable = [c for c in collectors if c.runs_on(ros_version)]
     names = [c.name for c in runnable]
     if len(set(names)) != len(names):
-        raise UsageError("two collectors share a name: "
-                         + ", ".join(sorted({n for n in names if names.count(n) > 1})))
-    plan = plan_sudo(transport, info, needed=[c.name for c in runnable if c.needs_sudo],
-                     policy=sudo, password=password)
+        raise UsageError(
+            "two collectors share a name: "
+            + ", ".join(sorted({n for n in names if names.count(n) > 1}))
+        )
+    plan = plan_sudo(
+        transport,
+        info,
+        needed=[c.name for c in runnable if c.needs_sudo],
+        policy=sudo,
+        password=password,
+    )
     if plan.note:
         notes.append(plan.note)
     bag_skipped: str | None = None
@@ -974,37 +1099,63 @@ def take_snapshot(
         notes.append(f"bag skipped: {bag_skipped}")
 
     work_list = [
-        _Job(name=c.name, kind=c.kind, command=c.command,
-             remote=remote_command(c, info=info, sudo=plan, overlay=overlay),
-             deadline=c.timeout + _DEADLINE_MARGIN, timeout=c.timeout,
-             stdin=plan.stdin() if c.needs_sudo else b"",
-             sudo=c.needs_sudo and plan.mode != "none", tar=c.tar)
+        _Job(
+            name=c.name,
+            kind=c.kind,
+            command=c.command,
+            remote=remote_command(c, info=info, sudo=plan, overlay=overlay),
+            deadline=c.timeout + _DEADLINE_MARGIN,
+            timeout=c.timeout,
+            stdin=plan.stdin() if c.needs_sudo else b"",
+            sudo=c.needs_sudo and plan.mode != "none",
+            tar=c.tar,
+        )
         for c in runnable
     ]
     if topics and bag_skipped is None and info.ros is not None:
         # First: it takes longest, and the pool starts jobs in order.
-        work_list.insert(0, _Job(
-            name=BAG_NAME, kind=f"ros{info.ros.version}",
-            command=f"record {' '.join(topics)} for {bag_duration:g} s",
-            remote=bag_command(info.ros, topics, bag_duration, has_timeout=info.has_timeout,
-                               overlay=overlay),
-            deadline=bag_duration + _BAG_MARGIN, tar=True))
+        work_list.insert(
+            0,
+            _Job(
+                name=BAG_NAME,
+                kind=f"ros{info.ros.version}",
+                command=f"record {' '.join(topics)} for {bag_duration:g} s",
+                remote=bag_command(
+                    info.ros, topics, bag_duration, has_timeout=info.has_timeout, overlay=overlay
+                ),
+                deadline=bag_duration + _BAG_MARGIN,
+                tar=True,
+            ),
+        )
 
     out_path = Path(output)
     if out_path.is_dir():
         out_path = out_path / archive_name(robot, started, archive_format=archive_format)
     with tempfile.TemporaryDirectory(prefix="fetchsync-snapshot-") as tmp:
-        results = _run_all(transport, work_list, Path(tmp), jobs=jobs,
-                           has_timeout=info.has_timeout, progress=progress)
+        results = _run_all(
+            transport,
+            work_list,
+            Path(tmp),
+            jobs=jobs,
+            has_timeout=info.has_timeout,
+            progress=progress,
+        )
         ordered = _in_order(collectors, results, ros_version)
         if BAG_NAME in results:
             results[BAG_NAME].extra.update(topics=list(topics), requested_duration=bag_duration)
             ordered.insert(0, results[BAG_NAME])
         elif topics:
-            ordered.insert(0, CommandResult(
-                name=BAG_NAME, kind="ros", command=f"record {' '.join(topics)}", status=SKIPPED,
-                error=bag_skipped, extra={"topics": list(topics),
-                                          "requested_duration": bag_duration}))
+            ordered.insert(
+                0,
+                CommandResult(
+                    name=BAG_NAME,
+                    kind="ros",
+                    command=f"record {' '.join(topics)}",
+                    status=SKIPPED,
+                    error=bag_skipped,
+                    extra={"topics": list(topics), "requested_duration": bag_duration},
+                ),
+            )
         manifest: dict[str, Any] = {
             "format": MANIFEST_FORMAT,
             "fetchsync_version": __version__,
@@ -1013,23 +1164,38 @@ def take_snapshot(
             "created": started.isoformat(timespec="seconds"),
             "duration": round(time.monotonic() - t0, 3),
             "collected_on": socket.gethostname(),
-            "ros": ({"version": info.ros.version, "distro": info.ros.distro,
-                     "prefix": info.ros.prefix} if info.ros else None),
+            "ros": (
+                {"version": info.ros.version, "distro": info.ros.distro, "prefix": info.ros.prefix}
+                if info.ros
+                else None
+            ),
             "sudo": plan.mode,
             "remote_timeout": info.has_timeout,
             "notes": list(notes),
         }
-        size = write_archive(out_path, results=ordered, manifest=manifest,
-                             archive_format=archive_format)
+        size = write_archive(
+            out_path, results=ordered, manifest=manifest, archive_format=archive_format
+        )
 
     lost = [r for r in ordered if r.link_lost]
-    return Snapshot(archive=out_path, size=size, manifest=manifest, notes=notes,
-                    link_lost=lost[0].error if lost else None)
+    return Snapshot(
+        archive=out_path,
+        size=size,
+        manifest=manifest,
+        notes=notes,
+        link_lost=lost[0].error if lost else None,
+    )
 
 
-def _run_all(transport: Transport, work: Sequence[_Job], workdir: Path, *, jobs: int,
-             has_timeout: bool, progress: Callable[[CommandResult], None] | None
-             ) -> dict[str, CommandResult]:
+def _run_all(
+    transport: Transport,
+    work: Sequence[_Job],
+    workdir: Path,
+    *,
+    jobs: int,
+    has_timeout: bool,
+    progress: Callable[[CommandResult], None] | None,
+) -> dict[str, CommandResult]:
     results: dict[str, CommandResult] = {}
     lock = threading.Lock()
 
@@ -1046,8 +1212,9 @@ def _run_all(transport: Transport, work: Sequence[_Job], workdir: Path, *, jobs:
     return results
 
 
-def _in_order(collectors: Sequence[Collector], results: dict[str, CommandResult],
-              ros_version: int | None) -> list[CommandResult]:
+def _in_order(
+    collectors: Sequence[Collector], results: dict[str, CommandResult], ros_version: int | None
+) -> list[CommandResult]:
     """Results in the collectors' order, with one ``skipped`` entry per name that did not run."""
     ordered: list[CommandResult] = []
     listed: set[str] = set()
@@ -1057,16 +1224,27 @@ def _in_order(collectors: Sequence[Collector], results: dict[str, CommandResult]
         if c.name in results:
             ordered.append(results[c.name])
         else:
-            why = ("ROS not found on the robot" if ros_version is None
-                   else f"{c.kind} only; the robot has ROS {ros_version}")
-            ordered.append(CommandResult(name=c.name, kind=c.kind, command=c.command,
-                                         status=SKIPPED, error=why))
+            why = (
+                "ROS not found on the robot"
+                if ros_version is None
+                else f"{c.kind} only; the robot has ROS {ros_version}"
+            )
+            ordered.append(
+                CommandResult(
+                    name=c.name, kind=c.kind, command=c.command, status=SKIPPED, error=why
+                )
+            )
         listed.add(c.name)
     return ordered
 
 
-def write_archive(path: Path, *, results: Sequence[CommandResult],
-                  manifest: dict[str, Any], archive_format: str = "tar") -> int:
+def write_archive(
+    path: Path,
+    *,
+    results: Sequence[CommandResult],
+    manifest: dict[str, Any],
+    archive_format: str = "tar",
+) -> int:
     """Write the ``.tar.gz`` or ``.zip`` (a ``.part`` renamed into place); return its size.
 
     Everything lies under one directory named like the archive. Adds the
@@ -1111,7 +1289,9 @@ def write_archive(path: Path, *, results: Sequence[CommandResult],
             part.unlink()
         except OSError:
             pass
-        raise ConfigError(f"cannot write the snapshot archive {path}: {exc.strerror or exc}") from exc
+        raise ConfigError(
+            f"cannot write the snapshot archive {path}: {exc.strerror or exc}"
+        ) from exc
     return path.stat().st_size
 
 
@@ -1128,6 +1308,7 @@ def _writer(path: Path, archive_format: str) -> Iterator[_Add]:
         return
 
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+
         def add(name: str, f: IO[bytes], size: int, mtime: float) -> None:
             when = time.localtime(max(mtime, 315532800))[:6]  # zip dates start in 1980
             info = zipfile.ZipInfo(name, date_time=when)

@@ -40,8 +40,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TIMEOUT = 5.0      # seconds for the robot to answer before it is called unreachable
-LISTING_TIMEOUT = 120.0    # a first full listing hashes the robot's whole tree: be patient
+DEFAULT_TIMEOUT = 5.0  # seconds for the robot to answer before it is called unreachable
+LISTING_TIMEOUT = 120.0  # a first full listing hashes the robot's whole tree: be patient
 GIT_TIMEOUT = 60.0
 GIT_JOBS = 8
 
@@ -56,9 +56,16 @@ FAILED = "error"
 _VCS_DIRS = frozenset({".git", ".hg", ".svn", ".bzr"})
 # variables that would point every git call at one repository, whatever -C says
 # (set by git hooks and by `git submodule foreach`)
-_GIT_LOCATION_VARS = ("GIT_DIR", "GIT_WORK_TREE", "GIT_INDEX_FILE", "GIT_OBJECT_DIRECTORY",
-                      "GIT_ALTERNATE_OBJECT_DIRECTORIES", "GIT_COMMON_DIR", "GIT_NAMESPACE",
-                      "GIT_PREFIX")
+_GIT_LOCATION_VARS = (
+    "GIT_DIR",
+    "GIT_WORK_TREE",
+    "GIT_INDEX_FILE",
+    "GIT_OBJECT_DIRECTORY",
+    "GIT_ALTERNATE_OBJECT_DIRECTORIES",
+    "GIT_COMMON_DIR",
+    "GIT_NAMESPACE",
+    "GIT_PREFIX",
+)
 
 
 # --------------------------------------------------------------------------- rows
@@ -66,25 +73,25 @@ _GIT_LOCATION_VARS = ("GIT_DIR", "GIT_WORK_TREE", "GIT_INDEX_FILE", "GIT_OBJECT_
 class Found:
     """A directory listed by workspace-status: a git repository, or a top-level untracked one."""
 
-    path: str        # relative to src/, "/"-separated; "." is src/ itself
+    path: str  # relative to src/, "/"-separated; "." is src/ itself
     is_git: bool
 
 
 @dataclass(frozen=True)
 class GitInfo:
-    branch: str | None = None     # None when detached
+    branch: str | None = None  # None when detached
     detached: bool = False
-    sha: str | None = None        # abbreviated; None before the first commit
-    dirty: bool = False           # tracked files differ from HEAD (staged or not)
-    error: str | None = None      # git failed on this repository (first line of its message)
+    sha: str | None = None  # abbreviated; None before the first commit
+    dirty: bool = False  # tracked files differ from HEAD (staged or not)
+    error: str | None = None  # git failed on this repository (first line of its message)
 
 
 @dataclass(frozen=True)
 class RobotView:
     """The robot column of one row."""
 
-    state: str            # IN_SYNC, DIFFERS, UNREACHABLE, NOT_PUSHED, EXCLUDED or FAILED
-    paths: int = 0        # differing paths, for DIFFERS
+    state: str  # IN_SYNC, DIFFERS, UNREACHABLE, NOT_PUSHED, EXCLUDED or FAILED
+    paths: int = 0  # differing paths, for DIFFERS
 
     def text(self) -> str:
         if self.state == DIFFERS:
@@ -97,9 +104,9 @@ class Package:
     """A ROS package in a row's repository: what builds it, ROS 1's or ROS 2's."""
 
     name: str
-    path: str             # its directory, relative to src/
-    format: int           # package.xml's format attribute (1 when absent)
-    build_type: str       # <export><build_type>, else catkin or ament_* from the buildtool
+    path: str  # its directory, relative to src/
+    format: int  # package.xml's format attribute (1 when absent)
+    build_type: str  # <export><build_type>, else catkin or ament_* from the buildtool
 
     @property
     def ros(self) -> int:
@@ -108,8 +115,13 @@ class Package:
         return 1 if self.build_type == "catkin" else 2
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "path": self.path, "format": self.format,
-                "build_type": self.build_type, "ros": self.ros}
+        return {
+            "name": self.name,
+            "path": self.path,
+            "format": self.format,
+            "build_type": self.build_type,
+            "ros": self.ros,
+        }
 
 
 @dataclass(frozen=True)
@@ -148,14 +160,22 @@ class Row:
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "path": self.path, "git": self.found.is_git, "branch": self.git.branch,
-            "detached": self.git.detached, "sha": self.git.sha, "dirty": self.git.dirty,
-            "error": self.git.error, "packages": [p.to_json() for p in self.packages],
+            "path": self.path,
+            "git": self.found.is_git,
+            "branch": self.git.branch,
+            "detached": self.git.detached,
+            "sha": self.git.sha,
+            "dirty": self.git.dirty,
+            "error": self.git.error,
+            "packages": [p.to_json() for p in self.packages],
         }
         if self.robot is not None:
             out["robot"] = self.robot.state
-            out["differing"] = self.robot.paths if self.robot.state == DIFFERS else (
-                0 if self.robot.state == IN_SYNC else None)
+            out["differing"] = (
+                self.robot.paths
+                if self.robot.state == DIFFERS
+                else (0 if self.robot.state == IN_SYNC else None)
+            )
         return out
 
 
@@ -163,8 +183,8 @@ class Row:
 class WorkspaceStatus:
     src: Path
     rows: list[Row]
-    robot: str | None = None            # "robot:remote/src" when the robot column is shown
-    notes: list[str] = field(default_factory=list)   # one line each, for stderr
+    robot: str | None = None  # "robot:remote/src" when the robot column is shown
+    notes: list[str] = field(default_factory=list)  # one line each, for stderr
 
     def to_json(self) -> list[dict[str, Any]]:
         return [r.to_json() for r in self.rows]
@@ -177,19 +197,25 @@ class WorkspaceStatus:
             return [title, "no directories under src/"]
         with_robot = self.robot is not None
         with_packages = any(r.packages for r in self.rows)
-        header = (["repository", "branch", "sha"] + (["packages"] if with_packages else [])
-                  + (["robot"] if with_robot else []))
-        cells = [[r.path, r.branch_text(), r.sha_text()]
-                 + ([r.packages_text()] if with_packages else [])
-                 + ([r.robot.text() if r.robot is not None else ""] if with_robot else [])
-                 for r in self.rows]
+        header = (
+            ["repository", "branch", "sha"]
+            + (["packages"] if with_packages else [])
+            + (["robot"] if with_robot else [])
+        )
+        cells = [
+            [r.path, r.branch_text(), r.sha_text()]
+            + ([r.packages_text()] if with_packages else [])
+            + ([r.robot.text() if r.robot is not None else ""] if with_robot else [])
+            for r in self.rows
+        ]
         widths = [max(len(c[i]) for c in [header, *cells]) for i in range(len(header))]
 
         def line(values: list[str]) -> str:
             return " | ".join(v.ljust(w) for v, w in zip(values, widths)).rstrip()
 
-        rule = "|".join("-" * (w + (1 if i in (0, len(widths) - 1) else 2))
-                        for i, w in enumerate(widths))
+        rule = "|".join(
+            "-" * (w + (1 if i in (0, len(widths) - 1) else 2)) for i, w in enumerate(widths)
+        )
         return [title, line(header), rule, *(line(c) for c in cells)]
 
 
@@ -223,7 +249,7 @@ def find_repositories(src: Path) -> list[Found]:
             try:
                 if de.is_dir(follow_symlinks=False):
                     stack.append(path)
-                elif rel or not de.is_dir():   # below the top level, links are not followed
+                elif rel or not de.is_dir():  # below the top level, links are not followed
                     continue
             except OSError:
                 continue
@@ -306,11 +332,19 @@ def _git_env() -> dict[str, str]:
 
 def _git(repo: Path, args: list[str], env: Mapping[str, str]) -> str:
     try:
-        proc = subprocess.run(["git", "-C", str(repo), *args], capture_output=True, check=False,
-                              env=dict(env), timeout=GIT_TIMEOUT, stdin=subprocess.DEVNULL)
+        proc = subprocess.run(
+            ["git", "-C", str(repo), *args],
+            capture_output=True,
+            check=False,
+            env=dict(env),
+            timeout=GIT_TIMEOUT,
+            stdin=subprocess.DEVNULL,
+        )
     except FileNotFoundError as exc:
-        raise ConfigError("git is not installed (workspace-status runs it)",
-                          hint="install git, e.g. apt-get install git") from exc
+        raise ConfigError(
+            "git is not installed (workspace-status runs it)",
+            hint="install git, e.g. apt-get install git",
+        ) from exc
     except subprocess.TimeoutExpired as exc:
         raise _GitFailed(f"git {args[0]} took more than {GIT_TIMEOUT:g} s") from exc
     if proc.returncode != 0:
@@ -339,9 +373,9 @@ def inspect_repository(repo: Path, *, env: Mapping[str, str] | None = None) -> G
         dirty = False
         for line in out.splitlines():
             if line.startswith("# branch.oid "):
-                oid = line[len("# branch.oid "):]
+                oid = line[len("# branch.oid ") :]
             elif line.startswith("# branch.head "):
-                head = line[len("# branch.head "):]
+                head = line[len("# branch.head ") :]
             elif line and not line.startswith("#"):
                 dirty = True
         detached = head == "(detached)"
@@ -360,16 +394,22 @@ def inspect_all(src: Path, found: Iterable[Found], *, jobs: int = GIT_JOBS) -> d
     if not repos:
         return {}
     env = _git_env()
-    with ThreadPoolExecutor(max_workers=max(1, min(jobs, len(repos))),
-                            thread_name_prefix="fetchsync-git") as pool:
+    with ThreadPoolExecutor(
+        max_workers=max(1, min(jobs, len(repos))), thread_name_prefix="fetchsync-git"
+    ) as pool:
         infos = pool.map(lambda p: inspect_repository(src / p, env=env), repos)
         return dict(zip(repos, infos))
 
 
 # --------------------------------------------------------------------------- robot
-def optional_target(*, robot: str | None, user: str | None, workspace: str | None,
-                    remote_workspace: str | None,
-                    environ: Mapping[str, str] = os.environ) -> Target | None:
+def optional_target(
+    *,
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    environ: Mapping[str, str] = os.environ,
+) -> Target | None:
     """The robot to compare with, or None when none is configured.
 
     A robot named by ``--robot`` or a variable must resolve (errors are the
@@ -384,9 +424,14 @@ def optional_target(*, robot: str | None, user: str | None, workspace: str | Non
             resolve_robot(None, environ=environ)
         except ConfigError:
             return None
-    return resolve_target(robot=robot, user=user, workspace=workspace,
-                          remote_workspace=remote_workspace, environ=environ,
-                          defer_ssh_user=True)
+    return resolve_target(
+        robot=robot,
+        user=user,
+        workspace=workspace,
+        remote_workspace=remote_workspace,
+        environ=environ,
+        defer_ssh_user=True,
+    )
 
 
 @dataclass(frozen=True)
@@ -420,18 +465,24 @@ class _Listing(threading.Thread):
     current (one round trip with the open, pipelined), else a full one.
     """
 
-    def __init__(self, target: Target, rules: IgnoreRules, remembered: _Remembered, *,
-                 accept_fingerprint: str | None) -> None:
+    def __init__(
+        self,
+        target: Target,
+        rules: IgnoreRules,
+        remembered: _Remembered,
+        *,
+        accept_fingerprint: str | None,
+    ) -> None:
         super().__init__(name="fetchsync-robot-listing", daemon=True)
         self.target = target
         self.rules = rules
         self.remembered = remembered
         self.accept_fingerprint = accept_fingerprint
         self.algorithm = ""
-        self.header: dict[str, Any] | None = None   # the list response
-        self.missing = False                        # the remote workspace does not exist
+        self.header: dict[str, Any] | None = None  # the list response
+        self.missing = False  # the remote workspace does not exist
         self.error: BaseException | None = None
-        self.connected = threading.Event()          # set once connected, or failed
+        self.connected = threading.Event()  # set once connected, or failed
         self.finished = threading.Event()
         self.abandoned = False
 
@@ -446,10 +497,22 @@ class _Listing(threading.Thread):
                     return
                 r = self.remembered
                 fresh = bool(r.entries) and r.epoch != "" and r.algorithm in ("", conn.algorithm)
-                opened = conn.send({"op": "open", "workspace": self.target.remote_workspace,
-                                    "rules": self.rules.to_wire(), "create": False})
-                listed = conn.send({"op": "list", "mode": "drift" if fresh else "full",
-                                    "epoch": r.epoch, "gen": r.gen})
+                opened = conn.send(
+                    {
+                        "op": "open",
+                        "workspace": self.target.remote_workspace,
+                        "rules": self.rules.to_wire(),
+                        "create": False,
+                    }
+                )
+                listed = conn.send(
+                    {
+                        "op": "list",
+                        "mode": "drift" if fresh else "full",
+                        "epoch": r.epoch,
+                        "gen": r.gen,
+                    }
+                )
                 try:
                     conn.wait(opened)
                 except RemoteError as exc:
@@ -482,8 +545,8 @@ def _remote_tree(header: Mapping[str, Any], synced: Mapping[str, Any]) -> dict[s
 
 def differing_paths(local: Mapping[str, M.Listed], remote: Mapping[str, M.Listed]) -> list[str]:
     """Paths a push would change on the robot (a deleted directory counts once)."""
-    from fetchsync.sync.plan import plan
     from fetchsync.protocol import messages as M
+    from fetchsync.sync.plan import plan
 
     return [p.op.path for p in plan(local, remote, lambda _path: M.ABSENT, reuse=False)]
 
@@ -509,11 +572,16 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())
 
 
-def compare_with_robot(src: Path, found: list[Found], target: Target, *,
-                       excludes: Iterable[str] = (), accept_fingerprint: str | None = None,
-                       timeout: float = DEFAULT_TIMEOUT,
-                       while_waiting: Callable[[], None] | None = None,
-                       ) -> tuple[dict[str, RobotView], list[str]]:
+def compare_with_robot(
+    src: Path,
+    found: list[Found],
+    target: Target,
+    *,
+    excludes: Iterable[str] = (),
+    accept_fingerprint: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+    while_waiting: Callable[[], None] | None = None,
+) -> tuple[dict[str, RobotView], list[str]]:
     """The robot column for every row, and notes for stderr.
 
     ``while_waiting()`` runs while the robot is reached and lists its tree
@@ -535,7 +603,8 @@ def compare_with_robot(src: Path, found: list[Found], target: Target, *,
     if not listing.connected.wait(max(0.0, started + timeout - time.monotonic())):
         listing.abandoned = True
         return everywhere(RobotView(UNREACHABLE)), [
-            f"robot {target.robot} unreachable: no answer within {timeout:g} s"]
+            f"robot {target.robot} unreachable: no answer within {timeout:g} s"
+        ]
     synced = remembered.entries if remembered.algorithm in ("", listing.algorithm) else {}
     local = None
     if listing.error is None:
@@ -544,16 +613,19 @@ def compare_with_robot(src: Path, found: list[Found], target: Target, *,
     if not listing.finished.wait(LISTING_TIMEOUT):
         listing.abandoned = True
         return everywhere(RobotView(UNREACHABLE)), [
-            f"robot {target.robot} unreachable: no listing within {LISTING_TIMEOUT:g} s"]
+            f"robot {target.robot} unreachable: no listing within {LISTING_TIMEOUT:g} s"
+        ]
     exc = listing.error
     if isinstance(exc, (ConfigError, UsageError)):
-        raise exc   # the user's to fix, as in every other verb
+        raise exc  # the user's to fix, as in every other verb
     if isinstance(exc, TransportError):
         return everywhere(RobotView(UNREACHABLE)), [
-            f"robot {target.robot} unreachable: {_one_line(exc)}"]
+            f"robot {target.robot} unreachable: {_one_line(exc)}"
+        ]
     if isinstance(exc, FetchsyncError):
         return everywhere(RobotView(FAILED)), [
-            f"cannot compare with robot {target.robot}: {_one_line(exc)}"]
+            f"cannot compare with robot {target.robot}: {_one_line(exc)}"
+        ]
     if exc is not None:
         raise exc
     if listing.missing:
@@ -565,7 +637,7 @@ def compare_with_robot(src: Path, found: list[Found], target: Target, *,
     views = {}
     for f in found:
         if f.path != "." and f.path not in local.items:
-            views[f.path] = RobotView(EXCLUDED)   # by --exclude or a .fetchsyncignore
+            views[f.path] = RobotView(EXCLUDED)  # by --exclude or a .fetchsyncignore
         elif counts[f.path]:
             views[f.path] = RobotView(DIFFERS, counts[f.path])
         else:
@@ -574,9 +646,14 @@ def compare_with_robot(src: Path, found: list[Found], target: Target, *,
 
 
 # --------------------------------------------------------------------------- together
-def workspace_status(src: Path, *, target: Target | None = None, excludes: Iterable[str] = (),
-                     accept_fingerprint: str | None = None,
-                     timeout: float = DEFAULT_TIMEOUT) -> WorkspaceStatus:
+def workspace_status(
+    src: Path,
+    *,
+    target: Target | None = None,
+    excludes: Iterable[str] = (),
+    accept_fingerprint: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+) -> WorkspaceStatus:
     """Every repository under ``src`` with git's view and, with a ``target``, the robot's."""
     if not src.is_dir():
         raise ConfigError(f"{src} is not a directory", hint="check --workspace")
@@ -591,15 +668,23 @@ def workspace_status(src: Path, *, target: Target | None = None, excludes: Itera
     if target is None:
         ask_git()
     else:
-        views, notes = compare_with_robot(src, found, target, excludes=excludes,
-                                          accept_fingerprint=accept_fingerprint,
-                                          timeout=timeout, while_waiting=ask_git)
+        views, notes = compare_with_robot(
+            src,
+            found,
+            target,
+            excludes=excludes,
+            accept_fingerprint=accept_fingerprint,
+            timeout=timeout,
+            while_waiting=ask_git,
+        )
     for path, info in infos.items():
         if info.error is not None:
             notes.append(f"git failed in {src / path}: {info.error}")
     packages = packages_by_row(find_packages(src), [f.path for f in found])
-    rows = [Row(f, infos.get(f.path, GitInfo()), views.get(f.path), tuple(packages.get(f.path, ())))
-            for f in found]
+    rows = [
+        Row(f, infos.get(f.path, GitInfo()), views.get(f.path), tuple(packages.get(f.path, ())))
+        for f in found
+    ]
     where = None
     if target is not None:
         where = f"{target.robot}:{target.remote_workspace.rstrip('/')}/src"

@@ -20,8 +20,8 @@ from fetchsync import __version__
 from fetchsync.cli.build_flags import BuildCommand, build_options, build_request
 from fetchsync.cli.common import resolve as _resolve
 from fetchsync.cli.common import say_where, target_options
-from fetchsync.errors import ConfigError, FetchsyncError
 from fetchsync.cli.fleet import fleet_options, robots_for
+from fetchsync.errors import ConfigError, FetchsyncError
 from fetchsync.protocol.errors import ProtocolError
 
 # verb -> "module:attribute" of its click command, imported only when used
@@ -51,10 +51,19 @@ def _human(n: float) -> str:
 
 def sync_options(func: Callable[..., Any]) -> Callable[..., Any]:
     opts = [
-        click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
-                     help="Exclude paths matching PATTERN (gitignore syntax); repeatable."),
-        click.option("--json", "as_json", is_flag=True, help="Print a JSON report instead of text."),
-        click.option("--dry-run", "-n", is_flag=True, help="Show what would change; change nothing."),
+        click.option(
+            "--exclude",
+            "excludes",
+            multiple=True,
+            metavar="PATTERN",
+            help="Exclude paths matching PATTERN (gitignore syntax); repeatable.",
+        ),
+        click.option(
+            "--json", "as_json", is_flag=True, help="Print a JSON report instead of text."
+        ),
+        click.option(
+            "--dry-run", "-n", is_flag=True, help="Show what would change; change nothing."
+        ),
     ]
     for opt in reversed(opts):
         func = opt(func)
@@ -163,7 +172,9 @@ def _print_report(report: Any, as_json: bool) -> None:
     verb = "would change" if report.dry_run else ("pushed" if report.verb == "push" else "pulled")
     if report.dry_run:
         for p in report.planned:
-            click.echo(f"  {p['op']:<7} {p_(p['path'])}" + (f"  ({p_(p['how'])})" if p.get("how") else ""))
+            click.echo(
+                f"  {p['op']:<7} {p_(p['path'])}" + (f"  ({p_(p['how'])})" if p.get("how") else "")
+            )
     parts = [f"{report.files} files", f"{report.dirs} dirs"]
     if report.links:
         parts.append(f"{report.links} links")
@@ -172,9 +183,11 @@ def _print_report(report: Any, as_json: bool) -> None:
         parts.append(f"{report.reused} reused")
     if report.deltas:
         parts.append(f"{report.deltas} by delta")
-    line = (f"{report.verb}: {verb} {', '.join(parts)}; sent {_human(report.bytes_sent)}, "
-            f"received {_human(report.bytes_received)}; {len(report.conflicts)} conflicts; "
-            f"{report.seconds:.2f}s")
+    line = (
+        f"{report.verb}: {verb} {', '.join(parts)}; sent {_human(report.bytes_sent)}, "
+        f"received {_human(report.bytes_received)}; {len(report.conflicts)} conflicts; "
+        f"{report.seconds:.2f}s"
+    )
     click.echo(line)
     for c in report.conflicts:
         if c.get("refused"):
@@ -182,8 +195,11 @@ def _print_report(report: Any, as_json: bool) -> None:
         else:
             side = "on the robot" if report.verb == "push" else "locally"
             kept = "would be kept in" if report.dry_run else "is kept in"
-            click.echo(f"  conflict: {p_(c['path'])} was changed {side} since the last sync; "
-                       f"that version {kept} {p_(c['kept'])}", err=True)
+            click.echo(
+                f"  conflict: {p_(c['path'])} was changed {side} since the last sync; "
+                f"that version {kept} {p_(c['kept'])}",
+                err=True,
+            )
     for s in report.skipped:
         click.echo(f"  skipped: {p_(s['path'])}: {p_(s['reason'])}", err=True)
     for e in report.errors:
@@ -210,15 +226,18 @@ def quote_build_hint(args: list[str], option: str) -> str | None:
             break
         if args[i] == option and args[i - 1] == "--build":
             words = [option]
-            for word in args[i + 1:]:
+            for word in args[i + 1 :]:
                 if word.startswith("-"):
                     break
                 words.append(word)
             text = " ".join(words)
             if len(words) == 1:
                 return f"to pass {option} to the build tool, write --build={shlex.quote(option)}"
-            quoted = f'"{text}"' if all(c.isalnum() or c in " _-.,=:/+@%" for c in text) \
+            quoted = (
+                f'"{text}"'
+                if all(c.isalnum() or c in " _-.,=:/+@%" for c in text)
                 else shlex.quote(text)
+            )
             return f"to pass it to the build tool, quote it with its value: --build {quoted}"
     return None
 
@@ -245,10 +264,20 @@ def _quiet(ctx: click.Context, _param: click.Parameter, quiet: bool) -> None:
 def _everywhere_options() -> list[click.Option]:
     """The options every verb takes, as the group does: ``-v``, ``-q``."""
     return [
-        click.Option(["-v", "--verbose"], count=True, expose_value=False, callback=_verbose,
-                     help="More log output (repeat for debug)."),
-        click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_quiet,
-                     help="Do not say where the answer goes (the line before a robot verb starts)."),
+        click.Option(
+            ["-v", "--verbose"],
+            count=True,
+            expose_value=False,
+            callback=_verbose,
+            help="More log output (repeat for debug).",
+        ),
+        click.Option(
+            ["-q", "--quiet"],
+            is_flag=True,
+            expose_value=False,
+            callback=_quiet,
+            help="Do not say where the answer goes (the line before a robot verb starts).",
+        ),
     ]
 
 
@@ -259,6 +288,7 @@ class _Group(click.Group):
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name in LAZY_COMMANDS and name not in self.commands:
             import importlib
+
             module, attr = LAZY_COMMANDS[name].split(":")
             cmd = getattr(importlib.import_module(module), attr)
             self.add_command(cmd, name)
@@ -310,10 +340,22 @@ class _Group(click.Group):
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="fetchsync")
-@click.option("-v", "--verbose", count=True, expose_value=False, callback=_verbose,
-              help="More log output (repeat for debug); also after the verb.")
-@click.option("-q", "--quiet", is_flag=True, expose_value=False, callback=_quiet,
-              help="Do not say where the answer goes; also after the verb.")
+@click.option(
+    "-v",
+    "--verbose",
+    count=True,
+    expose_value=False,
+    callback=_verbose,
+    help="More log output (repeat for debug); also after the verb.",
+)
+@click.option(
+    "-q",
+    "--quiet",
+    is_flag=True,
+    expose_value=False,
+    callback=_quiet,
+    help="Do not say where the answer goes; also after the verb.",
+)
 def cli() -> None:
     """Mirror a ROS workspace's src/ to a robot over SSH, safely."""
 
@@ -321,16 +363,37 @@ def cli() -> None:
 @cli.command(cls=BuildCommand)
 @target_options
 @sync_options
-@click.option("--strict", is_flag=True,
-              help="Refuse to replace files changed on the robot since the last sync.")
-@click.option("--force", is_flag=True,
-              help="Push even a missing or empty src/, or one that deletes most of the robot's files.")
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Refuse to replace files changed on the robot since the last sync.",
+)
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Push even a missing or empty src/, or one that deletes most of the robot's files.",
+)
 @build_options
 @fleet_options
-def push(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-         accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
-         strict: bool, force: bool, builds: tuple[str, ...], build_type: str, build_tool: str,
-         install_deps: bool, jobs: int, fail_fast: bool, retry_failed: bool) -> None:
+def push(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    excludes: tuple[str, ...],
+    as_json: bool,
+    dry_run: bool,
+    strict: bool,
+    force: bool,
+    builds: tuple[str, ...],
+    build_type: str,
+    build_tool: str,
+    install_deps: bool,
+    jobs: int,
+    fail_fast: bool,
+    retry_failed: bool,
+) -> None:
     """Make the robot's <remote workspace>/src identical to the local src/.
 
     Files changed on the robot since the last sync are kept under
@@ -342,27 +405,44 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     Several robots (--robot a,b or @group) are pushed in parallel; a table ends it.
     """
     from fetchsync.errors import ConfigError, SyncError
-    from fetchsync.protocol.ignore import build_rules
     from fetchsync.link.session import connect
+    from fetchsync.protocol.ignore import build_rules
 
     _collect_less()
     robots = robots_for("push", robot, retry_failed=retry_failed)
     if robots is not None:
-        sys.exit(_fleet_push(robots, user=user, workspace=workspace, remote_workspace=remote_workspace,
-                            accept_host_key=accept_host_key, excludes=excludes, as_json=as_json,
-                            dry_run=dry_run, strict=strict, force=force, jobs=jobs, fail_fast=fail_fast,
-                            request=build_request(builds, build_type, build_tool, install_deps)))
+        sys.exit(
+            _fleet_push(
+                robots,
+                user=user,
+                workspace=workspace,
+                remote_workspace=remote_workspace,
+                accept_host_key=accept_host_key,
+                excludes=excludes,
+                as_json=as_json,
+                dry_run=dry_run,
+                strict=strict,
+                force=force,
+                jobs=jobs,
+                fail_fast=fail_fast,
+                request=build_request(builds, build_type, build_tool, install_deps),
+            )
+        )
     target = _resolve(robot, user, workspace, remote_workspace)
     src = target.workspace / "src"
     if not force:
         if not src.is_dir():
             # most often the wrong workspace: --force would empty the robot's src/
-            raise ConfigError(f"{src} does not exist; nothing to push",
-                              hint="check --workspace; fetchsync config shows where it came from")
+            raise ConfigError(
+                f"{src} does not exist; nothing to push",
+                hint="check --workspace; fetchsync config shows where it came from",
+            )
         if not _holds_files(src):
-            raise SyncError(f"{src} holds no files (only directories or ignore markers, if "
-                            "anything); pushing it would empty the robot's src/",
-                            hint="pass --force if that is what you want")
+            raise SyncError(
+                f"{src} holds no files (only directories or ignore markers, if "
+                "anything); pushing it would empty the robot's src/",
+                hint="pass --force if that is what you want",
+            )
     else:
         src.mkdir(parents=True, exist_ok=True)
     say_where("push", target, local=src, remote=target.remote_workspace + "/src")
@@ -384,17 +464,31 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
             with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare) as conn:
                 from fetchsync.sync.engine import Syncer
 
-                syncer = Syncer(conn, state, local_root=str(src), remote_workspace=target.remote_workspace,
-                                rules=rules, policy="refuse" if strict else "preserve")
-                report = syncer.push(dry_run=dry_run, progress=progress,
-                                     scanned=scanned[0] if scanned else None, confirm_deletions=force)
+                syncer = Syncer(
+                    conn,
+                    state,
+                    local_root=str(src),
+                    remote_workspace=target.remote_workspace,
+                    rules=rules,
+                    policy="refuse" if strict else "preserve",
+                )
+                report = syncer.push(
+                    dry_run=dry_run,
+                    progress=progress,
+                    scanned=scanned[0] if scanned else None,
+                    confirm_deletions=force,
+                )
                 report.connection = _connection_kind(conn)
         finally:
             progress.close()
             state.close()
         if force and not dry_run:
             _resume_agent(target)
-    report.robot, report.local, report.remote = target.robot, str(src), target.remote_workspace + "/src"
+    report.robot, report.local, report.remote = (
+        target.robot,
+        str(src),
+        target.remote_workspace + "/src",
+    )
     _print_report(report, as_json)
     from fetchsync.sync.engine import raise_for
 
@@ -402,8 +496,10 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
     request = build_request(builds, build_type, build_tool, install_deps)
     if request and not dry_run:
         from fetchsync.chores.build import build_on_robot
-        build_on_robot(target, request, src=src, accept_fingerprint=accept_host_key,
-                       quiet_stdout=as_json)
+
+        build_on_robot(
+            target, request, src=src, accept_fingerprint=accept_host_key, quiet_stdout=as_json
+        )
 
 
 @cli.command(cls=BuildCommand)
@@ -412,10 +508,21 @@ def push(robot: str | None, user: str | None, workspace: str | None, remote_work
 @click.option("--yes", "-y", "yes", is_flag=True, help="Do not ask for confirmation.")
 @click.option("--no-safety", "yes", is_flag=True, help="fetch_tools' name for --yes.")
 @build_options
-def pull(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-         accept_host_key: str | None, excludes: tuple[str, ...], as_json: bool, dry_run: bool,
-         yes: bool, builds: tuple[str, ...], build_type: str, build_tool: str,
-         install_deps: bool) -> None:
+def pull(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    excludes: tuple[str, ...],
+    as_json: bool,
+    dry_run: bool,
+    yes: bool,
+    builds: tuple[str, ...],
+    build_type: str,
+    build_tool: str,
+    install_deps: bool,
+) -> None:
     """Make the local src/ identical to the robot's.
 
     Asks first (unless --yes). Local files it replaces or deletes are kept in
@@ -434,66 +541,101 @@ def pull(robot: str | None, user: str | None, workspace: str | None, remote_work
         if yes:
             return True
         if not sys.stdin.isatty():
-            raise UsageError("pull would change local files and there is no terminal to ask",
-                             hint="pass --yes (or --no-safety)")
+            raise UsageError(
+                "pull would change local files and there is no terminal to ask",
+                hint="pass --yes (or --no-safety)",
+            )
         return click.confirm(
             f"pull will write {preview.files + preview.links} and delete {preview.deleted} local "
             f"paths under {target.workspace / 'src'} (replaced files are kept in .fetchsync/). Continue?",
-            default=False)
+            default=False,
+        )
 
-    say_where("pull", target, local=target.workspace / "src", remote=target.remote_workspace + "/src",
-              direction="from")
+    say_where(
+        "pull",
+        target,
+        local=target.workspace / "src",
+        remote=target.remote_workspace + "/src",
+        direction="from",
+    )
     rules = build_rules(excludes)
     progress = _Progress(not as_json)
     state = _open_state(target)
     try:
         with connect(target, accept_fingerprint=accept_host_key) as conn:
-            report = do_pull(conn, state, local_workspace=str(target.workspace),
-                             remote_workspace=target.remote_workspace, rules=rules,
-                             confirm=confirm, dry_run=dry_run, progress=progress)
+            report = do_pull(
+                conn,
+                state,
+                local_workspace=str(target.workspace),
+                remote_workspace=target.remote_workspace,
+                rules=rules,
+                confirm=confirm,
+                dry_run=dry_run,
+                progress=progress,
+            )
             report.connection = _connection_kind(conn)
     finally:
         progress.close()
         state.close()
-    report.robot, report.local, report.remote = target.robot, str(target.workspace / "src"), \
-        target.remote_workspace + "/src"
+    report.robot, report.local, report.remote = (
+        target.robot,
+        str(target.workspace / "src"),
+        target.remote_workspace + "/src",
+    )
     _print_report(report, as_json)
     raise_for(report, strict=False)
     request = build_request(builds, build_type, build_tool, install_deps)
     if request and not dry_run:
         from fetchsync.chores.build import build_locally
+
         build_locally(target.workspace, request, quiet_stdout=as_json)
 
 
-def _fleet_push(robots: Sequence[str], *, user: str | None, workspace: str | None,
-         remote_workspace: str | None, accept_host_key: str | None, excludes: Sequence[str],
-         as_json: bool, dry_run: bool, strict: bool, force: bool, request: Any, jobs: int,
-         fail_fast: bool) -> int:
+def _fleet_push(
+    robots: Sequence[str],
+    *,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    excludes: Sequence[str],
+    as_json: bool,
+    dry_run: bool,
+    strict: bool,
+    force: bool,
+    request: Any,
+    jobs: int,
+    fail_fast: bool,
+) -> int:
     """``push`` (and its build) to each robot; the exit status. The local tree is checked
     and scanned once; each robot then hashes against its own state, as a single push does."""
     from contextlib import ExitStack
 
     from fetchsync.chores.build import build_on_robot
     from fetchsync.cli.common import resolve, where_line
+    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, quiet, run_all
     from fetchsync.config import resolve_workspace
-    from fetchsync.link.connection import Connection, remote_python
     from fetchsync.console import printable
     from fetchsync.errors import SyncError
-    from fetchsync.protocol.ignore import build_rules
+    from fetchsync.link.connection import Connection, remote_python
     from fetchsync.link.session import open_transport
-    from fetchsync.sync.state import open_state
+    from fetchsync.protocol.ignore import build_rules
     from fetchsync.sync.engine import Syncer, raise_for, scan_tree
-    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, quiet, run_all
+    from fetchsync.sync.state import open_state
 
     src = resolve_workspace(workspace) / "src"
     if not force:
         if not src.is_dir():
-            raise ConfigError(f"{src} does not exist; nothing to push",
-                              hint="check --workspace; fetchsync config shows where it came from")
+            raise ConfigError(
+                f"{src} does not exist; nothing to push",
+                hint="check --workspace; fetchsync config shows where it came from",
+            )
         if not _holds_files(src):
-            raise SyncError(f"{src} holds no files (only directories or ignore markers, if "
-                            "anything); pushing it would empty the robots' src/",
-                            hint="pass --force if that is what you want")
+            raise SyncError(
+                f"{src} holds no files (only directories or ignore markers, if "
+                "anything); pushing it would empty the robots' src/",
+                hint="pass --force if that is what you want",
+            )
     else:
         src.mkdir(parents=True, exist_ok=True)
     rules = build_rules(tuple(excludes))
@@ -518,9 +660,14 @@ def _fleet_push(robots: Sequence[str], *, user: str | None, workspace: str | Non
                     stack.callback(transport.close)
                     conn = Connection.open(transport, python=remote_python())
                     stack.callback(conn.close)
-                    syncer = Syncer(conn, state, local_root=str(src),
-                                    remote_workspace=target.remote_workspace, rules=rules,
-                                    policy="refuse" if strict else "preserve")
+                    syncer = Syncer(
+                        conn,
+                        state,
+                        local_root=str(src),
+                        remote_workspace=target.remote_workspace,
+                        rules=rules,
+                        policy="refuse" if strict else "preserve",
+                    )
                     report = syncer.push(dry_run=dry_run, scanned=scanned, confirm_deletions=force)
                     report.connection = _connection_kind(conn)
             finally:
@@ -528,8 +675,14 @@ def _fleet_push(robots: Sequence[str], *, user: str | None, workspace: str | Non
             if force and not dry_run:
                 _resume_agent(target)
         report.robot, report.local, report.remote = name, str(src), target.remote_workspace + "/src"
-        result = RobotResult(name, result="ok", files=report.files, bytes_sent=report.bytes_sent,
-                             conflicts=len(report.conflicts), report=report.to_json())
+        result = RobotResult(
+            name,
+            result="ok",
+            files=report.files,
+            bytes_sent=report.bytes_sent,
+            conflicts=len(report.conflicts),
+            report=report.to_json(),
+        )
         for c in report.conflicts:
             how = "left as it is" if c.get("refused") else f"kept in {printable(c['kept'])}"
             out.line(f"conflict: {printable(c['path'])} changed on the robot; {how}")
@@ -543,8 +696,14 @@ def _fleet_push(robots: Sequence[str], *, user: str | None, workspace: str | Non
             return result
         if request and not dry_run:
             try:
-                build_on_robot(target, request, src=src, accept_fingerprint=accept_host_key,
-                               stdout=out.err if as_json else out.out, stderr=out.err)
+                build_on_robot(
+                    target,
+                    request,
+                    src=src,
+                    accept_fingerprint=accept_host_key,
+                    stdout=out.err if as_json else out.out,
+                    stderr=out.err,
+                )
             except FetchsyncError as exc:
                 result.build, result.result = "failed", "failed"
                 result.exit_code, result.error = exc.exit_code, str(exc)

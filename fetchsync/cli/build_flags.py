@@ -57,38 +57,63 @@ class BuildCommand(click.Command):
 def build_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """``--build``, ``--build-type``, ``--build-tool`` and ``--install-deps``."""
     opts = [
-        click.option(BUILD, "builds", multiple=True, metavar="[ARGS]",
-                     help="Build after syncing, passing ARGS to the build tool (--build=-j4); "
-                          "repeatable: one build each."),
-        click.option("--build-type", type=click.Choice(BUILD_TYPES), default="default",
-                     help="CMAKE_BUILD_TYPE of the builds ('default' passes none)."),
-        click.option("--build-tool", type=click.Choice(TOOLS), default="auto",
-                     help="catkin_make, catkin (catkin build) or colcon. Default: what the "
-                          "workspace is set up for."),
-        click.option("--install-deps", is_flag=True,
-                     help="Install dependencies first: rosdep update, then "
-                          "rosdep install --from-paths src --ignore-src -y."),
+        click.option(
+            BUILD,
+            "builds",
+            multiple=True,
+            metavar="[ARGS]",
+            help="Build after syncing, passing ARGS to the build tool (--build=-j4); "
+            "repeatable: one build each.",
+        ),
+        click.option(
+            "--build-type",
+            type=click.Choice(BUILD_TYPES),
+            default="default",
+            help="CMAKE_BUILD_TYPE of the builds ('default' passes none).",
+        ),
+        click.option(
+            "--build-tool",
+            type=click.Choice(TOOLS),
+            default="auto",
+            help="catkin_make, catkin (catkin build) or colcon. Default: what the "
+            "workspace is set up for.",
+        ),
+        click.option(
+            "--install-deps",
+            is_flag=True,
+            help="Install dependencies first: rosdep update, then "
+            "rosdep install --from-paths src --ignore-src -y.",
+        ),
     ]
     for opt in reversed(opts):
         func = opt(func)
     return func
 
 
-def build_request(builds: Sequence[str], build_type: str, build_tool: str,
-                  install_deps: bool) -> BuildRequest | None:
+def build_request(
+    builds: Sequence[str], build_type: str, build_tool: str, install_deps: bool
+) -> BuildRequest | None:
     """The request these options make; None when they ask for nothing (without importing
     the build module: every push and pull asks this)."""
     if not builds:
-        unused = [name for name, value, default in (("--build-type", build_type, "default"),
-                                                    ("--build-tool", build_tool, "auto"))
-                  if value != default]
+        unused = [
+            name
+            for name, value, default in (
+                ("--build-type", build_type, "default"),
+                ("--build-tool", build_tool, "auto"),
+            )
+            if value != default
+        ]
         if unused:
             verb = "has" if len(unused) == 1 else "have"
-            click.echo(f"fetchsync: warning: {' and '.join(unused)} {verb} no effect without --build",
-                       err=True)
+            click.echo(
+                f"fetchsync: warning: {' and '.join(unused)} {verb} no effect without --build",
+                err=True,
+            )
         if not install_deps:
             return None
     from fetchsync.chores.build import BuildRequest
 
-    return BuildRequest(builds=tuple(builds), build_type=build_type, tool=build_tool,
-                        install_deps=install_deps)
+    return BuildRequest(
+        builds=tuple(builds), build_type=build_type, tool=build_tool, install_deps=install_deps
+    )

@@ -12,6 +12,7 @@ import click
 def complete_robot(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[Any]:
     """``--robot`` completion (ssh config, known_hosts, fetchN): :func:`fetchsync.chores.shell.complete_robot`."""
     from fetchsync.chores.shell import complete_robot as complete
+
     return complete(ctx, param, incomplete)
 
 
@@ -22,28 +23,45 @@ def _robots(_ctx: click.Context, _param: click.Parameter, values: tuple[str, ...
     return ",".join(names) if names else None
 
 
-def target_options(func: Callable[..., Any] | None = None, *,
-                   host_key: bool = True) -> Any:
+def target_options(func: Callable[..., Any] | None = None, *, host_key: bool = True) -> Any:
     """The fetch_tools options every robot verb takes; ``host_key=False`` leaves out
     ``--accept-host-key`` (for verbs that open no connection of their own)."""
     opts = [
-        click.option("--robot", multiple=True, callback=_robots, metavar="NAME",
-                     shell_complete=complete_robot,
-                     help="Robot host name (or 'local'); push and run take several (repeated, "
-                     "a,b, or @group of robots.toml). "
-                     "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI."),
-        click.option("--user", help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
-                     "the ssh config's User, $USER."),
-        click.option("--workspace", type=click.Path(file_okay=False),
-                     help="Local workspace. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, "
-                     "the workspace around the current directory, ~/$ROS_DISTRO."),
-        click.option("--remote-workspace", help="Workspace on the robot. Default: "
-                     "$FETCHSYNC_REMOTE_WORKSPACE, $FETCH_REMOTE_WORKSPACE, the local path under ~."),
+        click.option(
+            "--robot",
+            multiple=True,
+            callback=_robots,
+            metavar="NAME",
+            shell_complete=complete_robot,
+            help="Robot host name (or 'local'); push and run take several (repeated, "
+            "a,b, or @group of robots.toml). "
+            "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI.",
+        ),
+        click.option(
+            "--user",
+            help="User on the robot. Default: $FETCHSYNC_USER, $FETCH_USER, "
+            "the ssh config's User, $USER.",
+        ),
+        click.option(
+            "--workspace",
+            type=click.Path(file_okay=False),
+            help="Local workspace. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, "
+            "the workspace around the current directory, ~/$ROS_DISTRO.",
+        ),
+        click.option(
+            "--remote-workspace",
+            help="Workspace on the robot. Default: "
+            "$FETCHSYNC_REMOTE_WORKSPACE, $FETCH_REMOTE_WORKSPACE, the local path under ~.",
+        ),
     ]
     if host_key:
-        opts.append(click.option(
-            "--accept-host-key", metavar="SHA256:...",
-            help="Accept the robot's host key with this fingerprint (shown when it is unknown)."))
+        opts.append(
+            click.option(
+                "--accept-host-key",
+                metavar="SHA256:...",
+                help="Accept the robot's host key with this fingerprint (shown when it is unknown).",
+            )
+        )
 
     def decorate(f: Callable[..., Any]) -> Callable[..., Any]:
         for opt in reversed(opts):
@@ -53,12 +71,19 @@ def target_options(func: Callable[..., Any] | None = None, *,
     return decorate(func) if func is not None else decorate
 
 
-def resolve(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None) -> Any:
+def resolve(
+    robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> Any:
     """The :class:`fetchsync.config.Target` for these options (environment as fallback)."""
     from fetchsync.config import resolve_target
-    return resolve_target(robot=robot, user=user, workspace=workspace,
-                          remote_workspace=remote_workspace, defer_ssh_user=True)
+
+    return resolve_target(
+        robot=robot,
+        user=user,
+        workspace=workspace,
+        remote_workspace=remote_workspace,
+        defer_ssh_user=True,
+    )
 
 
 ARROW = "\u2192"
@@ -75,8 +100,9 @@ def robot_place(target: Any, remote: str | None) -> str:
     return f"{who}:{remote}" if remote else who
 
 
-def where_line(verb: str, target: Any, *, local: Any = None, remote: str | None = None,
-               direction: str = "to") -> str:
+def where_line(
+    verb: str, target: Any, *, local: Any = None, remote: str | None = None, direction: str = "to"
+) -> str:
     """``push ~/noetic/src → fetch@freight0:~/noetic/src``: the verb, the local place (``~``
     for home), the robot's place with its user; ``direction`` is ``to`` the robot, ``from``
     it, or ``both`` (a comparison)."""
@@ -92,8 +118,15 @@ def where_line(verb: str, target: Any, *, local: Any = None, remote: str | None 
     return f"{verb} {here} {BOTH if direction == 'both' else ARROW} {there}"
 
 
-def say_where(verb: str, target: Any, *, local: Any = None, remote: str | None = None,
-              direction: str = "to", terminal_only: bool = False) -> None:
+def say_where(
+    verb: str,
+    target: Any,
+    *,
+    local: Any = None,
+    remote: str | None = None,
+    direction: str = "to",
+    terminal_only: bool = False,
+) -> None:
     """Say on stderr, before ``verb`` starts, where its answer goes (:func:`where_line`),
     as fetch_tools' ``Pushing X/src to user@robot:Y/src`` did.
 

@@ -22,9 +22,9 @@ ORDERS = {
     "robot": "--robot, FETCHSYNC_ROBOT, FETCH_ROBOT, the host of ROS_MASTER_URI",
     "user": "--user, FETCHSYNC_USER, FETCH_USER, the ssh config's User, $USER",
     "workspace": "--workspace, FETCHSYNC_WORKSPACE, FETCH_WORKSPACE, the workspace around the "
-                 "current directory, ~/$ROS_DISTRO",
+    "current directory, ~/$ROS_DISTRO",
     "remote workspace": "--remote-workspace, FETCHSYNC_REMOTE_WORKSPACE, FETCH_REMOTE_WORKSPACE, "
-                        "the local workspace with ~ for home",
+    "the local workspace with ~ for home",
 }
 """The order in which each target setting's sources are tried (README, Configuration)."""
 
@@ -46,8 +46,9 @@ def _variable(name: str, default: str, meaning: str, unit: str = "") -> Setting:
     return Setting(meaning, default, f"default; {name} changes it")
 
 
-def settings(*, robot: str | None, user: str | None, workspace: str | None,
-             remote_workspace: str | None) -> list[Setting]:
+def settings(
+    *, robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> list[Setting]:
     """Every setting a robot verb would use with these options, in display order."""
     from fetchsync import config
 
@@ -61,7 +62,9 @@ def settings(*, robot: str | None, user: str | None, workspace: str | None,
     if robot_name == "local":
         from fetchsync.link.transport import local_robot_home
 
-        out.append(Setting("user", None, f"none: the local robot is the directory {local_robot_home()}"))
+        out.append(
+            Setting("user", None, f"none: the local robot is the directory {local_robot_home()}")
+        )
     elif robot_name is not None:
         try:
             out.append(Setting("user", *config.user_with_source(user, host=robot_name)))
@@ -85,15 +88,25 @@ def settings(*, robot: str | None, user: str | None, workspace: str | None,
         from fetchsync.chores.build import detect_tool, local_markers, manifests
 
         tool = detect_tool(local_markers(local), manifests(local / "src"))
-        out.append(Setting("build tool", f"auto ({tool} for this workspace)",
-                           "default; --build-tool chooses, and a build on the robot "
-                           "detects it from the robot's workspace"))
+        out.append(
+            Setting(
+                "build tool",
+                f"auto ({tool} for this workspace)",
+                "default; --build-tool chooses, and a build on the robot "
+                "detects it from the robot's workspace",
+            )
+        )
     from fetchsync.link.mux import DEFAULT_PERSIST
 
     out.append(_variable("FETCHSYNC_PERSIST", f"{DEFAULT_PERSIST:g} s", "persist", " s"))
     out.append(_variable("FETCHSYNC_REMOTE_PYTHON", "python3", "remote python"))
-    out.append(Setting("ssh config", os.path.join(os.path.expanduser("~"), ".ssh", "config"),
-                       "default, OpenSSH's"))
+    out.append(
+        Setting(
+            "ssh config",
+            os.path.join(os.path.expanduser("~"), ".ssh", "config"),
+            "default, OpenSSH's",
+        )
+    )
     try:
         target = resolve(robot, user, workspace, remote_workspace)
     except ConfigError:
@@ -101,20 +114,37 @@ def settings(*, robot: str | None, user: str | None, workspace: str | None,
     from fetchsync.link.session import robot_id
     from fetchsync.sync.state import state_path
 
-    out.append(Setting("state", str(state_path(robot_id(target), target.remote_workspace)),
-                       "XDG_STATE_HOME" if os.environ.get("XDG_STATE_HOME", "").strip()
-                       else "default, under ~/.local/state; XDG_STATE_HOME moves it"))
-    out.append(Setting("a push goes", where_line("", target, local=target.workspace / "src",
-                                                 remote=target.remote_workspace + "/src").strip(),
-                       "the settings above"))
+    out.append(
+        Setting(
+            "state",
+            str(state_path(robot_id(target), target.remote_workspace)),
+            "XDG_STATE_HOME"
+            if os.environ.get("XDG_STATE_HOME", "").strip()
+            else "default, under ~/.local/state; XDG_STATE_HOME moves it",
+        )
+    )
+    out.append(
+        Setting(
+            "a push goes",
+            where_line(
+                "", target, local=target.workspace / "src", remote=target.remote_workspace + "/src"
+            ).strip(),
+            "the settings above",
+        )
+    )
     return out
 
 
 @click.command("config")
 @target_options(host_key=False)
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON list instead of the table.")
-def command(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None, as_json: bool) -> None:
+def command(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    as_json: bool,
+) -> None:
     """Show each resolved setting and where it came from.
 
     \b
@@ -139,7 +169,9 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     width = max(len(s.name) for s in found)
     for s in found:
         value = s.value if s.value is not None else "-"
-        source = s.source if s.source.startswith(("not set", "none", "default")) else f"from {s.source}"
+        source = (
+            s.source if s.source.startswith(("not set", "none", "default")) else f"from {s.source}"
+        )
         click.echo(printable(f"{s.name:<{width}}  {value}  ({source})"))
     click.echo("")
     click.echo("Each is the first of these that is set:")

@@ -52,8 +52,14 @@ def _kept_from_wire(raw: Any, where: str) -> Kept:
     from fetchsync.protocol.paths import validate
 
     try:
-        if not (isinstance(raw, list) and len(raw) >= 3 and isinstance(raw[0], str)
-                and isinstance(raw[1], str) and isinstance(raw[2], int) and raw[2] >= 0):
+        if not (
+            isinstance(raw, list)
+            and len(raw) >= 3
+            and isinstance(raw[0], str)
+            and isinstance(raw[1], str)
+            and isinstance(raw[2], int)
+            and raw[2] >= 0
+        ):
             raise PathError("malformed entry")
         if "/" in validate(raw[0]):
             raise PathError("bad time")
@@ -64,6 +70,7 @@ def _kept_from_wire(raw: Any, where: str) -> Kept:
 
 def _human(n: int) -> str:
     from fetchsync.cli import _human as human
+
     return human(n)
 
 
@@ -80,8 +87,16 @@ def read_kept(conn: Any, kept: Kept, out: Any) -> int:
     """Copy the kept file into ``out`` (a binary file), in pieces; its size."""
     offset = 0
     while True:
-        frame = conn.request({"op": "kept", "where": kept.where, "at": kept.time, "p": kept.path,
-                              "off": offset, "len": PIECE})
+        frame = conn.request(
+            {
+                "op": "kept",
+                "where": kept.where,
+                "at": kept.time,
+                "p": kept.path,
+                "off": offset,
+                "len": PIECE,
+            }
+        )
         size = frame.header.get("size")
         if not isinstance(size, int) or size < 0 or offset + len(frame.blob) > size:
             raise RemoteError(f"the robot's answer for {kept.shown} is malformed")
@@ -100,8 +115,10 @@ def choose(entries: list[Kept], path: str, at: str | None) -> Kept:
     found = [k for k in entries if k.path == path and (at is None or k.time == at)]
     if not found:
         when = f" at {printable(at)}" if at else ""
-        raise UsageError(f"the robot keeps no version of {printable(path)}{when}",
-                         hint="fetchsync conflicts list shows what it keeps")
+        raise UsageError(
+            f"the robot keeps no version of {printable(path)}{when}",
+            hint="fetchsync conflicts list shows what it keeps",
+        )
     return max(found, key=lambda k: k.time)
 
 
@@ -112,7 +129,9 @@ def _wire_path(path: str) -> str:
     try:
         return validate(path.strip("/"))
     except PathError as exc:
-        raise UsageError(f"bad path: {exc}", hint="give it relative to src/, as list shows it") from None
+        raise UsageError(
+            f"bad path: {exc}", hint="give it relative to src/, as list shows it"
+        ) from None
 
 
 def diff_lines(kept: Kept, robot: bytes, local: bytes | None, *, local_size: int) -> list[str]:
@@ -123,15 +142,28 @@ def diff_lines(kept: Kept, robot: bytes, local: bytes | None, *, local_size: int
     if local is not None and local == robot:
         return [f"{kept.path}: the robot's kept version is the same as the local file"]
     local_text = "absent" if local_size < 0 else f"{local_size} bytes"
-    if (local is None and local_size >= 0) or b"\0" in robot or (local is not None and b"\0" in local):
-        return [f"{kept.path}: binary or large files differ: robot {len(robot)} bytes, local {local_text}"]
+    if (
+        (local is None and local_size >= 0)
+        or b"\0" in robot
+        or (local is not None and b"\0" in local)
+    ):
+        return [
+            f"{kept.path}: binary or large files differ: robot {len(robot)} bytes, local {local_text}"
+        ]
     try:
         theirs = robot.decode("utf-8").splitlines(keepends=True)
         ours = local.decode("utf-8").splitlines(keepends=True) if local is not None else []
     except UnicodeDecodeError:
         return [f"{kept.path}: binary files differ: robot {len(robot)} bytes, local {local_text}"]
-    return [line.rstrip("\n") for line in difflib.unified_diff(
-        ours, theirs, fromfile=local_name if local is not None else "/dev/null", tofile=robot_name)]
+    return [
+        line.rstrip("\n")
+        for line in difflib.unified_diff(
+            ours,
+            theirs,
+            fromfile=local_name if local is not None else "/dev/null",
+            tofile=robot_name,
+        )
+    ]
 
 
 def _open_dirs(top_fd: int, parts: list[str], *, create: bool, mode: int = 0o777) -> int:
@@ -152,8 +184,10 @@ def _open_dirs(top_fd: int, parts: list[str], *, create: bool, mode: int = 0o777
     except OSError as exc:
         os.close(fd)
         if exc.errno in (errno.ELOOP, errno.ENOTDIR):
-            raise SyncError(f"a directory on the way to {'/'.join(parts)} is a symlink or a "
-                            "file: nothing restored") from None
+            raise SyncError(
+                f"a directory on the way to {'/'.join(parts)} is a symlink or a "
+                "file: nothing restored"
+            ) from None
         raise
     return fd
 
@@ -180,11 +214,15 @@ def restore_local(workspace: Path, path: str, data_file: Any) -> str | None:
                 raise SyncError(f"src/{path} is a directory here: nothing restored")
             umask = os.umask(0)
             os.umask(umask)
-            mode = stat.S_IMODE(old.st_mode) if old is not None and stat.S_ISREG(old.st_mode) \
+            mode = (
+                stat.S_IMODE(old.st_mode)
+                if old is not None and stat.S_ISREG(old.st_mode)
                 else 0o666 & ~umask
+            )
             tmp = f".fetchsync-restore-{os.getpid()}-{name}"[:255]
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600,
-                         dir_fd=dir_fd)
+            fd = os.open(
+                tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600, dir_fd=dir_fd
+            )
             try:
                 with os.fdopen(fd, "wb") as out:
                     data_file.seek(0)
@@ -199,8 +237,13 @@ def restore_local(workspace: Path, path: str, data_file: Any) -> str | None:
                     trash_parts = [".fetchsync", "trash", stamp] + parts[:-1]
                     trash_fd = _open_dirs(ws_fd, trash_parts, create=True, mode=0o700)
                     try:
-                        os.link(name, name, src_dir_fd=dir_fd, dst_dir_fd=trash_fd,
-                                follow_symlinks=False)
+                        os.link(
+                            name,
+                            name,
+                            src_dir_fd=dir_fd,
+                            dst_dir_fd=trash_fd,
+                            follow_symlinks=False,
+                        )
                     finally:
                         os.close(trash_fd)
                     kept = str(workspace / ".fetchsync" / "trash" / stamp / path)
@@ -245,17 +288,34 @@ def _read_local(workspace: Path, path: str) -> tuple[bytes | None, int]:
 
 @click.command("conflicts")
 @target_options
-@click.argument("action", required=False, default="list",
-                type=click.Choice(["list", "diff", "restore"]))
+@click.argument(
+    "action", required=False, default="list", type=click.Choice(["list", "diff", "restore"])
+)
 @click.argument("path", required=False)
-@click.option("--at", "at", metavar="TIME", help="The version kept at TIME (as list shows it); "
-              "default: the newest.")
-@click.option("--trash", is_flag=True, help="The robot's trash (files a push deleted) instead of "
-              "its conflicts.")
+@click.option(
+    "--at",
+    "at",
+    metavar="TIME",
+    help="The version kept at TIME (as list shows it); default: the newest.",
+)
+@click.option(
+    "--trash",
+    is_flag=True,
+    help="The robot's trash (files a push deleted) instead of its conflicts.",
+)
 @click.option("--json", "as_json", is_flag=True, help="list: print a JSON list.")
-def command(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None, accept_host_key: str | None, action: str,
-            path: str | None, at: str | None, trash: bool, as_json: bool) -> None:
+def command(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    action: str,
+    path: str | None,
+    at: str | None,
+    trash: bool,
+    as_json: bool,
+) -> None:
     """List, diff or restore the robot's kept versions of files.
 
     A push keeps the robot's version of each file edited there since the last
@@ -284,29 +344,49 @@ def command(robot: str | None, user: str | None, workspace: str | None,
     if action == "list":
         say_where(f"conflicts {action}", target, remote=kept_dir)
     else:
-        say_where(f"conflicts {action}", target, local=target.workspace / "src", remote=kept_dir,
-                  direction="from" if action == "restore" else "both")
+        say_where(
+            f"conflicts {action}",
+            target,
+            local=target.workspace / "src",
+            remote=kept_dir,
+            direction="from" if action == "restore" else "both",
+        )
     with connect(target, accept_fingerprint=accept_host_key) as conn:
-        conn.request({"op": "open", "workspace": target.remote_workspace, "create": False,
-                      "readonly": True})
+        conn.request(
+            {"op": "open", "workspace": target.remote_workspace, "create": False, "readonly": True}
+        )
         entries, more = list_kept(conn, where)
         if action == "list":
             if wire is not None:
                 entries = [k for k in entries if k.path == wire or k.path.startswith(wire + "/")]
             place = robot_place(target, target.remote_workspace)
             if as_json:
-                click.echo(json.dumps([{"time": k.time, "path": k.path, "size": k.size,
-                                        "kept": k.shown, "robot": target.robot,
-                                        "remote_workspace": target.remote_workspace}
-                                       for k in entries], sort_keys=True))
+                click.echo(
+                    json.dumps(
+                        [
+                            {
+                                "time": k.time,
+                                "path": k.path,
+                                "size": k.size,
+                                "kept": k.shown,
+                                "robot": target.robot,
+                                "remote_workspace": target.remote_workspace,
+                            }
+                            for k in entries
+                        ],
+                        sort_keys=True,
+                    )
+                )
             elif not entries:
                 click.echo(f"no files kept in {printable(place)}/.fetchsync/{where}/")
             else:
                 for k in entries:
                     click.echo(printable(f"{k.time}  {_human(k.size):>9}  {k.path}  ({place})"))
             if more:
-                click.echo(f"fetchsync: the robot listed only the first {len(entries)} kept files",
-                           err=True)
+                click.echo(
+                    f"fetchsync: the robot listed only the first {len(entries)} kept files",
+                    err=True,
+                )
             return
         assert wire is not None
         kept = choose(entries, wire, at)
@@ -318,7 +398,9 @@ def command(robot: str | None, user: str | None, workspace: str | None,
                 robot_bytes = data.read() if size <= MAX_DIFF else b""
                 if size > MAX_DIFF:
                     local_text = f"{local_size} bytes" if local_size >= 0 else "absent"
-                    lines = [f"{kept.path}: large files differ: robot {size} bytes, local {local_text}"]
+                    lines = [
+                        f"{kept.path}: large files differ: robot {size} bytes, local {local_text}"
+                    ]
                 else:
                     lines = diff_lines(kept, robot_bytes, local, local_size=local_size)
                 for line in lines:
@@ -327,8 +409,9 @@ def command(robot: str | None, user: str | None, workspace: str | None,
             try:
                 replaced = restore_local(target.workspace, wire, data)
             except OSError as exc:
-                raise SyncError(printable(f"cannot restore src/{wire}: {exc.strerror or exc}; "
-                                          "nothing restored")) from None
+                raise SyncError(
+                    printable(f"cannot restore src/{wire}: {exc.strerror or exc}; nothing restored")
+                ) from None
     click.echo(printable(f"restored src/{kept.path} from the robot's {kept.shown} ({size} bytes)"))
     if replaced:
         click.echo(printable(f"  the local file it replaced is kept in {replaced}"))

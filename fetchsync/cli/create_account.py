@@ -27,10 +27,13 @@ def _refuse_password_option(ctx: click.Context, param: click.Parameter, value: A
     # fetch_tools took passwords as options, which shows them to every `ps` on the laptop.
     if value is not None:
         from fetchsync.errors import UsageError
-        raise UsageError(f"{param.opts[0]} is not supported: a password on the command line is "
-                         "visible to every user of this machine",
-                         hint=f"type it when asked, or set {NEW_PASSWORD_VAR} / "
-                              f"{ADMIN_PASSWORD_VAR} for scripts")
+
+        raise UsageError(
+            f"{param.opts[0]} is not supported: a password on the command line is "
+            "visible to every user of this machine",
+            hint=f"type it when asked, or set {NEW_PASSWORD_VAR} / "
+            f"{ADMIN_PASSWORD_VAR} for scripts",
+        )
 
 
 class _Secret:
@@ -52,10 +55,13 @@ class _Secret:
             value = self._given
             if not value:
                 if not sys.stdin.isatty():
-                    raise UsageError(f"{self.prompt.lower()} is needed and there is no terminal "
-                                     "to ask it on", hint=f"set {self.variable}")
-                value = click.prompt(self.prompt, hide_input=True,
-                                     confirmation_prompt=self.confirm, err=True)
+                    raise UsageError(
+                        f"{self.prompt.lower()} is needed and there is no terminal to ask it on",
+                        hint=f"set {self.variable}",
+                    )
+                value = click.prompt(
+                    self.prompt, hide_input=True, confirmation_prompt=self.confirm, err=True
+                )
             self._value = check_password(value, what=self.prompt.lower())
         return self._value
 
@@ -65,9 +71,20 @@ def _login_callback(admin_password: _Secret) -> Callable[[str], str | None]:
         if prompt.startswith("Enter passphrase"):
             if not sys.stdin.isatty():
                 return None
-            return str(click.prompt(prompt.rstrip(": "), hide_input=True, default="",
-                                    show_default=False, err=True)) or None
+            return (
+                str(
+                    click.prompt(
+                        prompt.rstrip(": "),
+                        hide_input=True,
+                        default="",
+                        show_default=False,
+                        err=True,
+                    )
+                )
+                or None
+            )
         return admin_password.get()
+
     return answer
 
 
@@ -84,8 +101,9 @@ def _account_user(option: str | None) -> str:
     return getpass.getuser()
 
 
-def _account_workspace(robot: str | None, user: str, workspace: str | None,
-                       remote_workspace: str | None) -> str | None:
+def _account_workspace(
+    robot: str | None, user: str, workspace: str | None, remote_workspace: str | None
+) -> str | None:
     """The account's workspace on the robot, resolved by the very call ``push`` makes, so
     the two agree; None when no workspace resolves (the robot's initialize.sh chooses)."""
     from fetchsync.cli.common import resolve
@@ -108,8 +126,14 @@ def _say_where(robot: str, user: str, workspace: str | None) -> None:
     from fetchsync.cli.common import say_where
     from fetchsync.config import Target
 
-    place = Target(robot=robot, host=robot, user=user, workspace=Path.home(),
-                   remote_workspace=workspace or "", is_local=False)
+    place = Target(
+        robot=robot,
+        host=robot,
+        user=user,
+        workspace=Path.home(),
+        remote_workspace=workspace or "",
+        is_local=False,
+    )
     say_where("create-account", place, remote=workspace)
 
 
@@ -117,8 +141,10 @@ def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
     if report.created:
         click.echo(f"create-account: created {report.user} on {report.robot} (home {report.home})")
     else:
-        click.echo(f"create-account: {report.user} already existed on {report.robot}; "
-                   f"checked and repaired (home {report.home})")
+        click.echo(
+            f"create-account: {report.user} already existed on {report.robot}; "
+            f"checked and repaired (home {report.home})"
+        )
     click.echo(f"  password: {'set' if report.password_set else 'unchanged'}")
     groups = f"added {', '.join(report.groups_added)}" if report.groups_added else "all present"
     if report.groups_absent:
@@ -135,49 +161,95 @@ def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
         where = f" in ~/{report.workspace_file}" if report.workspace_file else ""
         click.echo(f"  workspace: {report.workspace} ({how}{where}{was})")
     elif report.workspace_record == "unresolved":
-        click.echo("  workspace: none resolved here (source ROS or pass --workspace, then run "
-                   "create-account again to record it)")
+        click.echo(
+            "  workspace: none resolved here (source ROS or pass --workspace, then run "
+            "create-account again to record it)"
+        )
 
 
 _KEY_WORDS = {"added": "added", "present": "already there", "none": "none installed"}
-_WORKSPACE_WORDS = {"written": "recorded", "updated": "recorded", "kept": "already recorded",
-                    "yours": "your own file, left as it is", "initialize.sh": "chosen by initialize.sh"}
-_INIT_WORDS = {"ran": "ran", "already": "had already run", "failed": "FAILED",
-               "none": "not in the skeleton"}
+_WORKSPACE_WORDS = {
+    "written": "recorded",
+    "updated": "recorded",
+    "kept": "already recorded",
+    "yours": "your own file, left as it is",
+    "initialize.sh": "chosen by initialize.sh",
+}
+_INIT_WORDS = {
+    "ran": "ran",
+    "already": "had already run",
+    "failed": "FAILED",
+    "none": "not in the skeleton",
+}
 
 
 @click.command("create-account")
-@click.option("--robot", shell_complete=complete_robot, help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, "
-              "the host of $ROS_MASTER_URI.")
-@click.option("--user", "user", metavar="NAME",
-              help="The account to create on the robot (not the login: see --admin-user). "
-                   "Default: $FETCHSYNC_USER, $FETCH_USER, $USER.")
+@click.option(
+    "--robot",
+    shell_complete=complete_robot,
+    help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI.",
+)
+@click.option(
+    "--user",
+    "user",
+    metavar="NAME",
+    help="The account to create on the robot (not the login: see --admin-user). "
+    "Default: $FETCHSYNC_USER, $FETCH_USER, $USER.",
+)
 @click.option("--fullname", help="The user's full name. Default: NAME.")
-@click.option("--admin-user", default="fetch", show_default=True, envvar="FETCHSYNC_ADMIN_USER",
-              help="The account that logs in and creates it: root, or a user with sudo rights.")
-@click.option("--skeleton", type=click.Path(file_okay=False),
-              help="Home-directory skeleton to copy. Default: ~/.fetchsync/robot_skeleton, "
-                   "~/.fetch/robot_skeleton, else the built-in one.")
-@click.option("--key", type=click.Path(dir_okay=False),
-              help="Public key to install. "
-                   "Default: ~/.ssh/id_ed25519.pub, id_ecdsa.pub, id_rsa.pub.")
-@click.option("--workspace", type=click.Path(file_okay=False),
-              help="Local workspace whose robot counterpart the account uses, as push resolves "
-                   "it. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, ~/$ROS_DISTRO.")
-@click.option("--remote-workspace", help="The account's workspace on the robot. Default: as push "
-              "resolves it, else initialize.sh's choice (~/$ROS_DISTRO of the robot).")
-@click.option("--reset-password", is_flag=True,
-              help="Set the password of an account that already exists.")
-@click.option("--accept-host-key", metavar="SHA256:...",
-              help="Accept the robot's host key with this fingerprint (shown when it is unknown).")
+@click.option(
+    "--admin-user",
+    default="fetch",
+    show_default=True,
+    envvar="FETCHSYNC_ADMIN_USER",
+    help="The account that logs in and creates it: root, or a user with sudo rights.",
+)
+@click.option(
+    "--skeleton",
+    type=click.Path(file_okay=False),
+    help="Home-directory skeleton to copy. Default: ~/.fetchsync/robot_skeleton, "
+    "~/.fetch/robot_skeleton, else the built-in one.",
+)
+@click.option(
+    "--key",
+    type=click.Path(dir_okay=False),
+    help="Public key to install. Default: ~/.ssh/id_ed25519.pub, id_ecdsa.pub, id_rsa.pub.",
+)
+@click.option(
+    "--workspace",
+    type=click.Path(file_okay=False),
+    help="Local workspace whose robot counterpart the account uses, as push resolves "
+    "it. Default: $FETCHSYNC_WORKSPACE, $FETCH_WORKSPACE, ~/$ROS_DISTRO.",
+)
+@click.option(
+    "--remote-workspace",
+    help="The account's workspace on the robot. Default: as push "
+    "resolves it, else initialize.sh's choice (~/$ROS_DISTRO of the robot).",
+)
+@click.option(
+    "--reset-password", is_flag=True, help="Set the password of an account that already exists."
+)
+@click.option(
+    "--accept-host-key",
+    metavar="SHA256:...",
+    help="Accept the robot's host key with this fingerprint (shown when it is unknown).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON report instead of text.")
 @click.option("--password", expose_value=False, hidden=True, callback=_refuse_password_option)
-@click.option("--fetch-password", expose_value=False, hidden=True,
-              callback=_refuse_password_option)
-def command(robot: str | None, user: str | None, fullname: str | None, admin_user: str,
-            skeleton: str | None, key: str | None, workspace: str | None,
-            remote_workspace: str | None,
-            reset_password: bool, accept_host_key: str | None, as_json: bool) -> None:
+@click.option("--fetch-password", expose_value=False, hidden=True, callback=_refuse_password_option)
+def command(
+    robot: str | None,
+    user: str | None,
+    fullname: str | None,
+    admin_user: str,
+    skeleton: str | None,
+    key: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    reset_password: bool,
+    accept_host_key: str | None,
+    as_json: bool,
+) -> None:
     """Create a user's account on the robot, or repair an existing one.
 
     Through the admin login (root directly, anyone else through sudo): creates
@@ -205,8 +277,8 @@ def command(robot: str | None, user: str | None, fullname: str | None, admin_use
         read_public_key,
     )
     from fetchsync.config import resolve_robot
-    from fetchsync.link.connection import remote_python
     from fetchsync.errors import RemoteError, UsageError
+    from fetchsync.link.connection import remote_python
     from fetchsync.link.transport import LOCAL_ROBOT
 
     name = check_user_name(_account_user(user))
@@ -214,15 +286,19 @@ def command(robot: str | None, user: str | None, fullname: str | None, admin_use
     check_user_name(admin)
     target = resolve_robot(robot)
     if target == LOCAL_ROBOT:
-        raise UsageError("create-account needs a real robot, not the local one",
-                         hint="pass --robot NAME")
+        raise UsageError(
+            "create-account needs a real robot, not the local one", hint="pass --robot NAME"
+        )
     skeleton_dir = find_skeleton(skeleton)
     sk = load_skeleton(skeleton_dir)
     key_path = find_public_key(key)
     public_key = read_public_key(key_path) if key_path is not None else None
     if public_key is None:
-        click.echo("create-account: warning: no public key found (~/.ssh/id_*.pub); "
-                   "none is installed, pass --key FILE to add one", err=True)
+        click.echo(
+            "create-account: warning: no public key found (~/.ssh/id_*.pub); "
+            "none is installed, pass --key FILE to add one",
+            err=True,
+        )
     env = {}
     distro = os.environ.get("ROS_DISTRO", "").strip()
     if distro:
@@ -236,26 +312,40 @@ def command(robot: str | None, user: str | None, fullname: str | None, admin_use
     new_password = _Secret(NEW_PASSWORD_VAR, f"New password for {name}", confirm=True)
 
     from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only now
-    transport = SSHTransport.connect(target, user=admin, accept_fingerprint=accept_host_key,
-                                     password_callback=_login_callback(admin_password))
+
+    transport = SSHTransport.connect(
+        target,
+        user=admin,
+        accept_fingerprint=accept_host_key,
+        password_callback=_login_callback(admin_password),
+    )
     try:
         session = AdminSession(transport, admin=admin, robot=target, python=remote_python())
         found = session.probe(name)
         if found.exists and not as_json:
-            click.echo(f"create-account: {name} already exists on {target}; "
-                       "adding what is missing", err=True)
+            click.echo(
+                f"create-account: {name} already exists on {target}; adding what is missing",
+                err=True,
+            )
         password = new_password.get() if not found.exists or reset_password else None
         sudo_password = None
         if not found.admin_is_root and session.sudo_asks_password():
             sudo_password = admin_password.get()
             session.check_sudo(sudo_password)
-        request = AccountRequest(user=name, fullname=check_fullname(fullname or name),
-                                 groups=GROUPS, key=public_key, skeleton=sk, env=env,
-                                 password=password, workspace=account_ws,
-                                 ros_snippet="fetch_tools" if is_legacy_skeleton(skeleton_dir)
-                                 else "fetchsync")
-        report = session.apply(request, sudo=not found.admin_is_root,
-                               sudo_password=sudo_password, on_stderr=_to_stderr)
+        request = AccountRequest(
+            user=name,
+            fullname=check_fullname(fullname or name),
+            groups=GROUPS,
+            key=public_key,
+            skeleton=sk,
+            env=env,
+            password=password,
+            workspace=account_ws,
+            ros_snippet="fetch_tools" if is_legacy_skeleton(skeleton_dir) else "fetchsync",
+        )
+        report = session.apply(
+            request, sudo=not found.admin_is_root, sudo_password=sudo_password, on_stderr=_to_stderr
+        )
     finally:
         transport.close()
     report.skeleton = str(sk.source)

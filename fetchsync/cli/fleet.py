@@ -34,6 +34,8 @@ DEFAULT_JOBS = 8
 of links that are each a Wi-Fi hop (the laptop's CPU is rarely what they wait on)."""
 
 MAX_JOBS = 64
+
+
 # --------------------------------------------------------------------------- naming
 def names_given(robot: str | None, *, environ: Mapping[str, str] = os.environ) -> list[str] | None:
     """The robots of the option or the robot variables when they name a fleet (a list or a
@@ -58,12 +60,12 @@ class RobotResult:
     """One robot's row of the table, and its entry in ``--json``'s list."""
 
     robot: str
-    result: str = "not started"      # "ok", "failed", "not started"
+    result: str = "not started"  # "ok", "failed", "not started"
     exit_code: int = 0
     files: int | None = None
     bytes_sent: int | None = None
     conflicts: int | None = None
-    build: str = "-"                 # "-", "ok", "failed"
+    build: str = "-"  # "-", "ok", "failed"
     seconds: float = 0.0
     error: str = ""
     report: dict[str, Any] = field(default_factory=dict)
@@ -74,8 +76,15 @@ class RobotResult:
 
     def to_json(self) -> dict[str, Any]:
         out = dict(self.report)
-        out.update(robot=self.robot, ok=self.ok, result=self.result, exit_code=self.exit_code,
-                   build=self.build, fleet_seconds=round(self.seconds, 3), error=self.error)
+        out.update(
+            robot=self.robot,
+            ok=self.ok,
+            result=self.result,
+            exit_code=self.exit_code,
+            build=self.build,
+            fleet_seconds=round(self.seconds, 3),
+            error=self.error,
+        )
         return out
 
 
@@ -95,19 +104,31 @@ def table(results: Sequence[RobotResult]) -> str:
     from fetchsync.console import printable
 
     head = ("robot", "result", "files", "bytes", "conflicts", "build", "time", "error")
-    rows = [head] + [(printable(r.robot), r.result, "-" if r.files is None else str(r.files),
-                      _human(r.bytes_sent), "-" if r.conflicts is None else str(r.conflicts),
-                      r.build, f"{r.seconds:.1f}s", printable(r.error) or "-") for r in results]
+    rows = [head] + [
+        (
+            printable(r.robot),
+            r.result,
+            "-" if r.files is None else str(r.files),
+            _human(r.bytes_sent),
+            "-" if r.conflicts is None else str(r.conflicts),
+            r.build,
+            f"{r.seconds:.1f}s",
+            printable(r.error) or "-",
+        )
+        for r in results
+    ]
     widths = [max(len(row[i]) for row in rows) for i in range(len(head) - 1)]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths)) + "  " + row[-1]
-                     for row in rows)
+    return "\n".join(
+        "  ".join(c.ljust(w) for c, w in zip(row, widths)) + "  " + row[-1] for row in rows
+    )
 
 
 def exit_status(results: Sequence[RobotResult]) -> int:
     """0 when every robot succeeded; else the failures' common exit status, or 1 when they
     differ (robots not started after ``--fail-fast`` add none of their own)."""
-    codes = {r.exit_code or 1 for r in results if r.result == "failed"} or \
-        {1 for r in results if not r.ok}
+    codes = {r.exit_code or 1 for r in results if r.result == "failed"} or {
+        1 for r in results if not r.ok
+    }
     if not codes:
         return 0
     return codes.pop() if len(codes) == 1 else 1
@@ -115,21 +136,28 @@ def exit_status(results: Sequence[RobotResult]) -> int:
 
 def last_path() -> Path:
     from fetchsync.sync.state import state_dir
+
     return state_dir() / "fleet-last.json"
 
 
 def save_last(verb: str, results: Sequence[RobotResult]) -> None:
     """Keep which robots failed, for ``--retry-failed`` (best effort: a note when it cannot)."""
     path = last_path()
-    data = {"verb": verb, "robots": [r.robot for r in results],
-            "failed": [r.robot for r in results if not r.ok]}
+    data = {
+        "verb": verb,
+        "robots": [r.robot for r in results],
+        "failed": [r.robot for r in results if not r.ok],
+    }
     try:
         path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         tmp = path.with_name(f".{path.name}.{os.getpid()}")
         tmp.write_text(json.dumps(data))
         os.replace(tmp, path)
     except OSError as exc:
-        _write(2, f"fetchsync: note: cannot keep this fleet's result in {path}: {exc.strerror or exc}\n")
+        _write(
+            2,
+            f"fetchsync: note: cannot keep this fleet's result in {path}: {exc.strerror or exc}\n",
+        )
 
 
 def failed_last(verb: str) -> list[str]:
@@ -178,8 +206,9 @@ class Prefixed:
 
     def _pipe(self, target: int) -> int:
         r, w = os.pipe()
-        thread = threading.Thread(target=self._pump, args=(r, target), daemon=True,
-                                  name=f"fetchsync-prefix{self.prefix}")
+        thread = threading.Thread(
+            target=self._pump, args=(r, target), daemon=True, name=f"fetchsync-prefix{self.prefix}"
+        )
         thread.start()
         self._pumps.append(thread)
         return w
@@ -194,8 +223,12 @@ class Prefixed:
                 pending += chunk
                 *lines, pending = pending.split(b"\n")
                 if lines:
-                    _write(target, "".join(f"{self.prefix}{line.decode('utf-8', 'replace')}\n"
-                                           for line in lines))
+                    _write(
+                        target,
+                        "".join(
+                            f"{self.prefix}{line.decode('utf-8', 'replace')}\n" for line in lines
+                        ),
+                    )
             if pending:
                 _write(target, f"{self.prefix}{pending.decode('utf-8', 'replace')}\n")
         finally:
@@ -224,8 +257,14 @@ def question_lock() -> Any:
     return threading.Lock() if terminal_prompt() is not None else nullcontext()
 
 
-def run_all(robots: Sequence[str], work: Callable[[str, Prefixed], RobotResult], *,
-            jobs: int, fail_fast: bool, stdout: int = 1) -> list[RobotResult]:
+def run_all(
+    robots: Sequence[str],
+    work: Callable[[str, Prefixed], RobotResult],
+    *,
+    jobs: int,
+    fail_fast: bool,
+    stdout: int = 1,
+) -> list[RobotResult]:
     """``work(robot, output)`` for each robot, ``jobs`` at a time; with ``fail_fast`` no
     robot starts after one failed (those are "not started"). One robot's exception is
     its row, never the others' end."""
@@ -247,8 +286,12 @@ def run_all(robots: Sequence[str], work: Callable[[str, Prefixed], RobotResult],
             result = RobotResult(name, result="failed", exit_code=exc.exit_code, error=str(exc))
             out.line(f"fetchsync: error: {printable(exc)}")
         except Exception as exc:  # noqa: BLE001 - a bug on one robot is its row, not a traceback
-            result = RobotResult(name, result="failed", exit_code=1,
-                                 error=f"internal error: {type(exc).__name__}: {exc}")
+            result = RobotResult(
+                name,
+                result="failed",
+                exit_code=1,
+                error=f"internal error: {type(exc).__name__}: {exc}",
+            )
             out.line(f"fetchsync: error: {result.error}")
         finally:
             out.close()
@@ -257,8 +300,9 @@ def run_all(robots: Sequence[str], work: Callable[[str, Prefixed], RobotResult],
         if not result.ok:
             stop.set()
 
-    pool = ThreadPoolExecutor(max_workers=max(1, min(jobs, len(robots))),
-                              thread_name_prefix="fetchsync-fleet")
+    pool = ThreadPoolExecutor(
+        max_workers=max(1, min(jobs, len(robots))), thread_name_prefix="fetchsync-fleet"
+    )
     try:
         for future in [pool.submit(one, name) for name in robots]:
             future.result()
@@ -276,10 +320,13 @@ def finish(verb: str, results: Sequence[RobotResult], *, as_json: bool = False) 
     failed = [r.robot for r in results if r.result == "failed"]
     left = [r.robot for r in results if r.result == "not started"]
     ok = len(results) - len(failed) - len(left)
-    _write(2, f"{verb}: {ok} of {len(results)} robots succeeded"
-              + (f"; failed: {', '.join(failed)}" if failed else "")
-              + (f"; not started: {', '.join(left)}" if left else "")
-              + ("; --retry-failed runs again on those\n" if failed or left else "\n"))
+    _write(
+        2,
+        f"{verb}: {ok} of {len(results)} robots succeeded"
+        + (f"; failed: {', '.join(failed)}" if failed else "")
+        + (f"; not started: {', '.join(left)}" if left else "")
+        + ("; --retry-failed runs again on those\n" if failed or left else "\n"),
+    )
     if as_json:
         _write(1, json.dumps([r.to_json() for r in results], sort_keys=True) + "\n")
     save_last(verb, results)
@@ -292,12 +339,24 @@ def fleet_options(func: Callable[..., Any]) -> Callable[..., Any]:
     import click
 
     opts = [
-        click.option("--jobs", "-j", type=click.IntRange(1, MAX_JOBS), default=DEFAULT_JOBS,
-                     show_default=True, help="With several robots: how many at once."),
-        click.option("--fail-fast", is_flag=True,
-                     help="With several robots: start no more robots once one failed."),
-        click.option("--retry-failed", is_flag=True,
-                     help="Run again on the robots that failed in the last call on several robots."),
+        click.option(
+            "--jobs",
+            "-j",
+            type=click.IntRange(1, MAX_JOBS),
+            default=DEFAULT_JOBS,
+            show_default=True,
+            help="With several robots: how many at once.",
+        ),
+        click.option(
+            "--fail-fast",
+            is_flag=True,
+            help="With several robots: start no more robots once one failed.",
+        ),
+        click.option(
+            "--retry-failed",
+            is_flag=True,
+            help="Run again on the robots that failed in the last call on several robots.",
+        ),
     ]
     for opt in reversed(opts):
         func = opt(func)
@@ -308,7 +367,9 @@ def robots_for(verb: str, robot: str | None, *, retry_failed: bool) -> list[str]
     """The robots a fleet ``verb`` runs on, or None for the single-robot verb."""
     if retry_failed:
         if robot:
-            raise UsageError("--retry-failed takes the robots that failed last time: give no --robot")
+            raise UsageError(
+                "--retry-failed takes the robots that failed last time: give no --robot"
+            )
         return failed_last(verb)
     return names_given(robot)
 

@@ -12,8 +12,8 @@ from typing import Any
 import click
 
 from fetchsync.cli.common import resolve, say_where, target_options
-from fetchsync.errors import ConfigError, LinkLostError, TransportError
 from fetchsync.cli.fleet import fleet_options, robots_for
+from fetchsync.errors import ConfigError, LinkLostError, TransportError
 
 LINK_EXIT = 255
 """Exit status when fetchsync itself fails to run the command, as ssh's."""
@@ -34,7 +34,7 @@ class _RunCommand(click.Command):
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         if "--" in args:
-            ctx.meta[_AFTER_DASHES] = list(args[args.index("--") + 1:])
+            ctx.meta[_AFTER_DASHES] = list(args[args.index("--") + 1 :])
         return super().parse_args(ctx, args)
 
 
@@ -45,8 +45,9 @@ def remote_command_line(words: Sequence[str], *, argv_form: bool) -> str:
     return command_line(words) if argv_form else " ".join(words)
 
 
-def _target(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None) -> tuple[Any, str | None]:
+def _target(
+    robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> tuple[Any, str | None]:
     """The target, and its remote workspace when one is known: run needs no local one.
 
     The remote workspace is the option or a variable, else the local workspace's
@@ -85,17 +86,34 @@ def _ending_signals() -> Iterator[None]:
             signal.signal(sig, handler)
 
 
-@click.command(cls=_RunCommand, context_settings={"allow_interspersed_args": False,
-                                                   "ignore_unknown_options": True})
+@click.command(
+    cls=_RunCommand,
+    context_settings={"allow_interspersed_args": False, "ignore_unknown_options": True},
+)
 @target_options
-@click.option("--tty/--no-tty", "-t/-T", "tty", default=None,
-              help="Run the command on a terminal (PTY) on the robot. Default: when stdin is a terminal.")
+@click.option(
+    "--tty/--no-tty",
+    "-t/-T",
+    "tty",
+    default=None,
+    help="Run the command on a terminal (PTY) on the robot. Default: when stdin is a terminal.",
+)
 @fleet_options
 @click.argument("words", nargs=-1, required=True, type=click.UNPROCESSED, metavar="COMMAND...")
 @click.pass_context
-def command(ctx: click.Context, robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None, accept_host_key: str | None, tty: bool | None,
-            jobs: int, fail_fast: bool, retry_failed: bool, words: tuple[str, ...]) -> None:
+def command(
+    ctx: click.Context,
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    tty: bool | None,
+    jobs: int,
+    fail_fast: bool,
+    retry_failed: bool,
+    words: tuple[str, ...],
+) -> None:
     """Run COMMAND on the robot, with the robot's ROS environment.
 
     \b
@@ -108,17 +126,27 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     255 when fetchsync could not run it. On several robots (--robot a,b or
     @group) it runs on each in parallel, its output prefixed [robot].
     """
-    from fetchsync.link.connection import remote_python
-    from fetchsync.console import NO_STATUS, attach
     from fetchsync.chores.remote import ros_environment, script, wrap
+    from fetchsync.console import NO_STATUS, attach
+    from fetchsync.link.connection import remote_python
     from fetchsync.link.session import open_transport
 
     argv_form = ctx.meta.get(_AFTER_DASHES) == list(words)
     line = remote_command_line(words, argv_form=argv_form)
     robots = robots_for("run", robot, retry_failed=retry_failed)
     if robots is not None:
-        ctx.exit(_fleet_run(robots, user=user, workspace=workspace, remote_workspace=remote_workspace,
-                           accept_host_key=accept_host_key, line=line, jobs=jobs, fail_fast=fail_fast))
+        ctx.exit(
+            _fleet_run(
+                robots,
+                user=user,
+                workspace=workspace,
+                remote_workspace=remote_workspace,
+                accept_host_key=accept_host_key,
+                line=line,
+                jobs=jobs,
+                fail_fast=fail_fast,
+            )
+        )
     target, remote_ws = _target(robot, user, workspace, remote_workspace)
     # stderr is the command's: said only to a person watching it
     say_where("run on", target, remote=remote_ws, terminal_only=True)
@@ -130,8 +158,9 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     try:
         with _ending_signals():
             try:
-                transport = open_transport(target, accept_fingerprint=accept_host_key,
-                                           persistent=False)
+                transport = open_transport(
+                    target, accept_fingerprint=accept_host_key, persistent=False
+                )
                 channel = transport.exec(wrap(body, tty=pty, python=remote_python()), pty=pty)
                 status = attach(channel, pty=pty)
             except BrokenPipeError:
@@ -146,7 +175,9 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     except _Interrupted as stop:
         if channel is not None:
             channel.close()
-        click.echo(f"fetchsync: interrupted; the command on {target.robot} is being stopped", err=True)
+        click.echo(
+            f"fetchsync: interrupted; the command on {target.robot} is being stopped", err=True
+        )
         ctx.exit(128 + stop.signum)
     finally:
         if channel is not None:
@@ -154,21 +185,38 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
         if transport is not None:
             transport.close()
     if status == NO_STATUS:
-        click.echo(f"fetchsync: the command on {target.robot} ended without an exit status", err=True)
+        click.echo(
+            f"fetchsync: the command on {target.robot} ended without an exit status", err=True
+        )
         ctx.exit(LINK_EXIT)
     ctx.exit(status)
 
 
-def _fleet_run(robots: Sequence[str], *, user: str | None, workspace: str | None,
-        remote_workspace: str | None, accept_host_key: str | None, line: str, jobs: int,
-        fail_fast: bool) -> int:
+def _fleet_run(
+    robots: Sequence[str],
+    *,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    line: str,
+    jobs: int,
+    fail_fast: bool,
+) -> int:
     """``run`` of one command line on each robot, with an empty stdin (several robots cannot
     share ours) and no terminal; its output prefixed per robot; the exit status."""
-    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, remote_option, run_all
-    from fetchsync.link.connection import remote_python
+    from fetchsync.chores.remote import ros_environment, script, wrap
+    from fetchsync.cli.fleet import (
+        Prefixed,
+        RobotResult,
+        finish,
+        question_lock,
+        remote_option,
+        run_all,
+    )
     from fetchsync.console import NO_STATUS, attach
     from fetchsync.errors import TransportError
-    from fetchsync.chores.remote import ros_environment, script, wrap
+    from fetchsync.link.connection import remote_python
     from fetchsync.link.session import open_transport
 
     asking = question_lock()
@@ -178,8 +226,9 @@ def _fleet_run(robots: Sequence[str], *, user: str | None, workspace: str | None
         body = script(line, environment=ros_environment(remote_ws))
         try:
             with asking:
-                transport = open_transport(target, accept_fingerprint=accept_host_key,
-                                           persistent=False)
+                transport = open_transport(
+                    target, accept_fingerprint=accept_host_key, persistent=False
+                )
             try:
                 channel = transport.exec(wrap(body, tty=False, python=remote_python()), pty=False)
                 try:
@@ -192,10 +241,16 @@ def _fleet_run(robots: Sequence[str], *, user: str | None, workspace: str | None
             exc.exit_code = LINK_EXIT
             raise
         if status == NO_STATUS:
-            return RobotResult(name, result="failed", exit_code=LINK_EXIT,
-                               error="the command ended without an exit status")
+            return RobotResult(
+                name,
+                result="failed",
+                exit_code=LINK_EXIT,
+                error="the command ended without an exit status",
+            )
         if status != 0:
-            return RobotResult(name, result="failed", exit_code=status, error=f"exit status {status}")
+            return RobotResult(
+                name, result="failed", exit_code=status, error=f"exit status {status}"
+            )
         return RobotResult(name, result="ok")
 
     results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast)

@@ -15,7 +15,6 @@ from typing import Any
 
 import click
 
-from fetchsync.cli.common import resolve, target_options
 from fetchsync.chores.snapshot import (
     DEFAULT_BAG_DURATION,
     DEFAULT_JOBS,
@@ -30,6 +29,7 @@ from fetchsync.chores.snapshot import (
     parse_extra,
     select_collectors,
 )
+from fetchsync.cli.common import resolve, target_options
 
 PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
 FETCH_TOOLS_NAME = "debug-snapshot"
@@ -39,50 +39,120 @@ FETCH_LOGIN = "fetch"
 
 @click.command("snapshot")
 @target_options
-@click.option("--profile", type=click.Choice(sorted(PROFILES)), default=None,
-              help="What to collect: generic (the default), or fetch: fetch_tools' "
-                   "debug-snapshot (read_board, robot/roscore/joystick services, robot.log, "
-                   "syslog, netplan, roswtf, a 10 s bag...), logged in as fetch unless --user. "
-                   "Default: fetch when called as debug-snapshot.")
-@click.option("--zip/--tar", "as_zip", default=None,
-              help="Write a .zip (as fetch_tools) or a .tar.gz. Default: .zip when called as "
-                   "debug-snapshot or --output ends in .zip, else .tar.gz.")
-@click.option("--output", "-o", type=click.Path(), default=".",
-              help="Archive path, or a directory for snapshot-<robot>-<time>.tar.gz. "
-              "Default: the current directory.")
-@click.option("--only", multiple=True, metavar="NAME",
-              help="Run only this collector; repeatable (see --list).")
+@click.option(
+    "--profile",
+    type=click.Choice(sorted(PROFILES)),
+    default=None,
+    help="What to collect: generic (the default), or fetch: fetch_tools' "
+    "debug-snapshot (read_board, robot/roscore/joystick services, robot.log, "
+    "syslog, netplan, roswtf, a 10 s bag...), logged in as fetch unless --user. "
+    "Default: fetch when called as debug-snapshot.",
+)
+@click.option(
+    "--zip/--tar",
+    "as_zip",
+    default=None,
+    help="Write a .zip (as fetch_tools) or a .tar.gz. Default: .zip when called as "
+    "debug-snapshot or --output ends in .zip, else .tar.gz.",
+)
+@click.option(
+    "--output",
+    "-o",
+    type=click.Path(),
+    default=".",
+    help="Archive path, or a directory for snapshot-<robot>-<time>.tar.gz. "
+    "Default: the current directory.",
+)
+@click.option(
+    "--only",
+    multiple=True,
+    metavar="NAME",
+    help="Run only this collector; repeatable (see --list).",
+)
 @click.option("--skip", multiple=True, metavar="NAME", help="Leave this collector out; repeatable.")
-@click.option("--extra", multiple=True, metavar="NAME=COMMAND",
-              help="Also run COMMAND (a shell command line) into NAME.txt; repeatable.")
-@click.option("--config", "config_file", type=click.Path(dir_okay=False, exists=True),
-              help="TOML (or .json) file with collectors to add and only/skip lists.")
-@click.option("--bag", "bag_topics", multiple=True, metavar="TOPIC",
-              help="Record this topic into a short bag (rosbag / ros2 bag); repeatable. The "
-                   "fetch profile records /robot_state /diagnostics /diagnostics_agg "
-                   "/battery_state unless given.")
-@click.option("--bag-duration", type=click.FloatRange(min=0, min_open=True, max=3600),
-              default=DEFAULT_BAG_DURATION, show_default=True, metavar="SECONDS",
-              help="How long to record the bag.")
-@click.option("--sudo/--no-sudo", "use_sudo", default=None,
-              help="Run dmesg, the journal and other collectors that need it through sudo "
-              f"(the password from ${PASSWORD_VAR} or asked once). Default: when the login "
-              "user is not root and a password is to be had.")
-@click.option("--fetch-password", is_flag=False, flag_value="", default=None, hidden=True,
-              help="fetch_tools' option: the sudo password (bare: ask for it).")
-@click.option("--jobs", "-j", type=click.IntRange(1, MAX_JOBS), default=DEFAULT_JOBS,
-              show_default=True, help="Commands run at once (one SSH channel each).")
-@click.option("--list", "list_only", is_flag=True,
-              help="Print the collectors that would run and exit; connects to nothing.")
+@click.option(
+    "--extra",
+    multiple=True,
+    metavar="NAME=COMMAND",
+    help="Also run COMMAND (a shell command line) into NAME.txt; repeatable.",
+)
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(dir_okay=False, exists=True),
+    help="TOML (or .json) file with collectors to add and only/skip lists.",
+)
+@click.option(
+    "--bag",
+    "bag_topics",
+    multiple=True,
+    metavar="TOPIC",
+    help="Record this topic into a short bag (rosbag / ros2 bag); repeatable. The "
+    "fetch profile records /robot_state /diagnostics /diagnostics_agg "
+    "/battery_state unless given.",
+)
+@click.option(
+    "--bag-duration",
+    type=click.FloatRange(min=0, min_open=True, max=3600),
+    default=DEFAULT_BAG_DURATION,
+    show_default=True,
+    metavar="SECONDS",
+    help="How long to record the bag.",
+)
+@click.option(
+    "--sudo/--no-sudo",
+    "use_sudo",
+    default=None,
+    help="Run dmesg, the journal and other collectors that need it through sudo "
+    f"(the password from ${PASSWORD_VAR} or asked once). Default: when the login "
+    "user is not root and a password is to be had.",
+)
+@click.option(
+    "--fetch-password",
+    is_flag=False,
+    flag_value="",
+    default=None,
+    hidden=True,
+    help="fetch_tools' option: the sudo password (bare: ask for it).",
+)
+@click.option(
+    "--jobs",
+    "-j",
+    type=click.IntRange(1, MAX_JOBS),
+    default=DEFAULT_JOBS,
+    show_default=True,
+    help="Commands run at once (one SSH channel each).",
+)
+@click.option(
+    "--list",
+    "list_only",
+    is_flag=True,
+    help="Print the collectors that would run and exit; connects to nothing.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
 @click.pass_context
-def command(ctx: click.Context, robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None, accept_host_key: str | None, profile: str | None,
-            as_zip: bool | None, output: str,
-            only: tuple[str, ...], skip: tuple[str, ...], extra: tuple[str, ...],
-            config_file: str | None, bag_topics: tuple[str, ...], bag_duration: float,
-            use_sudo: bool | None, fetch_password: str | None, jobs: int, list_only: bool,
-            as_json: bool) -> None:
+def command(
+    ctx: click.Context,
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    profile: str | None,
+    as_zip: bool | None,
+    output: str,
+    only: tuple[str, ...],
+    skip: tuple[str, ...],
+    extra: tuple[str, ...],
+    config_file: str | None,
+    bag_topics: tuple[str, ...],
+    bag_duration: float,
+    use_sudo: bool | None,
+    fetch_password: str | None,
+    jobs: int,
+    list_only: bool,
+    as_json: bool,
+) -> None:
     """Collect diagnostics from the robot into one timestamped archive.
 
     System state (kernel, OS, memory, disks, processes, kernel log, journal,
@@ -99,8 +169,13 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
     if as_zip is None:
         as_zip = fetch_tools or output.lower().endswith(".zip")
     config = load_config(config_file) if config_file else None
-    collectors = select_collectors(config=config, only=only, skip=skip,
-                                   extra=[parse_extra(e) for e in extra], base=PROFILES[profile])
+    collectors = select_collectors(
+        config=config,
+        only=only,
+        skip=skip,
+        extra=[parse_extra(e) for e in extra],
+        base=PROFILES[profile],
+    )
     if profile == "fetch":
         bag_topics = bag_topics or FETCH_BAG_TOPICS
         user = user or FETCH_LOGIN
@@ -108,37 +183,54 @@ def command(ctx: click.Context, robot: str | None, user: str | None, workspace: 
         _print_list(collectors, as_json)
         return
     if fetch_password:
-        click.echo("fetchsync: warning: a password on the command line is visible to other "
-                   f"users of this machine; set {PASSWORD_VAR} or let fetchsync ask",
-                   err=True)
-    policy = "auto" if use_sudo is None and fetch_password is None else (
-        "never" if use_sudo is False else "always")
+        click.echo(
+            "fetchsync: warning: a password on the command line is visible to other "
+            f"users of this machine; set {PASSWORD_VAR} or let fetchsync ask",
+            err=True,
+        )
+    policy = (
+        "auto"
+        if use_sudo is None and fetch_password is None
+        else ("never" if use_sudo is False else "always")
+    )
 
-    from fetchsync.link.session import open_transport
     from fetchsync.chores.snapshot import take_snapshot
+    from fetchsync.link.session import open_transport
 
     target, overlay = _target(robot, user, workspace, remote_workspace)
     from fetchsync.cli.common import say_where
+
     say_where("snapshot", target, local=Path(output).resolve(), remote=overlay, direction="from")
     progress = _Progress(total=len(collectors) + bool(bag_topics), enabled=not as_json)
     transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
     try:
         snap = take_snapshot(
-            transport, robot=target.robot, collectors=collectors, output=output, jobs=jobs,
-            sudo=policy, password=_password_source(target.robot, fetch_password),
-            bag_topics=bag_topics, bag_duration=bag_duration, overlay=overlay,
-            progress=progress, archive_format="zip" if as_zip else "tar")
+            transport,
+            robot=target.robot,
+            collectors=collectors,
+            output=output,
+            jobs=jobs,
+            sudo=policy,
+            password=_password_source(target.robot, fetch_password),
+            bag_topics=bag_topics,
+            bag_duration=bag_duration,
+            overlay=overlay,
+            progress=progress,
+            archive_format="zip" if as_zip else "tar",
+        )
     finally:
         progress.close()
         transport.close()
     _print_snapshot(snap, as_json)
     if snap.link_lost:
         from fetchsync.errors import LinkLostError
+
         raise LinkLostError(f"{snap.link_lost}; the archive holds what was collected before")
 
 
-def _target(robot: str | None, user: str | None, workspace: str | None,
-            remote_workspace: str | None) -> tuple[Any, str | None]:
+def _target(
+    robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> tuple[Any, str | None]:
     """The target, and the remote workspace to source (None when none is configured).
 
     A snapshot needs no workspace: without one (no option, variable or
@@ -146,8 +238,11 @@ def _target(robot: str | None, user: str | None, workspace: str | None,
     """
     from fetchsync.config import REMOTE_WORKSPACE_VARS, WORKSPACE_VARS
 
-    known = workspace or remote_workspace or any(
-        os.environ.get(v) for v in (*WORKSPACE_VARS, *REMOTE_WORKSPACE_VARS, "ROS_DISTRO"))
+    known = (
+        workspace
+        or remote_workspace
+        or any(os.environ.get(v) for v in (*WORKSPACE_VARS, *REMOTE_WORKSPACE_VARS, "ROS_DISTRO"))
+    )
     if known:
         target = resolve(robot, user, workspace, remote_workspace)
         return target, target.remote_workspace
@@ -169,8 +264,9 @@ def _password_source(robot: str, given: str | None) -> PasswordSource:
             return None
         if attempt:
             click.echo("Sorry, try again.", err=True)
-        value: str = click.prompt(f"[sudo] password on {robot}", hide_input=True, err=True,
-                                  default="", show_default=False)
+        value: str = click.prompt(
+            f"[sudo] password on {robot}", hide_input=True, err=True, default="", show_default=False
+        )
         return value or None
 
     return source
@@ -219,8 +315,10 @@ def _print_snapshot(snap: Snapshot, as_json: bool) -> None:
     counts = snap.counts()
     parts = [f"{counts['ok']} ok", f"{counts['failed']} failed", f"{counts['missing']} missing"]
     parts += [f"{counts[s]} {s}" for s in ("timeout", "skipped") if counts[s]]
-    click.echo(f"snapshot: {', '.join(parts)}; {_shown_path(snap.archive)} "
-               f"({_human(snap.size)}); {snap.manifest['duration']:.1f}s")
+    click.echo(
+        f"snapshot: {', '.join(parts)}; {_shown_path(snap.archive)} "
+        f"({_human(snap.size)}); {snap.manifest['duration']:.1f}s"
+    )
     for entry in snap.manifest["commands"]:
         status = entry["status"]
         if status == "failed":
@@ -236,9 +334,20 @@ def _print_snapshot(snap: Snapshot, as_json: bool) -> None:
 
 def _print_list(collectors: tuple[Collector, ...], as_json: bool) -> None:
     if as_json:
-        click.echo(json.dumps([{"name": c.name, "kind": c.kind, "timeout": c.timeout,
-                                "needs_sudo": c.needs_sudo, "command": c.command}
-                               for c in collectors]))
+        click.echo(
+            json.dumps(
+                [
+                    {
+                        "name": c.name,
+                        "kind": c.kind,
+                        "timeout": c.timeout,
+                        "needs_sudo": c.needs_sudo,
+                        "command": c.command,
+                    }
+                    for c in collectors
+                ]
+            )
+        )
         return
     for c in collectors:
         sudo = "sudo" if c.needs_sudo else ""

@@ -26,7 +26,9 @@ class _WatchCommand(BuildCommand):
     (which the optional value's rule would otherwise take as ARGS)."""
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        names = {name for p in self.params for name in getattr(p, "opts", ()) if name.startswith("--")}
+        names = {
+            name for p in self.params for name in getattr(p, "opts", ()) if name.startswith("--")
+        }
         out = list(args)
         for i, arg in enumerate(out[:-1]):
             if arg == "--":
@@ -38,30 +40,68 @@ class _WatchCommand(BuildCommand):
 
 @click.command(cls=_WatchCommand)
 @target_options
-@click.option("--exclude", "excludes", multiple=True, metavar="PATTERN",
-              help="Exclude paths matching PATTERN (gitignore syntax); repeatable.")
-@click.option("--strict", is_flag=True,
-              help="Refuse to replace files changed on the robot since the last sync.")
-@click.option("--build", "builds", multiple=True, metavar="[ARGS]",
-              help="After each batch, rebuild on the robot the packages it changed, passing ARGS "
-                   "to the build tool (--build=-j4), as push --build; a newer batch cancels a "
-                   "build in progress.")
+@click.option(
+    "--exclude",
+    "excludes",
+    multiple=True,
+    metavar="PATTERN",
+    help="Exclude paths matching PATTERN (gitignore syntax); repeatable.",
+)
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Refuse to replace files changed on the robot since the last sync.",
+)
+@click.option(
+    "--build",
+    "builds",
+    multiple=True,
+    metavar="[ARGS]",
+    help="After each batch, rebuild on the robot the packages it changed, passing ARGS "
+    "to the build tool (--build=-j4), as push --build; a newer batch cancels a "
+    "build in progress.",
+)
 # the spelling of --build=ARGS before push and watch shared one; kept for units written then
 @click.option("--build-args", hidden=True, default=None)
-@click.option("--build-type", type=click.Choice(BUILD_TYPES), default="default",
-              help="CMAKE_BUILD_TYPE of the builds ('default' passes none).")
-@click.option("--build-tool", type=click.Choice(TOOLS), default="auto",
-              help="catkin_make, catkin (catkin build) or colcon. Default: what the remote "
-                   "workspace is set up for.")
-@click.option("--install-service", is_flag=True,
-              help="Write a systemd user unit running this watch (with these options) and "
-                   "print how to enable it; does not start watching.")
-@click.option("--uninstall-service", is_flag=True,
-              help="Remove the systemd user unit of this workspace and robot.")
-def watch(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-          accept_host_key: str | None, excludes: tuple[str, ...], strict: bool,
-          builds: tuple[str, ...], build_args: str | None, build_type: str, build_tool: str,
-          install_service: bool, uninstall_service: bool) -> None:
+@click.option(
+    "--build-type",
+    type=click.Choice(BUILD_TYPES),
+    default="default",
+    help="CMAKE_BUILD_TYPE of the builds ('default' passes none).",
+)
+@click.option(
+    "--build-tool",
+    type=click.Choice(TOOLS),
+    default="auto",
+    help="catkin_make, catkin (catkin build) or colcon. Default: what the remote "
+    "workspace is set up for.",
+)
+@click.option(
+    "--install-service",
+    is_flag=True,
+    help="Write a systemd user unit running this watch (with these options) and "
+    "print how to enable it; does not start watching.",
+)
+@click.option(
+    "--uninstall-service",
+    is_flag=True,
+    help="Remove the systemd user unit of this workspace and robot.",
+)
+def watch(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    excludes: tuple[str, ...],
+    strict: bool,
+    builds: tuple[str, ...],
+    build_args: str | None,
+    build_type: str,
+    build_tool: str,
+    install_service: bool,
+    uninstall_service: bool,
+) -> None:
     """Keep the robot's src/ identical to the local one while you work.
 
     Checks everything once, says it is live, then mirrors each change within
@@ -83,8 +123,10 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
         raise UsageError("watch builds each batch one way: give --build ARGS once")
     build, build_args = bool(given), (with_args[0] if with_args else "")
     if not build and (build_type != "default" or build_tool != "auto"):
-        click.echo("fetchsync: warning: --build-type and --build-tool have no effect without --build",
-                   err=True)
+        click.echo(
+            "fetchsync: warning: --build-type and --build-tool have no effect without --build",
+            err=True,
+        )
     if install_service and uninstall_service:
         raise UsageError("--install-service and --uninstall-service do not go together")
     if install_service or uninstall_service:
@@ -117,13 +159,22 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
     def say(line: str) -> None:
         from fetchsync.console import printable
 
-        click.echo(f"{_stamp()} {printable(line)}",
-                   err=line.startswith(("error", "conflict", "offline", "build: error")))
+        click.echo(
+            f"{_stamp()} {printable(line)}",
+            err=line.startswith(("error", "conflict", "offline", "build: error")),
+        )
 
-    build_options = ({"tool": build_tool, "build_type": build_type, "args": build_args}
-                     if build else None)
-    agent = Agent(target, rules=build_rules(excludes), policy="refuse" if strict else "preserve",
-                  accept_fingerprint=accept_host_key, on_event=say, build=build_options)
+    build_options = (
+        {"tool": build_tool, "build_type": build_type, "args": build_args} if build else None
+    )
+    agent = Agent(
+        target,
+        rules=build_rules(excludes),
+        policy="refuse" if strict else "preserve",
+        accept_fingerprint=accept_host_key,
+        on_event=say,
+        build=build_options,
+    )
     agent.acquire()
 
     def on_signal(_signo: int, _frame: Any) -> None:
@@ -140,8 +191,9 @@ def watch(robot: str | None, user: str | None, workspace: str | None, remote_wor
     click.echo(f"{_stamp()} stopped", err=True)
 
 
-def _agent_socket(robot: str | None, user: str | None, workspace: str | None,
-                  remote_workspace: str | None) -> tuple[Any, Path]:
+def _agent_socket(
+    robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> tuple[Any, Path]:
     from fetchsync.agent.service import agent_paths
 
     target = resolve(robot, user, workspace, remote_workspace)
@@ -151,8 +203,13 @@ def _agent_socket(robot: str | None, user: str | None, workspace: str | None,
 @click.command()
 @target_options(host_key=False)  # it asks the agent, which holds the connection
 @click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
-def status(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-           as_json: bool) -> None:
+def status(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    as_json: bool,
+) -> None:
     """Show what the running agent is doing: live, syncing or offline."""
     from fetchsync.agent.control import call
 
@@ -168,7 +225,11 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
     if as_json:
         click.echo(json.dumps(st, sort_keys=True))
         return
-    when = time.strftime("%H:%M:%S", time.localtime(st["last_sync"])) if st.get("last_sync") else "never"
+    when = (
+        time.strftime("%H:%M:%S", time.localtime(st["last_sync"]))
+        if st.get("last_sync")
+        else "never"
+    )
     line = f"{st['state']}: {st['workspace']} -> {st['robot']}:{st['remote']}; last sync {when}"
     if st.get("offline_since"):
         line += f"; offline since {time.strftime('%H:%M:%S', time.localtime(st['offline_since']))}"
@@ -180,7 +241,11 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
             line += f" ({' '.join(b['building']) or 'everything'})"
         elif b.get("last"):
             last = b["last"]
-            pk = last["packages"] if isinstance(last["packages"], str) else " ".join(last["packages"])
+            pk = (
+                last["packages"]
+                if isinstance(last["packages"], str)
+                else " ".join(last["packages"])
+            )
             line += f", last {last['result']} ({pk})"
     click.echo(line)
     if st.get("last_error"):
@@ -192,10 +257,22 @@ def status(robot: str | None, user: str | None, workspace: str | None, remote_wo
 @click.command()
 @target_options
 @click.argument("paths", nargs=-1, type=click.Path())
-@click.option("--timeout", default=30.0, show_default=True, metavar="SECONDS",
-              help="How long to wait for the agent.")
-def flush(robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None,
-          accept_host_key: str | None, paths: tuple[str, ...], timeout: float) -> None:
+@click.option(
+    "--timeout",
+    default=30.0,
+    show_default=True,
+    metavar="SECONDS",
+    help="How long to wait for the agent.",
+)
+def flush(
+    robot: str | None,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    paths: tuple[str, ...],
+    timeout: float,
+) -> None:
     """Return once the files saved before this call are on the robot.
 
     The save hook for editors: give the saved file(s) and it returns as soon
@@ -210,16 +287,26 @@ def flush(robot: str | None, user: str | None, workspace: str | None, remote_wor
     for p in paths:
         full = Path(os.path.abspath(p))
         try:
-            rel.append(full.relative_to(src).as_posix() if full.is_relative_to(src) else
-                       Path(os.path.realpath(full)).relative_to(src).as_posix())
+            rel.append(
+                full.relative_to(src).as_posix()
+                if full.is_relative_to(src)
+                else Path(os.path.realpath(full)).relative_to(src).as_posix()
+            )
         except ValueError:
             raise UsageError(f"{p} is not under {src}") from None
     reply = call(sock, {"cmd": "flush", "paths": rel}, timeout=timeout)
     if reply is None:
         ctx = click.get_current_context()
         from fetchsync.cli import push
-        ctx.invoke(push, robot=robot, user=user, workspace=workspace, remote_workspace=remote_workspace,
-                   accept_host_key=accept_host_key)
+
+        ctx.invoke(
+            push,
+            robot=robot,
+            user=user,
+            workspace=workspace,
+            remote_workspace=remote_workspace,
+            accept_host_key=accept_host_key,
+        )
         return
     if not reply.get("ok"):
         raise SyncError(f"not on the robot yet: {reply.get('error') or 'unknown error'}")

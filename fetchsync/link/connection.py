@@ -15,9 +15,9 @@ import time
 from typing import Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
+from fetchsync.link.transport import Channel, Transport
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol.loader import NEED, loader_spec
-from fetchsync.link.transport import Channel, Transport
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +49,15 @@ class _Watchdog:
     blocked on it wakes up, and :attr:`fired` is the error to report.
     """
 
-    def __init__(self, channel: Channel, name: str, deadline: float, *,
-                 progress: Callable[[], Any], waiting: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        channel: Channel,
+        name: str,
+        deadline: float,
+        *,
+        progress: Callable[[], Any],
+        waiting: Callable[[], bool],
+    ) -> None:
         self.channel = channel
         self.name = name
         self.deadline = deadline
@@ -74,7 +81,8 @@ class _Watchdog:
             if time.monotonic() - since >= self.deadline:
                 self.fired = LinkLostError(
                     f"{self.name} made no progress for {self.deadline:g} s (is its fetchsync "
-                    "endpoint stopped or blocked?); gave up")
+                    "endpoint stopped or blocked?); gave up"
+                )
                 if self.on_fire is not None:
                     self.on_fire(self.fired)
                 self.channel.close()
@@ -90,9 +98,16 @@ def remote_python() -> str:
 
 
 class Connection:
-    def __init__(self, transport: Transport, channel: Channel, reader: wire.Reader,
-                 hello: dict[str, Any], algorithm: str, compress: bool,
-                 watchdog: _Watchdog | None = None) -> None:
+    def __init__(
+        self,
+        transport: Transport,
+        channel: Channel,
+        reader: wire.Reader,
+        hello: dict[str, Any],
+        algorithm: str,
+        compress: bool,
+        watchdog: _Watchdog | None = None,
+    ) -> None:
         self.transport = transport
         self.channel = channel
         self.reader = reader
@@ -114,7 +129,9 @@ class Connection:
             watchdog.progress = lambda: (self.reader.bytes_in, self.bytes_out)
             watchdog.waiting = lambda: bool(self._owed)
             watchdog.on_fire = self._fail
-        self._reader = threading.Thread(target=self._read_loop, name="fetchsync-reader", daemon=True)
+        self._reader = threading.Thread(
+            target=self._read_loop, name="fetchsync-reader", daemon=True
+        )
         self._reader.start()
 
     def _read_loop(self) -> None:
@@ -123,7 +140,9 @@ class Connection:
             while True:
                 frame = self.reader.read_frame()
                 if frame is None:
-                    failure = LinkLostError(f"the fetchsync endpoint on {self.transport.name} went away")
+                    failure = LinkLostError(
+                        f"the fetchsync endpoint on {self.transport.name} went away"
+                    )
                     break
                 if frame.type == wire.T_PROGRESS:  # its bytes are the progress the watchdog sees
                     continue
@@ -152,8 +171,13 @@ class Connection:
 
     # ------------------------------------------------------------------ setup
     @classmethod
-    def open(cls, transport: Transport, *, python: str | None = None,
-             meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Connection:
+    def open(
+        cls,
+        transport: Transport,
+        *,
+        python: str | None = None,
+        meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
+    ) -> Connection:
         """Start the endpoint on the robot and exchange hellos.
 
         ``meanwhile`` runs once the endpoint's command is sent, while the robot
@@ -165,15 +189,24 @@ class Connection:
         return cls._open(transport, python or remote_python(), meanwhile)
 
     @classmethod
-    def _open(cls, transport: Transport, python: str,
-              meanwhile: Callable[[Callable[[], bool]], Any] | None) -> Connection:
+    def _open(
+        cls,
+        transport: Transport,
+        python: str,
+        meanwhile: Callable[[Callable[[], bool]], Any] | None,
+    ) -> Connection:
         command, archive = loader_spec(python)
         channel = transport.exec(command)
         reader = wire.Reader(channel.recv)
         sent = 0
         busy_here = threading.Event()  # our own work runs: the robot owes us nothing meanwhile
-        watchdog = _Watchdog(channel, transport.name, progress_deadline(),
-                             progress=lambda: reader.bytes_in, waiting=lambda: not busy_here.is_set())
+        watchdog = _Watchdog(
+            channel,
+            transport.name,
+            progress_deadline(),
+            progress=lambda: reader.bytes_in,
+            waiting=lambda: not busy_here.is_set(),
+        )
         try:
             try:
                 if meanwhile is not None:
@@ -199,8 +232,10 @@ class Connection:
         if hello.get("version") != wire.VERSION:
             watchdog.stop()
             channel.close()
-            raise ProtocolError(f"the robot's endpoint speaks protocol {hello.get('version')}, "
-                                f"we speak {wire.VERSION}")
+            raise ProtocolError(
+                f"the robot's endpoint speaks protocol {hello.get('version')}, "
+                f"we speak {wire.VERSION}"
+            )
         theirs = hello.get("algorithms") or []
         try:
             algorithm = hashing.negotiate(hashing.available(), theirs)
@@ -209,7 +244,10 @@ class Connection:
             channel.close()
             raise
         compress = "zlib" in (hello.get("compression") or [])
-        ours: dict[str, Any] = {"algorithm": algorithm, "compression": "zlib" if compress else "none"}
+        ours: dict[str, Any] = {
+            "algorithm": algorithm,
+            "compression": "zlib" if compress else "none",
+        }
         offered = hello.get("progress")
         if isinstance(offered, (int, float)) and not isinstance(offered, bool) and offered > 0:
             # keepalives while the robot works on a request: several per deadline
@@ -231,7 +269,7 @@ class Connection:
             if magic_at >= 0 and (need_at < 0 or magic_at < need_at):
                 return 0
             if need_at >= 0:
-                del buf[:need_at + len(NEED)]
+                del buf[: need_at + len(NEED)]
                 data = archive()
                 channel.send_all(data)
                 return len(data)
@@ -255,19 +293,30 @@ class Connection:
         text = err.decode("utf-8", "replace").strip()
         last = text.splitlines()[-1] if text else ""
         if status == 127:
-            return ConnectError(f"python3 was not found on {transport.name}",
-                                hint="the robot needs python3 >= 3.6: install it (sudo apt install "
-                                     "python3), or set FETCHSYNC_REMOTE_PYTHON to where it is")
+            return ConnectError(
+                f"python3 was not found on {transport.name}",
+                hint="the robot needs python3 >= 3.6: install it (sudo apt install "
+                "python3), or set FETCHSYNC_REMOTE_PYTHON to where it is",
+            )
         if "SyntaxError" in text or "ModuleNotFoundError" in text:
-            return ConnectError(f"the robot's python3 is too old for fetchsync: {last}",
-                                hint="python3 >= 3.6 is needed")
-        return ConnectError(f"the fetchsync endpoint did not start on {transport.name}"
-                            + (f": {last}" if last else f" (exit status {status})"))
+            return ConnectError(
+                f"the robot's python3 is too old for fetchsync: {last}",
+                hint="python3 >= 3.6 is needed",
+            )
+        return ConnectError(
+            f"the fetchsync endpoint did not start on {transport.name}"
+            + (f": {last}" if last else f" (exit status {status})")
+        )
 
     # ------------------------------------------------------------------ requests
-    def send(self, header: dict[str, Any], blob: bytes = b"", *,
-             blob_parts: list[bytes] | None = None,
-             sent: Callable[[int, int], None] | None = None) -> int:
+    def send(
+        self,
+        header: dict[str, Any],
+        blob: bytes = b"",
+        *,
+        blob_parts: list[bytes] | None = None,
+        sent: Callable[[int, int], None] | None = None,
+    ) -> int:
         """Send a request. ``blob_parts``: a blob in parts that carry their own compression,
         sent as they are (not joined, nor compressed again). ``sent(bytes so far, frame
         length)`` is called as the frame goes out."""
@@ -291,7 +340,7 @@ class Connection:
             for data in parts:
                 view = memoryview(data)  # pieces of it, not copies
                 for start in range(0, len(data), SEND_PIECE):
-                    piece = view[start:start + SEND_PIECE]
+                    piece = view[start : start + SEND_PIECE]
                     self.channel.send_all(piece)
                     self.bytes_out += len(piece)
                     done += len(piece)
@@ -312,8 +361,10 @@ class Connection:
         """
         probe = getattr(self.transport, "is_alive", None)
         if probe is not None and not probe():
-            raise LinkLostError(f"the link to {self.transport.name} was lost: "
-                                "the robot stopped answering keepalives")
+            raise LinkLostError(
+                f"the link to {self.transport.name} was lost: "
+                "the robot stopped answering keepalives"
+            )
 
     def answered(self, req_id: int) -> bool:
         """Whether :meth:`wait` for ``req_id`` would return (or raise) at once."""
@@ -343,8 +394,10 @@ class Connection:
             if not probe():
                 with self._arrived:
                     self._arrived.wait_for(lambda: self._failure is not None, timeout=5)
-                raise LinkLostError(f"the link to {self.transport.name} was lost: "
-                                    "the robot stopped answering keepalives")
+                raise LinkLostError(
+                    f"the link to {self.transport.name} was lost: "
+                    "the robot stopped answering keepalives"
+                )
         if frame.type == wire.T_ERROR:
             kind = frame.header.get("kind", "")
             message = str(frame.header.get("error", "unknown error"))

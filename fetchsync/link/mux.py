@@ -54,7 +54,9 @@ _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
 CHECK_TIMEOUT = 5.0  # seconds a master may take to re-check the robot's host key
 IDLE_CHECK = 0.5  # seconds between looks at the link and the idle time while no call comes
-SPARE_WAIT = 5.0  # seconds a call waits for a spare endpoint still starting before it starts its own
+SPARE_WAIT = (
+    5.0  # seconds a call waits for a spare endpoint still starting before it starts its own
+)
 
 
 def persist_seconds() -> float:
@@ -157,7 +159,10 @@ class MuxChannel:
 
     def _pump(self) -> bool:
         """Read one more frame; False at end of stream."""
-        while len(self._buf) < _HDR.size or len(self._buf) < _HDR.size + _HDR.unpack_from(self._buf)[1]:
+        while (
+            len(self._buf) < _HDR.size
+            or len(self._buf) < _HDR.size + _HDR.unpack_from(self._buf)[1]
+        ):
             try:
                 chunk = self.sock.recv(1 << 16)
             except OSError as exc:
@@ -167,8 +172,8 @@ class MuxChannel:
                 return False
             self._buf += chunk
         kind, n = _HDR.unpack_from(self._buf)
-        data = bytes(self._buf[_HDR.size:_HDR.size + n])
-        del self._buf[:_HDR.size + n]
+        data = bytes(self._buf[_HDR.size : _HDR.size + n])
+        del self._buf[: _HDR.size + n]
         if kind == K_STDOUT:
             self._out += data
         elif kind == K_STDERR:
@@ -276,7 +281,9 @@ class MuxTransport:
             return None
         return cls(path, name)
 
-    def exec(self, command: str, *, env: dict[str, str] | None = None, pty: bool = False) -> MuxChannel:
+    def exec(
+        self, command: str, *, env: dict[str, str] | None = None, pty: bool = False
+    ) -> MuxChannel:
         if env or pty:
             raise ConnectError("the connection master runs plain commands only")
         try:
@@ -301,8 +308,17 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
     seconds = persist_seconds()
     if seconds <= 0:
         return
-    argv = [sys.executable, "-m", "fetchsync.link.mux", "--host", host, "--socket", str(path),
-            "--idle", str(seconds)]
+    argv = [
+        sys.executable,
+        "-m",
+        "fetchsync.link.mux",
+        "--host",
+        host,
+        "--socket",
+        str(path),
+        "--idle",
+        str(seconds),
+    ]
     if user:
         argv += ["--user", user]
     if spare:
@@ -310,11 +326,23 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
     if log_path:
         with open(log_path, "ab") as err:
-            subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                             start_new_session=True, close_fds=True)
+            subprocess.Popen(
+                argv,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                start_new_session=True,
+                close_fds=True,
+            )
     else:
-        subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
+        subprocess.Popen(
+            argv,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+            close_fds=True,
+        )
 
 
 # --------------------------------------------------------------------------- master side

@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
-from fetchsync.link.connection import Connection, remote_python
 from fetchsync.errors import ConfigError, ConnectError, LinkLostError
+from fetchsync.link.connection import Connection, remote_python
 from fetchsync.link.transport import LocalTransport, Transport, local_robot_home
 
 log = logging.getLogger(__name__)
@@ -90,8 +90,9 @@ def terminal_confirm() -> Callable[[str], str | None] | None:
     return ask
 
 
-def open_transport(target: Target, *, accept_fingerprint: str | None = None,
-                   persistent: bool = True) -> Transport:
+def open_transport(
+    target: Target, *, accept_fingerprint: str | None = None, persistent: bool = True
+) -> Transport:
     """A transport to the target's robot.
 
     ``persistent`` goes through (or leaves behind) a connection master; pass
@@ -101,11 +102,14 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     if target.is_local:
         home = local_robot_home()
         remote = target.remote_workspace
-        resolved = Path(os.path.normpath(os.path.join(home, remote[2:]) if remote.startswith("~/")
-                                         else remote))
+        resolved = Path(
+            os.path.normpath(os.path.join(home, remote[2:]) if remote.startswith("~/") else remote)
+        )
         if resolved.resolve() == target.workspace.resolve():
-            raise ConfigError(f"the local robot's workspace {resolved} is the local workspace itself",
-                              hint="pass --remote-workspace with another path")
+            raise ConfigError(
+                f"the local robot's workspace {resolved} is the local workspace itself",
+                hint="pass --remote-workspace with another path",
+            )
         return LocalTransport(home)
     from fetchsync.link import mux
 
@@ -120,9 +124,14 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
         if attached is not None:
             return attached
     from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only when needed
-    transport = SSHTransport.connect(target.host, user=target.user, accept_fingerprint=accept_fingerprint,
-                                     password_callback=terminal_prompt(),
-                                     confirm_callback=terminal_confirm())
+
+    transport = SSHTransport.connect(
+        target.host,
+        user=target.user,
+        accept_fingerprint=accept_fingerprint,
+        password_callback=terminal_prompt(),
+        confirm_callback=terminal_confirm(),
+    )
     # a master authenticates on its own, without a terminal: after a password
     # login it would only add a failed login to the robot's log
     if path is not None and transport.auth_method != "password":
@@ -133,9 +142,13 @@ def open_transport(target: Target, *, accept_fingerprint: str | None = None,
     return transport
 
 
-def open_connection(target: Target, transport: Transport, *, accept_fingerprint: str | None = None,
-                    meanwhile: Callable[[Callable[[], bool]], Any] | None = None
-                    ) -> tuple[Transport, Connection]:
+def open_connection(
+    target: Target,
+    transport: Transport,
+    *,
+    accept_fingerprint: str | None = None,
+    meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
+) -> tuple[Transport, Connection]:
     """Start the endpoint over ``transport``; through a connection master, make sure it
     answers before anything is asked of it, and once, start another if it does not.
 
@@ -158,8 +171,11 @@ def open_connection(target: Target, transport: Transport, *, accept_fingerprint:
         conn.request({"op": "ping"})
         return transport, conn
     except (LinkLostError, ConnectError) as exc:
-        log.info("the endpoint from the connection master failed before any request (%s): "
-                 "starting another", exc)
+        log.info(
+            "the endpoint from the connection master failed before any request (%s): "
+            "starting another",
+            exc,
+        )
         if conn is not None:
             conn.close()
         transport.close()
@@ -172,14 +188,19 @@ def open_connection(target: Target, transport: Transport, *, accept_fingerprint:
 
 
 @contextmanager
-def connect(target: Target, *, accept_fingerprint: str | None = None,
-            meanwhile: Callable[[Callable[[], bool]], Any] | None = None) -> Iterator[Connection]:
+def connect(
+    target: Target,
+    *,
+    accept_fingerprint: str | None = None,
+    meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
+) -> Iterator[Connection]:
     """A connection to the target's endpoint; ``meanwhile`` runs while the endpoint
     starts (see :meth:`Connection.open`)."""
     transport = open_transport(target, accept_fingerprint=accept_fingerprint)
     try:
-        transport, conn = open_connection(target, transport, accept_fingerprint=accept_fingerprint,
-                                          meanwhile=meanwhile)
+        transport, conn = open_connection(
+            target, transport, accept_fingerprint=accept_fingerprint, meanwhile=meanwhile
+        )
     except BaseException:
         transport.close()
         raise
@@ -190,4 +211,3 @@ def connect(target: Target, *, accept_fingerprint: str | None = None,
             conn.close()
     finally:
         transport.close()
-

@@ -49,8 +49,8 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.protocol.wire import widen_pipe
 from fetchsync.link.transport import Channel
+from fetchsync.protocol.wire import widen_pipe
 
 log = logging.getLogger(__name__)
 # paramiko logs a dropped link as an ERROR ("Socket exception: ...") before we
@@ -177,7 +177,7 @@ class SSHChannel:
         view = memoryview(data)
         try:
             while view:
-                view = view[self._chan.send(view):]
+                view = view[self._chan.send(view) :]
         except (OSError, EOFError, SSHException) as exc:
             raise self._lost("while sending") from exc
 
@@ -448,8 +448,9 @@ class _Opener:
                 f"more than {_MAX_HOPS} ProxyJump hops to reach {settings.alias}: "
                 "does the ssh config send a jump host through itself?"
             )
-        host_keys = _HostKeyCheck(settings, accept_fingerprint=self.accept_fingerprint,
-                                  confirm=self.confirm_callback)
+        host_keys = _HostKeyCheck(
+            settings, accept_fingerprint=self.accept_fingerprint, confirm=self.confirm_callback
+        )
         sock = self._sock(settings, depth)
         try:
             transport = _Transport(sock)
@@ -572,8 +573,9 @@ _ALGORITHM_KINDS = {
 }
 
 
-def _incompatible(transport: paramiko.Transport, settings: HostSettings,
-                  exc: IncompatiblePeer) -> ConnectError:
+def _incompatible(
+    transport: paramiko.Transport, settings: HostSettings, exc: IncompatiblePeer
+) -> ConnectError:
     """No algorithm both ends know: name both lists and the sshd_config keyword that would fix it."""
     found = re.search(r"no acceptable (.*?)\)", str(exc))
     what = found.group(1) if found else str(exc)
@@ -582,7 +584,9 @@ def _incompatible(transport: paramiko.Transport, settings: HostSettings,
     if kind is None or not offer:
         return ConnectError(f"cannot agree on algorithms with {settings.display}: {what}")
     theirs_key, ours_attr, keyword = kind
-    theirs = [a for a in offer.get(theirs_key, []) if not a.startswith(("ext-info-", "kex-strict-"))]
+    theirs = [
+        a for a in offer.get(theirs_key, []) if not a.startswith(("ext-info-", "kex-strict-"))
+    ]
     ours = list(getattr(transport, ours_attr, ()))
     if keyword == "HostKeyAlgorithms":
         hint = "give the robot's sshd a host key of one of our types (HostKey in its sshd_config)"
@@ -609,12 +613,18 @@ def _tcp_error(settings: HostSettings, exc: OSError, timeout: float) -> ConnectE
     if isinstance(exc, socket.gaierror):
         alias = f" (for {settings.alias})" if settings.alias != settings.hostname else ""
         # fetchsync CLI hint (habits-b): robots are usually NAME.local or an ssh config Host
-        zeroconf = ("check that the robot is on this network and avahi-daemon (zeroconf) runs here"
-                    if settings.hostname.endswith(".local") else "check the name" if "." in
-                    settings.hostname else f"on its network it may be {settings.hostname}.local (zeroconf)")
-        return ConnectError(f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}",
-                            hint=f"{zeroconf}; or give it a 'Host {settings.alias}' entry with its "
-                                 "HostName in ~/.ssh/config")
+        zeroconf = (
+            "check that the robot is on this network and avahi-daemon (zeroconf) runs here"
+            if settings.hostname.endswith(".local")
+            else "check the name"
+            if "." in settings.hostname
+            else f"on its network it may be {settings.hostname}.local (zeroconf)"
+        )
+        return ConnectError(
+            f"cannot resolve host name {settings.hostname!r}{alias}: {exc.strerror}",
+            hint=f"{zeroconf}; or give it a 'Host {settings.alias}' entry with its "
+            "HostName in ~/.ssh/config",
+        )
     if isinstance(exc, ConnectionRefusedError):
         return ConnectError(f"connection refused by {where} ({settings.alias})")
     if isinstance(exc, TimeoutError):  # socket.timeout is TimeoutError since Python 3.10
@@ -717,7 +727,9 @@ class _ProxyCommand(paramiko.ProxyCommand):
                 self._reaping = True
                 with contextlib.suppress(OSError):
                     self.process.terminate()
-                threading.Thread(target=self._reap, name="fetchsync-proxy-reaper", daemon=True).start()
+                threading.Thread(
+                    target=self._reap, name="fetchsync-proxy-reaper", daemon=True
+                ).start()
 
     def _reap(self) -> None:
         try:
@@ -750,8 +762,13 @@ class _KnownKey:
 class _HostKeyCheck:
     """The known_hosts files of one host and the verdict on the key it offers."""
 
-    def __init__(self, settings: HostSettings, *, accept_fingerprint: str | None = None,
-                 confirm: PasswordCallback | None = None) -> None:
+    def __init__(
+        self,
+        settings: HostSettings,
+        *,
+        accept_fingerprint: str | None = None,
+        confirm: PasswordCallback | None = None,
+    ) -> None:
         self.settings = settings
         self.accept_fingerprint = accept_fingerprint
         self.confirm = confirm
@@ -810,8 +827,10 @@ class _HostKeyCheck:
             return
         port = f"-p {s.port} " if s.port != SSH_PORT else ""
         login = shlex.quote(f"{s.user}@{s.alias}")
-        how = (f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
-               f"{shlex.quote(fingerprint)}")
+        how = (
+            f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
+            f"{shlex.quote(fingerprint)}"
+        )
         if wanted:
             raise HostKeyError(
                 f"the host key of {s.display} is {offered}, not the {wanted} given to accept; "
@@ -825,22 +844,26 @@ class _HostKeyCheck:
         """Ask on the terminal, as ssh does, whether to accept an unknown host key; a
         "no" is a HostKeyError, no answer (EOF) leaves the usual refusal."""
         assert self.confirm is not None
-        prompt = (f"The authenticity of host '{self.settings.display}' can't be established.\n"
-                  f"{_key_label(key)} key fingerprint is {fingerprint}.\n"
-                  "Are you sure you want to continue connecting (yes/no/[fingerprint])? ")
+        prompt = (
+            f"The authenticity of host '{self.settings.display}' can't be established.\n"
+            f"{_key_label(key)} key fingerprint is {fingerprint}.\n"
+            "Are you sure you want to continue connecting (yes/no/[fingerprint])? "
+        )
         while True:
             answer = self.confirm(prompt)
             if answer is None:
                 return False
             answer = answer.strip()
             if answer.lower() == "yes" or (
-                answer.startswith("SHA256:") and answer.removeprefix("SHA256:")
-                == fingerprint.removeprefix("SHA256:")
+                answer.startswith("SHA256:")
+                and answer.removeprefix("SHA256:") == fingerprint.removeprefix("SHA256:")
             ):
                 return True
             if answer.lower() == "no":
-                raise HostKeyError(f"host key verification failed: the host key of "
-                                   f"{self.settings.display} ({fingerprint}) was not accepted")
+                raise HostKeyError(
+                    f"host key verification failed: the host key of "
+                    f"{self.settings.display} ({fingerprint}) was not accepted"
+                )
             prompt = "Please type 'yes', 'no' or the fingerprint: "
 
     def _record(self, key: paramiko.PKey) -> None:
@@ -959,8 +982,10 @@ class _Auth:
         copy_id = f"ssh-copy-id {shlex.quote(f'{self.s.user}@{self.s.alias}')}"
         tried = ", ".join(self.tried) or "nothing: no agent, no key files, no password prompt"
         # a robot refuses an account it does not have just the same (fetchsync CLI hint, habits-b)
-        account = (f"; if {self.s.user} has no account there yet, fetchsync create-account "
-                   f"--robot {shlex.quote(self.s.alias)} --user {shlex.quote(self.s.user)} makes one")
+        account = (
+            f"; if {self.s.user} has no account there yet, fetchsync create-account "
+            f"--robot {shlex.quote(self.s.alias)} --user {shlex.quote(self.s.user)} makes one"
+        )
         if self.wrong_passwords:
             tries = "try" if self.wrong_passwords == 1 else "tries"
             return ConnectError(

@@ -22,7 +22,6 @@ from fetchsync.config import LOCAL_ROBOT
 from fetchsync.errors import ConnectError, LinkLostError
 
 
-
 class Channel(Protocol):
     """A running remote command: its stdin, stdout and stderr as byte streams."""
 
@@ -53,8 +52,9 @@ class Transport(Protocol):
 
     name: str
 
-    def exec(self, command: str, *, env: dict[str, str] | None = None,
-             pty: bool = False) -> Channel:
+    def exec(
+        self, command: str, *, env: dict[str, str] | None = None, pty: bool = False
+    ) -> Channel:
         """Start ``command`` (a shell command line) on the robot."""
 
     def close(self) -> None:
@@ -70,7 +70,9 @@ def local_robot_home() -> Path:
     env = os.environ.get("FETCHSYNC_LOCAL_ROBOT_HOME")
     if env:
         return Path(env).expanduser()
-    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(
+        os.path.expanduser("~"), ".local", "share"
+    )
     return Path(base) / "fetchsync" / "local-robot"
 
 
@@ -158,12 +160,15 @@ class LocalTransport:
     def __init__(self, home: Path | None = None) -> None:
         self.home = home if home is not None else local_robot_home()
 
-    def exec(self, command: str, *, env: dict[str, str] | None = None,
-             pty: bool = False) -> Channel:
+    def exec(
+        self, command: str, *, env: dict[str, str] | None = None, pty: bool = False
+    ) -> Channel:
         try:
             self.home.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise ConnectError(f"cannot create the local robot's home {self.home}: {exc.strerror}") from exc
+            raise ConnectError(
+                f"cannot create the local robot's home {self.home}: {exc.strerror}"
+            ) from exc
         full_env = dict(os.environ)
         full_env["HOME"] = str(self.home)
         full_env.pop("XDG_CACHE_HOME", None)

@@ -50,7 +50,7 @@ except ImportError:  # Python 3.6
                 if f.name in kwargs:
                     raise TypeError("%s given twice" % f.name)
                 object.__setattr__(self, f.name, v)
-            for f in flds[len(args):]:
+            for f in flds[len(args) :]:
                 if f.name in kwargs:
                     v = kwargs.pop(f.name)
                 elif f.default is not _MISSING:
@@ -73,7 +73,10 @@ except ImportError:  # Python 3.6
             return _values(self) == _values(other)
 
         def __repr__(self: "Any") -> str:
-            return "%s(%s)" % (cls.__name__, ", ".join("%s=%r" % (n, getattr(self, n)) for n in names))
+            return "%s(%s)" % (
+                cls.__name__,
+                ", ".join("%s=%r" % (n, getattr(self, n)) for n in names),
+            )
 
         def __setattr__(self: "Any", name: str, value: "Any") -> None:
             raise FrozenInstanceError("cannot assign to field %r" % name)
@@ -97,7 +100,8 @@ except ImportError:  # Python 3.6
     def dataclass(cls: "Optional[Any]" = None, *, frozen: bool = False) -> "Any":
         def wrap(c: "Any") -> "Any":
             return _make(c, frozen)
+
         return wrap if cls is None else wrap(cls)
 
-__all__ = ["dataclass", "field", "fields"]
 
+__all__ = ["dataclass", "field", "fields"]

@@ -136,8 +136,10 @@ def check_params(params: object) -> "Params":
         raise DeltaError(f"chunking parameters must be three integers, got {params!r}")
     target, lo, hi = params
     if not 1 <= lo < target <= hi <= MAX_CHUNK_LIMIT:
-        raise DeltaError("chunking parameters need 1 <= MIN < TARGET <= MAX <= "
-                         f"{MAX_CHUNK_LIMIT}, got {params!r}")
+        raise DeltaError(
+            "chunking parameters need 1 <= MIN < TARGET <= MAX <= "
+            f"{MAX_CHUNK_LIMIT}, got {params!r}"
+        )
     return params
 
 
@@ -154,18 +156,18 @@ class _Chunker:
     def __init__(self, params: "Params") -> None:
         target, self._min, self._max = check_params(params)
         self._mod = target - self._min
-        self._buf = b""    # the data from absolute offset _base to _end
+        self._buf = b""  # the data from absolute offset _base to _end
         self._base = 0
         self._end = 0
-        self._line = 0     # start of the line not yet ended by a newline
-        self._seed = 0     # length of the line before it
-        self._start = 0    # start of the chunk being built
+        self._line = 0  # start of the line not yet ended by a newline
+        self._seed = 0  # length of the line before it
+        self._start = 0  # start of the chunk being built
 
     def view(self, start: int, end: int) -> bytes:
         base = self._base
         if start == base and end == base + len(self._buf):
             return self._buf
-        return self._buf[start - base:end - base]
+        return self._buf[start - base : end - base]
 
     def feed(self, block: bytes) -> "list[int]":
         if not block:
@@ -190,12 +192,12 @@ class _Chunker:
         if self._line < keep and self._end - self._line < self._mod:
             keep = self._line
         if keep > self._base:
-            self._buf = self._buf[keep - self._base:]
+            self._buf = self._buf[keep - self._base :]
             self._base = keep
 
     def _scan(self, buf: bytes) -> "list[int]":
         """Evaluate every line ended in ``buf`` since the last call; the accepted cuts."""
-        lo = self._line - self._base   # < 0: the line's start was trimmed away
+        lo = self._line - self._base  # < 0: the line's start was trimmed away
         lines = (buf if lo <= 0 else buf[lo:]).split(b"\n")
         tail = lines.pop()
         if not lines:
@@ -206,7 +208,7 @@ class _Chunker:
         seeds = [self._seed]
         seeds += lens
         flags = map(lt, map(mod, map(zlib.crc32, lines, seeds), repeat(self._mod)), lens)
-        ended = list(accumulate(lens))   # bytes before each newline, from the line start
+        ended = list(accumulate(lens))  # bytes before each newline, from the line start
         line = self._line
         self._line = self._end - len(tail)
         self._seed = lens[-1]
@@ -245,7 +247,9 @@ def _chunks(data: bytes, params: "Params") -> "Iterator[tuple[int, bytes]]":
         start = end
 
 
-def _read_chunks(fileobj: "BinaryIO", params: "Params", bufsize: int) -> "Iterator[tuple[int, bytes]]":
+def _read_chunks(
+    fileobj: "BinaryIO", params: "Params", bufsize: int
+) -> "Iterator[tuple[int, bytes]]":
     """``(offset, chunk)`` for each chunk of the rest of ``fileobj``, read in blocks."""
     if bufsize <= 0:
         raise ValueError("bufsize must be positive")
@@ -261,9 +265,13 @@ def _read_chunks(fileobj: "BinaryIO", params: "Params", bufsize: int) -> "Iterat
             return
 
 
-def iter_chunks(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
-                params: "Params" = DEFAULT_PARAMS,
-                bufsize: int = DEFAULT_BUFSIZE) -> "Iterator[tuple[int, int, bytes, bytes]]":
+def iter_chunks(
+    fileobj: "BinaryIO",
+    *,
+    algorithm: str = DEFAULT_ALGORITHM,
+    params: "Params" = DEFAULT_PARAMS,
+    bufsize: int = DEFAULT_BUFSIZE,
+) -> "Iterator[tuple[int, int, bytes, bytes]]":
     """``(offset, length, digest, data)`` for each chunk of the rest of ``fileobj``.
 
     Reads ``bufsize`` bytes at a time; cuts exactly where :func:`signature` and
@@ -301,8 +309,10 @@ class Signature:
     digests: bytes
 
     def __repr__(self) -> str:
-        return (f"Signature(algorithm={self.algorithm!r}, size={self.size}, "
-                f"params={self.params!r}, chunks={len(self.ends)})")
+        return (
+            f"Signature(algorithm={self.algorithm!r}, size={self.size}, "
+            f"params={self.params!r}, chunks={len(self.ends)})"
+        )
 
     @property
     def count(self) -> int:
@@ -324,8 +334,9 @@ class Signature:
         if not isinstance(ends, tuple) or not set(map(type, ends)) <= {int}:
             raise DeltaError("signature: chunk ends must be a tuple of integers")
         if not isinstance(self.digests, bytes) or len(self.digests) != _DIGEST * len(ends):
-            raise DeltaError(f"signature: {len(ends)} chunks need {_DIGEST * len(ends)} "
-                             "bytes of digests")
+            raise DeltaError(
+                f"signature: {len(ends)} chunks need {_DIGEST * len(ends)} bytes of digests"
+            )
         if not ends:
             if self.size:
                 raise DeltaError(f"signature: no chunks for {self.size} bytes")
@@ -348,8 +359,9 @@ class Signature:
         lengths = array("H" if width == 2 else _U32, self.lengths())
         if _BIG_ENDIAN:  # pragma: no cover
             lengths.byteswap()
-        head = _SIG_HEAD.pack(_SIG_MAGIC, width, len(name), target, lo, hi, self.size,
-                              len(self.ends))
+        head = _SIG_HEAD.pack(
+            _SIG_MAGIC, width, len(name), target, lo, hi, self.size, len(self.ends)
+        )
         return b"".join((head, name, lengths.tobytes(), self.digests))
 
     @classmethod
@@ -367,12 +379,12 @@ class Signature:
         if len(data) != pos + namelen + count * (width + _DIGEST):
             raise DeltaError(f"signature: {len(data)} bytes do not hold {count} chunks")
         try:
-            algorithm = data[pos:pos + namelen].decode("ascii")
+            algorithm = data[pos : pos + namelen].decode("ascii")
         except UnicodeDecodeError:
             raise DeltaError("signature: the algorithm name is not ASCII") from None
         pos += namelen
         lengths = array("H" if width == 2 else _U32)
-        lengths.frombytes(data[pos:pos + count * width])
+        lengths.frombytes(data[pos : pos + count * width])
         if _BIG_ENDIAN:  # pragma: no cover
             lengths.byteswap()
         pos += count * width
@@ -381,8 +393,9 @@ class Signature:
         return sig
 
 
-def signature(data: "hashing.Buffer", *, algorithm: str = DEFAULT_ALGORITHM,
-              params: "Params" = DEFAULT_PARAMS) -> "Signature":
+def signature(
+    data: "hashing.Buffer", *, algorithm: str = DEFAULT_ALGORITHM, params: "Params" = DEFAULT_PARAMS
+) -> "Signature":
     """The signature of ``data``, the base a later :func:`delta` is made against."""
     data = bytes(data)
     digest = hashing.chunk_digester(algorithm)
@@ -392,9 +405,13 @@ def signature(data: "hashing.Buffer", *, algorithm: str = DEFAULT_ALGORITHM,
     return Signature(algorithm, len(data), params, ends, b"".join(map(digest, chunks)))
 
 
-def signature_file(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
-                   params: "Params" = DEFAULT_PARAMS,
-                   bufsize: int = DEFAULT_BUFSIZE) -> "Signature":
+def signature_file(
+    fileobj: "BinaryIO",
+    *,
+    algorithm: str = DEFAULT_ALGORITHM,
+    params: "Params" = DEFAULT_PARAMS,
+    bufsize: int = DEFAULT_BUFSIZE,
+) -> "Signature":
     """The signature of the rest of ``fileobj``, read in blocks (bounded memory)."""
     digest = hashing.chunk_digester(algorithm)
     ends = []
@@ -407,9 +424,13 @@ def signature_file(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
     return Signature(algorithm, end, params, tuple(ends), b"".join(digests))
 
 
-def signature_file_bytes(fileobj: "BinaryIO", *, algorithm: str = DEFAULT_ALGORITHM,
-                         params: "Params" = DEFAULT_PARAMS,
-                         bufsize: int = DEFAULT_BUFSIZE) -> bytes:
+def signature_file_bytes(
+    fileobj: "BinaryIO",
+    *,
+    algorithm: str = DEFAULT_ALGORITHM,
+    params: "Params" = DEFAULT_PARAMS,
+    bufsize: int = DEFAULT_BUFSIZE,
+) -> bytes:
     """``signature_file(...).to_bytes()``, built without a Python object per chunk: the
     robot signs files of any size in memory that is the signature's own (10 bytes a
     chunk), not five times that in integers and lists."""
@@ -492,8 +513,9 @@ class Delta:
             if type(op) is Copy:
                 op.validate()
                 if base_size is not None and op.offset + op.length > base_size:
-                    raise DeltaError(f"delta: copy {op.offset}+{op.length} beyond the base's "
-                                     f"{base_size} bytes")
+                    raise DeltaError(
+                        f"delta: copy {op.offset}+{op.length} beyond the base's {base_size} bytes"
+                    )
                 total += op.length
             elif type(op) is Literal:
                 op.validate()
@@ -522,13 +544,13 @@ def _make_delta(chunks: "Iterable[tuple[int, bytes]]", sig: "Signature") -> "Del
     n = len(ends)
     starts = (0,) + ends[:-1]
     lengths = sig.lengths()
-    keys = [sig.digests[i:i + _DIGEST] for i in range(0, n * _DIGEST, _DIGEST)]
+    keys = [sig.digests[i : i + _DIGEST] for i in range(0, n * _DIGEST, _DIGEST)]
     # The first chunk with a digest wins, so runs of equal chunks copy from one place.
     index = dict(zip(reversed(keys), range(n - 1, -1, -1)))
     ops: "list[Op]" = []
     literal: "list[bytes]" = []
     copy_at = copy_len = 0
-    last = -1        # base chunk of the latest match: the next one is tried first
+    last = -1  # base chunk of the latest match: the next one is tried first
     size = 0
     for _offset, data in chunks:
         length = len(data)
@@ -580,17 +602,17 @@ def patch(base: "hashing.Buffer", d: "Delta") -> bytes:
     d.validate()
     size = len(base)
     if d.base_size is not None and size != d.base_size:
-        raise DeltaError(f"patch: the base has {size} bytes, the delta was made for "
-                         f"{d.base_size}")
+        raise DeltaError(f"patch: the base has {size} bytes, the delta was made for {d.base_size}")
     view = memoryview(base)
     parts: "list[bytes | memoryview]" = []
     for op in d.ops:
         if type(op) is Copy:
             end = op.offset + op.length
             if end > size:
-                raise DeltaError(f"patch: copy {op.offset}+{op.length} beyond the base's "
-                                 f"{size} bytes")
-            parts.append(view[op.offset:end])
+                raise DeltaError(
+                    f"patch: copy {op.offset}+{op.length} beyond the base's {size} bytes"
+                )
+            parts.append(view[op.offset : end])
         else:
             parts.append(op.data)  # type: ignore[union-attr]
     out = b"".join(parts)
@@ -599,8 +621,9 @@ def patch(base: "hashing.Buffer", d: "Delta") -> bytes:
     return out
 
 
-def patch_to_file(base_fileobj: "BinaryIO", d: "Delta", out_fileobj: "BinaryIO", *,
-                  bufsize: int = DEFAULT_BUFSIZE) -> int:
+def patch_to_file(
+    base_fileobj: "BinaryIO", d: "Delta", out_fileobj: "BinaryIO", *, bufsize: int = DEFAULT_BUFSIZE
+) -> int:
     """Write ``d`` applied to a seekable base file to ``out_fileobj``; bytes written.
 
     Copies are read with seeks, ``bufsize`` bytes at a time (bounded memory).
@@ -612,8 +635,9 @@ def patch_to_file(base_fileobj: "BinaryIO", d: "Delta", out_fileobj: "BinaryIO",
     if d.base_size is not None:
         size = base_fileobj.seek(0, 2)
         if size != d.base_size:
-            raise DeltaError(f"patch: the base has {size} bytes, the delta was made for "
-                             f"{d.base_size}")
+            raise DeltaError(
+                f"patch: the base has {size} bytes, the delta was made for {d.base_size}"
+            )
     written = 0
     for op in d.ops:
         if type(op) is Copy:
@@ -622,8 +646,9 @@ def patch_to_file(base_fileobj: "BinaryIO", d: "Delta", out_fileobj: "BinaryIO",
             while left:
                 block = base_fileobj.read(min(left, bufsize))
                 if not block:
-                    raise DeltaError(f"patch: copy {op.offset}+{op.length} beyond the end of "
-                                     "the base")
+                    raise DeltaError(
+                        f"patch: copy {op.offset}+{op.length} beyond the end of the base"
+                    )
                 out_fileobj.write(block)
                 left -= len(block)
             written += op.length
@@ -713,9 +738,10 @@ def decode_delta(data: "hashing.Buffer", *, max_size: int) -> "Delta":
             _tag, length = st.unpack_from(view, pos)
             pos += st.size
             if length > total_len - pos:
-                raise DeltaError(f"delta: literal of {length} bytes at byte {pos} runs past "
-                                 "the end")
-            op = Literal(view[pos:pos + length].tobytes())
+                raise DeltaError(
+                    f"delta: literal of {length} bytes at byte {pos} runs past the end"
+                )
+            op = Literal(view[pos : pos + length].tobytes())
             pos += length
         else:
             raise DeltaError(f"delta: unknown op {tag} at byte {pos}")
@@ -728,4 +754,3 @@ def decode_delta(data: "hashing.Buffer", *, max_size: int) -> "Delta":
     d = Delta(tuple(ops), new_size, base_size)
     d.validate()
     return d
-

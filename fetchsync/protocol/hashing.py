@@ -65,8 +65,7 @@ class Hasher(Protocol):
 
 
 def _has_xxh3(module: "Any") -> bool:
-    return module is not None and hasattr(module, "xxh3_128") and hasattr(
-        module, "xxh3_128_digest")
+    return module is not None and hasattr(module, "xxh3_128") and hasattr(module, "xxh3_128_digest")
 
 
 def available() -> "list[str]":
@@ -81,7 +80,11 @@ def negotiate(ours: "Sequence[str]", theirs: "Sequence[str]") -> str:
     for name in ours:
         if name in theirs:
             return name
-    raise ProtocolError("no common hash algorithm: we have {}, the peer has {}".format(", ".join(ours) or "none", ", ".join(theirs) or "none"))
+    raise ProtocolError(
+        "no common hash algorithm: we have {}, the peer has {}".format(
+            ", ".join(ours) or "none", ", ".join(theirs) or "none"
+        )
+    )
 
 
 def _check(name: str) -> None:

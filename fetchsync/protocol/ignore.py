@@ -141,8 +141,9 @@ _VCS_INSIDE = re.compile(rb"(?:^|/)\.(?:git|hg|svn|bzr)(?:/|$)")
 
 def _in_vcs_dir(dirpart: bytes) -> bool:
     """Whether a directory path (``a/b``) is or lies inside a VCS directory."""
-    return (b".git" in dirpart or b".hg" in dirpart or b".svn" in dirpart or b".bzr" in dirpart) \
-        and _VCS_INSIDE.search(dirpart) is not None
+    return (
+        b".git" in dirpart or b".hg" in dirpart or b".svn" in dirpart or b".bzr" in dirpart
+    ) and _VCS_INSIDE.search(dirpart) is not None
 
 
 # --------------------------------------------------------------------------

@@ -154,14 +154,17 @@ def endpoint_archive() -> "Tuple[bytes, str]":
     import hashlib
     import io
     import zipfile
+
     here = os.path.dirname(os.path.abspath(__file__))
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+
         def add(name: str, data: bytes) -> None:
             info = zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
             zf.writestr(info, data)
+
         add("fetchsync/__init__.py", _PACKAGE_INIT)
         for name in sorted(os.listdir(here)):
             if name.endswith(".py"):
@@ -234,6 +237,7 @@ def loader_spec(python: str = "python3") -> "Tuple[str, Callable[[], bytes]]":
     # print would go down the protocol's stream); the loader puts the site
     # directories on the path itself, for the optional xxhash
     import shlex
+
     cmd = "%s -S -c %s %s %d" % (python, shlex.quote(LOADER), digest, length)
 
     def archive() -> bytes:
@@ -245,8 +249,9 @@ def loader_spec(python: str = "python3") -> "Tuple[str, Callable[[], bytes]]":
                         os.unlink(os.path.join(cache_dir(), name))
                     except OSError:
                         pass
-            raise ProtocolError("fetchsync's endpoint changed while it was starting; run the "
-                                "command again")
+            raise ProtocolError(
+                "fetchsync's endpoint changed while it was starting; run the command again"
+            )
         return data
 
     return cmd, archive

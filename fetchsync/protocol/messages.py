@@ -30,10 +30,10 @@ UPLOAD = "upload"
 OP_KINDS = (MKDIR, WRITE, SYMLINK, CHMOD, DELETE, UPLOAD)
 
 # sources of a write
-SRC_DATA = "data"       # the blob holds the whole content
-SRC_DELTA = "delta"     # the blob holds a delta against the current file (hash ``base``)
-SRC_COPY = "copy"       # content the receiver holds at another path (hash ``base``)
-SRC_UPLOAD = "upload"   # content sent before in UPLOAD ops with id ``upload``
+SRC_DATA = "data"  # the blob holds the whole content
+SRC_DELTA = "delta"  # the blob holds a delta against the current file (hash ``base``)
+SRC_COPY = "copy"  # content the receiver holds at another path (hash ``base``)
+SRC_UPLOAD = "upload"  # content sent before in UPLOAD ops with id ``upload``
 SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD)
 
 ABSENT = "-"
@@ -41,7 +41,7 @@ IS_DIR = "d"
 
 # result codes
 OK = "ok"
-CONFLICT = "conflict"            # precondition failed and the conflict policy refused
+CONFLICT = "conflict"  # precondition failed and the conflict policy refused
 BASE_MISMATCH = "base_mismatch"  # delta/copy base is not what we expected: resend whole
 IO_ERROR = "io"
 PATH_ERROR = "path"
@@ -72,17 +72,17 @@ def _check_int(name: str, value: "Any", lo: int = 0, hi: int = 1 << 62) -> None:
 class Op:
     kind: str
     path: str
-    expect: "Optional[str]" = None   # None: no check (only for UPLOAD)
+    expect: "Optional[str]" = None  # None: no check (only for UPLOAD)
     mode: int = 0
-    target: str = ""               # SYMLINK
-    hash: str = ""                 # WRITE: content hash of the result (hex)
-    size: int = 0                  # WRITE: size of the result; UPLOAD: offset
-    source: str = ""               # WRITE: one of SOURCES
-    base: str = ""                 # WRITE from delta: hash of the base; from copy: its hash
-    from_path: str = ""            # WRITE from copy
+    target: str = ""  # SYMLINK
+    hash: str = ""  # WRITE: content hash of the result (hex)
+    size: int = 0  # WRITE: size of the result; UPLOAD: offset
+    source: str = ""  # WRITE: one of SOURCES
+    base: str = ""  # WRITE from delta: hash of the base; from copy: its hash
+    from_path: str = ""  # WRITE from copy
     blob: "Tuple[int, int]" = (0, 0)  # (offset, length) in the request's blob
-    upload: str = ""               # WRITE from upload / UPLOAD: the upload id
-    z: int = 0                     # 1: the blob is zlib-compressed
+    upload: str = ""  # WRITE from upload / UPLOAD: the upload id
+    z: int = 0  # 1: the blob is zlib-compressed
 
     def validate(self) -> "Op":
         if self.kind not in OP_KINDS:
@@ -170,10 +170,25 @@ class Op:
             raise ProtocolError("operation lacks 'k'")
         path, target, hash_, source = get("p", ""), get("t", ""), get("h", ""), get("src", "")
         base, from_path, upload = get("b", ""), get("fp", ""), get("u", "")
-        if not (type(path) is type(target) is type(hash_) is type(source) is type(base)  # noqa: E721
-                is type(from_path) is type(upload) is str):  # a str subclass is no wire value
-            for name, value in (("path", path), ("target", target), ("hash", hash_), ("source", source),
-                                ("base", base), ("from_path", from_path), ("upload", upload)):
+        if not (
+            type(path)
+            is type(target)
+            is type(hash_)
+            is type(source)
+            is type(base)  # noqa: E721
+            is type(from_path)
+            is type(upload)
+            is str
+        ):  # a str subclass is no wire value
+            for name, value in (
+                ("path", path),
+                ("target", target),
+                ("hash", hash_),
+                ("source", source),
+                ("base", base),
+                ("from_path", from_path),
+                ("upload", upload),
+            ):
                 if type(value) is not str:  # noqa: E721
                     raise ProtocolError("operation field %s is not a string" % name)
         # the frozen dataclass's __init__ sets each field through object.__setattr__:
@@ -182,10 +197,35 @@ class Op:
         # compact dict instances share keys in), then validated as before
         op = object.__new__(cls)
         d = op.__dict__
-        d["kind"], d["path"], d["expect"], d["mode"], d["target"], d["hash"], d["size"], \
-            d["source"], d["base"], d["from_path"], d["blob"], d["upload"], d["z"] = \
-            obj["k"], path, get("e"), get("m", 0), target, hash_, get("s", 0), \
-            source, base, from_path, (blob[0], blob[1]), upload, get("z", 0)
+        (
+            d["kind"],
+            d["path"],
+            d["expect"],
+            d["mode"],
+            d["target"],
+            d["hash"],
+            d["size"],
+            d["source"],
+            d["base"],
+            d["from_path"],
+            d["blob"],
+            d["upload"],
+            d["z"],
+        ) = (
+            obj["k"],
+            path,
+            get("e"),
+            get("m", 0),
+            target,
+            hash_,
+            get("s", 0),
+            source,
+            base,
+            from_path,
+            (blob[0], blob[1]),
+            upload,
+            get("z", 0),
+        )
         return op.validate()
 
 
@@ -216,8 +256,8 @@ class Result(NamedTuple):
 
     code: str = OK
     message: str = ""
-    preserved: str = ""      # where the receiver's conflicting version was moved
-    written: "Optional[List[Any]]" = None   # the listing entry of what now stands there
+    preserved: str = ""  # where the receiver's conflicting version was moved
+    written: "Optional[List[Any]]" = None  # the listing entry of what now stands there
 
     @property
     def ok(self) -> bool:
@@ -225,8 +265,14 @@ class Result(NamedTuple):
 
     def to_wire(self, op: "Optional[Op]" = None) -> "Any":
         """The wire form; with the ``op`` it answers, just AS_ASKED when it did exactly that."""
-        if op is not None and self.code == OK and not self.message and not self.preserved \
-                and self.written is not None and self.written == asked(op):
+        if (
+            op is not None
+            and self.code == OK
+            and not self.message
+            and not self.preserved
+            and self.written is not None
+            and self.written == asked(op)
+        ):
             return AS_ASKED
         out = {"c": self.code}  # type: Dict[str, Any]
         if self.message:
@@ -261,8 +307,8 @@ class Listed(NamedTuple):
     kind: str
     mode: int = 0
     size: int = 0
-    hash: str = ""      # files
-    target: str = ""    # links
+    hash: str = ""  # files
+    target: str = ""  # links
 
     def expectation(self) -> str:
         if self.kind == "d":

@@ -104,7 +104,7 @@ class Root:
             try:
                 sub = os.open(part, O_DIR, dir_fd=fd)
             except OSError as exc:
-                where = "/".join(parts[:k + 1])
+                where = "/".join(parts[: k + 1])
                 if fd != self.fd:
                     os.close(fd)
                 if exc.errno == errno.ENOENT:
@@ -126,7 +126,7 @@ class Root:
             return
         fd = self.open_dir(path[:i])
         try:
-            yield fd, path[i + 1:]
+            yield fd, path[i + 1 :]
         finally:
             os.close(fd)
 

@@ -120,14 +120,16 @@ class Server:
         interval = client.get("progress")
         if isinstance(interval, (int, float)) and not isinstance(interval, bool) and interval > 0:
             interval = min(max(float(interval), PROGRESS_MIN), PROGRESS_MAX)
-            threading.Thread(target=self._keepalive, args=(interval,), name="fetchsync-keepalive",
-                             daemon=True).start()
+            threading.Thread(
+                target=self._keepalive, args=(interval,), name="fetchsync-keepalive", daemon=True
+            ).start()
         # frames are read ahead by a thread, so the link keeps carrying the next
         # batch while this one is applied and flushed to disk (the SSH window
         # alone holds ~2 MB: the client would stall after that)
         frames = _ReadAhead()
-        threading.Thread(target=self._read_ahead, args=(frames,), name="fetchsync-read",
-                         daemon=True).start()
+        threading.Thread(
+            target=self._read_ahead, args=(frames,), name="fetchsync-read", daemon=True
+        ).start()
         while True:
             item = frames.get()
             if isinstance(item, BaseException):
@@ -160,8 +162,11 @@ class Server:
         op = frame.header.get("op")
         handler = getattr(self, "do_" + str(op), None)
         if handler is None:
-            return wire.Frame(wire.T_ERROR, frame.req_id, {"error": "unknown request %r" % (op,),
-                                                           "kind": "protocol"})
+            return wire.Frame(
+                wire.T_ERROR,
+                frame.req_id,
+                {"error": "unknown request %r" % (op,), "kind": "protocol"},
+            )
         try:
             header, blob = handler(frame.header, frame.blob)
         except (ProtocolError, OSError) as exc:  # StoreError is a ProtocolError
@@ -188,18 +193,28 @@ class Server:
         """Open a workspace; ``readonly``: create nothing, lock nothing, write nothing
         (``push --dry-run``, ``pull``, status reads), and refuse every change."""
         from fetchsync.protocol.ignore import IgnoreRules
+
         workspace = expand_workspace(h.get("workspace", ""))
         readonly = h.get("readonly", False) is True
         if self.store is not None:
             self.store.close()
             self.store = None
         rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
-        self.store = Store(workspace, algorithm=self.algorithm, rules=rules,
-                           create=bool(h.get("create", True)), readonly=readonly)
+        self.store = Store(
+            workspace,
+            algorithm=self.algorithm,
+            rules=rules,
+            create=bool(h.get("create", True)),
+            readonly=readonly,
+        )
         store = self._store()
         store.save_index()
-        return {"workspace": workspace, "epoch": store.epoch, "gen": store.gen,
-                "readonly": readonly}, b""
+        return {
+            "workspace": workspace,
+            "epoch": store.epoch,
+            "gen": store.gen,
+            "readonly": readonly,
+        }, b""
 
     def _fresh(self, store: "Store", h: "Dict[str, Any]") -> bool:
         return h.get("epoch") == store.epoch and h.get("gen") == store.gen
@@ -239,8 +254,11 @@ class Server:
         store, ops, policy = parsed
         unpacked, self.unpacked = self.unpacked, None
         results = store.apply(ops, blob, policy=policy, zpart=h.get("zpart"), unpacked=unpacked)
-        out = {"results": [r.to_wire(op) for r, op in zip(results, ops)],
-               "epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
+        out = {
+            "results": [r.to_wire(op) for r, op in zip(results, ops)],
+            "epoch": store.epoch,
+            "gen": store.gen,
+        }  # type: Dict[str, Any]
         if h.get("verify"):
             changed, gone = store.drift()
             out.update(drift=[e.to_wire() for e in changed], gone=gone)
@@ -262,8 +280,12 @@ class Server:
             try:
                 answer, data = serve(item)
             except (OSError, ProtocolError) as exc:
-                answers.append({"c": M.IO_ERROR, "msg": "%s: %s" % (
-                    item["p"], getattr(exc, "strerror", None) or exc)})
+                answers.append(
+                    {
+                        "c": M.IO_ERROR,
+                        "msg": "%s: %s" % (item["p"], getattr(exc, "strerror", None) or exc),
+                    }
+                )
                 continue
             answer["bl"] = [pos, len(data)]
             answers.append(answer)
@@ -279,12 +301,19 @@ class Server:
             sig = None
             if "sig" in item:
                 ref = item["sig"]
-                if not (isinstance(ref, list) and len(ref) == 2 and all(isinstance(x, int) for x in ref)
-                        and 0 <= ref[0] and 0 <= ref[1] and ref[0] + ref[1] <= len(blob)):
+                if not (
+                    isinstance(ref, list)
+                    and len(ref) == 2
+                    and all(isinstance(x, int) for x in ref)
+                    and 0 <= ref[0]
+                    and 0 <= ref[1]
+                    and ref[0] + ref[1] <= len(blob)
+                ):
                     raise ProtocolError("bad signature reference")
-                sig = blob[ref[0]:ref[0] + ref[1]]
-            listed, src, data = store.read(item["p"], sig=sig, offset=int(item.get("off", 0)),
-                                           length=int(item.get("len", -1)))
+                sig = blob[ref[0] : ref[0] + ref[1]]
+            listed, src, data = store.read(
+                item["p"], sig=sig, offset=int(item.get("off", 0)), length=int(item.get("len", -1))
+            )
             return {"c": M.OK, "l": listed.to_wire(), "src": src}, data
 
         answers, data = self._per_item(h, serve)
@@ -319,8 +348,12 @@ class Server:
             entries, more = store.kept(where)
             return {"entries": entries, "more": more}, b""
         at, path, off, n = h.get("at"), h.get("p"), h.get("off", 0), h.get("len", 0)
-        if not (isinstance(at, str) and isinstance(path, str) and isinstance(off, int)
-                and isinstance(n, int)):
+        if not (
+            isinstance(at, str)
+            and isinstance(path, str)
+            and isinstance(off, int)
+            and isinstance(n, int)
+        ):
             raise ProtocolError("bad kept read")
         size, data = store.read_kept(where, at, path, off, n)
         return {"size": size}, data
@@ -346,9 +379,15 @@ def _error_frame(req_id: int, exc: "Exception") -> "wire.Frame":
     if isinstance(exc, ProtocolError):
         return wire.Frame(wire.T_ERROR, req_id, {"error": str(exc), "kind": "protocol"})
     assert isinstance(exc, OSError)
-    return wire.Frame(wire.T_ERROR, req_id, {
-        "error": "%s%s" % (exc.strerror or exc, ": " + exc.filename if exc.filename else ""),
-        "kind": "os", "errno": exc.errno or 0})
+    return wire.Frame(
+        wire.T_ERROR,
+        req_id,
+        {
+            "error": "%s%s" % (exc.strerror or exc, ": " + exc.filename if exc.filename else ""),
+            "kind": "os",
+            "errno": exc.errno or 0,
+        },
+    )
 
 
 class _ReadAhead:
@@ -370,8 +409,9 @@ class _ReadAhead:
     def put(self, item: "Any", size: int = 0) -> None:
         """Queue ``item``, once there is room for ``size`` more bytes."""
         with self._cond:
-            while self._items and (len(self._items) >= READ_AHEAD
-                                   or self._bytes + size > READ_AHEAD_BYTES):
+            while self._items and (
+                len(self._items) >= READ_AHEAD or self._bytes + size > READ_AHEAD_BYTES
+            ):
                 self._cond.wait()
             self._items.append((item, size))
             self._bytes += size
@@ -395,8 +435,12 @@ def _unpacked(frame: "Optional[wire.Frame]") -> "Optional[Tuple[bytes, Any]]":
     """A sync request's compressed part, inflated by the reading thread (zlib lets go of
     the GIL) while the serving one applies the request before; None if it has none, or
     if it is bad: applying the request then says why."""
-    if frame is None or frame.type != wire.T_REQUEST or frame.header.get("op") != "sync" \
-            or frame.header.get("zpart") is None:
+    if (
+        frame is None
+        or frame.type != wire.T_REQUEST
+        or frame.header.get("op") != "sync"
+        or frame.header.get("zpart") is None
+    ):
         return None
     try:
         return unpack_zpart(frame.blob, frame.header["zpart"])
@@ -429,6 +473,7 @@ def main() -> None:
         sys.exit(3)
     except Exception:
         import traceback  # only here: it costs every start ~2 ms to import
+
         traceback.print_exc()
         sys.exit(4)
 

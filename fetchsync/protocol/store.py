@@ -67,8 +67,14 @@ JOURNAL = "index.log"
 JOURNAL_MIN = 1 << 20  # the journal is folded into a new snapshot past this and half the snapshot
 _LEN = struct.Struct(">I")
 OLD_INDEXES = ("index.json",)  # earlier formats: dropped (the first push lists in full)
-_INDEX_TYPES = (("epoch", str), ("gen", int), ("synced", dict), ("cache", dict), ("trash", list),
-                ("serial", str))
+_INDEX_TYPES = (
+    ("epoch", str),
+    ("gen", int),
+    ("synced", dict),
+    ("cache", dict),
+    ("trash", list),
+    ("serial", str),
+)
 PIECE = 1 << 20  # content is read, hashed, patched and written in pieces of this size
 HOLE = 64 * 1024  # a piece of zeros this long (aligned in the file) is left a hole when written
 _ZEROS = bytes(HOLE)
@@ -133,14 +139,19 @@ def _umask() -> int:
 
 def unpack_zpart(blob: bytes, zpart: "Any") -> "Tuple[bytes, Any]":
     """A sync request's blob as (its compressed part inflated, the raw rest, not copied)."""
-    if not (isinstance(zpart, list) and len(zpart) == 2 and all(isinstance(x, int) for x in zpart)
-            and 0 <= zpart[0] <= len(blob) and 0 <= zpart[1] <= wire.MAX_BODY):
+    if not (
+        isinstance(zpart, list)
+        and len(zpart) == 2
+        and all(isinstance(x, int) for x in zpart)
+        and 0 <= zpart[0] <= len(blob)
+        and 0 <= zpart[1] <= wire.MAX_BODY
+    ):
         raise ProtocolError("bad compressed-part reference")
     view = memoryview(blob)
-    packed = wire.inflate(view[:zpart[0]], zpart[1])
+    packed = wire.inflate(view[: zpart[0]], zpart[1])
     if len(packed) != zpart[1]:
         raise ProtocolError("compressed part has the wrong length")
-    return packed, view[zpart[0]:]
+    return packed, view[zpart[0] :]
 
 
 def syncfs(fd: int) -> None:
@@ -149,6 +160,7 @@ def syncfs(fd: int) -> None:
     try:
         if _libc is None:
             import ctypes  # here: it costs every endpoint start ~4 ms to import
+
             _libc = ctypes.CDLL(None, use_errno=True)
         if _libc.syncfs(fd) == 0:
             return
@@ -225,7 +237,7 @@ class _Out:
         while pos < n:
             # up to the next HOLE boundary of the file, so holes are aligned
             step = min(n - pos, HOLE - (self.size + pos) % HOLE)
-            piece = view[pos:pos + step]
+            piece = view[pos : pos + step]
             if self.sparse and step == HOLE and piece == _ZEROS:
                 os.lseek(self.fd, step, os.SEEK_CUR)
                 self.pending_hole = True
@@ -270,8 +282,15 @@ class _Tee:
 
 
 class Store:
-    def __init__(self, workspace: str, *, algorithm: str, rules: "Any" = None, create: bool = True,
-                 readonly: bool = False) -> None:
+    def __init__(
+        self,
+        workspace: str,
+        *,
+        algorithm: str,
+        rules: "Any" = None,
+        create: bool = True,
+        readonly: bool = False,
+    ) -> None:
         self.workspace = workspace
         self.root = os.path.join(workspace, "src")
         self.meta = os.path.join(workspace, META)
@@ -291,9 +310,11 @@ class Store:
     # ------------------------------------------------------------------ descriptors
     def _unusable(self, exc: "OSError", where: str) -> "StoreError":
         if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-            return StoreError("the remote workspace is not writable: cannot create %s: %s; "
-                              "check the permissions of %s on the robot, or pass another "
-                              "--remote-workspace" % (where, exc.strerror, os.path.dirname(where)))
+            return StoreError(
+                "the remote workspace is not writable: cannot create %s: %s; "
+                "check the permissions of %s on the robot, or pass another "
+                "--remote-workspace" % (where, exc.strerror, os.path.dirname(where))
+            )
         return StoreError("cannot use %s: %s" % (where, exc.strerror or exc))
 
     def _open_top(self, ws_fd: int, name: str, shown: str, create: bool, mode: int) -> int:
@@ -306,8 +327,10 @@ class Store:
                 return -1
         except OSError as exc:
             if exc.errno in paths.NOT_A_DIR:
-                raise StoreError("%s is a symlink or not a directory: fetchsync does not write "
-                                 "through it; make it a directory" % shown) from None
+                raise StoreError(
+                    "%s is a symlink or not a directory: fetchsync does not write "
+                    "through it; make it a directory" % shown
+                ) from None
             raise self._unusable(exc, shown) from None
         try:
             os.mkdir(name, mode, dir_fd=ws_fd)
@@ -372,8 +395,11 @@ class Store:
             return mkdir_open(name, self._meta(), 0o700)
         except OSError as exc:
             if exc.errno in paths.NOT_A_DIR:  # this operation's failure
-                raise OSError(exc.errno, "%s is a symlink or not a directory: fetchsync does not "
-                              "write through it" % os.path.join(META, name)) from None
+                raise OSError(
+                    exc.errno,
+                    "%s is a symlink or not a directory: fetchsync does not "
+                    "write through it" % os.path.join(META, name),
+                ) from None
             raise
 
     def _read_meta(self, name: str) -> "Optional[bytes]":
@@ -440,18 +466,29 @@ class Store:
                         pass
         except (OSError, ValueError, EOFError, TypeError):
             data = None  # a damaged index only costs a full listing
-        if (not isinstance(data, dict) or data.get("v") != INDEX_VERSION
-                or data.get("algorithm") != self.algorithm
-                or not all(isinstance(data.get(k), t) for k, t in _INDEX_TYPES)):
-            data = {"v": INDEX_VERSION, "epoch": os.urandom(16).hex(), "gen": 0, "serial": "",
-                    "algorithm": self.algorithm, "synced": {}, "cache": {}, "trash": []}
+        if (
+            not isinstance(data, dict)
+            or data.get("v") != INDEX_VERSION
+            or data.get("algorithm") != self.algorithm
+            or not all(isinstance(data.get(k), t) for k, t in _INDEX_TYPES)
+        ):
+            data = {
+                "v": INDEX_VERSION,
+                "epoch": os.urandom(16).hex(),
+                "gen": 0,
+                "serial": "",
+                "algorithm": self.algorithm,
+                "synced": {},
+                "cache": {},
+                "trash": [],
+            }
             self._dirty = True
         else:
             self._dirty = False
         self.epoch = data["epoch"]  # type: str
         self.gen = int(data["gen"])
         self.synced = data["synced"]  # type: Dict[str, List[Any]]  # path -> [kind, mode, hash|target]
-        self.cache = data["cache"]    # type: Dict[str, List[Any]]  # path -> [size, mtime, ctime, ino, hash]
+        self.cache = data["cache"]  # type: Dict[str, List[Any]]  # path -> [size, mtime, ctime, ino, hash]
         self.trash_log = data.get("trash", [])  # type: List[List[Any]]
         self._serial = data["serial"]  # type: str  # the snapshot the journal's records apply to
         index_stat = self._loaded_stamp[0]
@@ -475,13 +512,17 @@ class Store:
             if end > len(buf):
                 break  # torn by a crash mid-append
             try:
-                rec = marshal.loads(buf[pos + _LEN.size:end])
+                rec = marshal.loads(buf[pos + _LEN.size : end])
                 if not (isinstance(rec, dict) and rec.get("serial") == self._serial):
                     break
                 epoch, gen, trash = rec["epoch"], rec["gen"], rec["trash"]
                 changes = [(self.synced, rec["s"]), (self.cache, rec["c"])]
-                if not (isinstance(epoch, str) and isinstance(gen, int) and isinstance(trash, list)
-                        and all(isinstance(c, dict) for _t, c in changes)):
+                if not (
+                    isinstance(epoch, str)
+                    and isinstance(gen, int)
+                    and isinstance(trash, list)
+                    and all(isinstance(c, dict) for _t, c in changes)
+                ):
                     break
             except (ValueError, EOFError, TypeError, KeyError):
                 break
@@ -522,15 +563,27 @@ class Store:
         """
         if not self._dirty or self.readonly:
             return
-        if self._journal_size < 0 or self._journal_size > max(JOURNAL_MIN, self._snapshot_size // 2):
+        if self._journal_size < 0 or self._journal_size > max(
+            JOURNAL_MIN, self._snapshot_size // 2
+        ):
             self._write_snapshot()
         else:
-            rec = marshal.dumps({
-                "serial": self._serial, "epoch": self.epoch, "gen": self.gen, "trash": self.trash_log,
-                "s": {p: self.synced.get(p) for p in self._touched_synced},
-                "c": {p: self.cache.get(p) for p in self._touched_cache}})
-            fd = os.open(JOURNAL, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | _CLOEXEC,
-                         0o600, dir_fd=self._meta())
+            rec = marshal.dumps(
+                {
+                    "serial": self._serial,
+                    "epoch": self.epoch,
+                    "gen": self.gen,
+                    "trash": self.trash_log,
+                    "s": {p: self.synced.get(p) for p in self._touched_synced},
+                    "c": {p: self.cache.get(p) for p in self._touched_cache},
+                }
+            )
+            fd = os.open(
+                JOURNAL,
+                os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | _CLOEXEC,
+                0o600,
+                dir_fd=self._meta(),
+            )
             try:
                 _write_all(fd, _LEN.pack(len(rec)) + rec)
             finally:
@@ -543,9 +596,18 @@ class Store:
 
     def _write_snapshot(self) -> None:
         self._serial = os.urandom(16).hex()
-        blob = marshal.dumps({"v": INDEX_VERSION, "epoch": self.epoch, "gen": self.gen,
-                              "algorithm": self.algorithm, "serial": self._serial,
-                              "synced": self.synced, "cache": self.cache, "trash": self.trash_log})
+        blob = marshal.dumps(
+            {
+                "v": INDEX_VERSION,
+                "epoch": self.epoch,
+                "gen": self.gen,
+                "algorithm": self.algorithm,
+                "serial": self._serial,
+                "synced": self.synced,
+                "cache": self.cache,
+                "trash": self.trash_log,
+            }
+        )
         self._write_meta(INDEX, blob)
         # the old journal's records name the old snapshot: a crash before this
         # line leaves them ignored, never applied to the new one
@@ -559,8 +621,9 @@ class Store:
     def _set_synced(self, path: str, value: "Optional[List[Any]]") -> None:
         self._set_row(self.synced, self._touched_synced, path, value)
 
-    def _set_row(self, table: "Dict[str, Any]", touched: "set", path: str,
-                 value: "Optional[List[Any]]") -> None:
+    def _set_row(
+        self, table: "Dict[str, Any]", touched: "set", path: str, value: "Optional[List[Any]]"
+    ) -> None:
         """Set or drop (None) ``path``'s row in one of the index's tables, for the journal."""
         if value is None:
             if table.pop(path, None) is None:
@@ -609,8 +672,9 @@ class Store:
             return
         if self._lock_fd >= 0:
             return
-        fd = os.open("lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600,
-                     dir_fd=self._meta())
+        fd = os.open(
+            "lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=self._meta()
+        )
         deadline = time.monotonic() + timeout
         while True:
             try:
@@ -622,7 +686,9 @@ class Store:
                     raise
                 if time.monotonic() > deadline:
                     os.close(fd)
-                    raise StoreError("another fetchsync is writing to %s" % self.workspace)
+                    raise StoreError(
+                        "another fetchsync is writing to %s" % self.workspace
+                    ) from None
                 time.sleep(0.05)
         self._lock_fd = fd
         if lstat_at(BATCH_MARK, self._meta()) is not None:
@@ -640,9 +706,14 @@ class Store:
     def _hash_fd(self, path: str, fd: int, st: "os.stat_result") -> str:
         """Content hash of the open regular file ``fd`` (``st``: its fstat), stat-cached."""
         cached = self.cache.get(path)
-        if (cached is not None and cached[0] == st.st_size and cached[1] == st.st_mtime_ns
-                and cached[2] == st.st_ctime_ns and cached[3] == st.st_ino
-                and not self._racy(st.st_mtime_ns)):
+        if (
+            cached is not None
+            and cached[0] == st.st_size
+            and cached[1] == st.st_mtime_ns
+            and cached[2] == st.st_ctime_ns
+            and cached[3] == st.st_ino
+            and not self._racy(st.st_mtime_ns)
+        ):
             return cached[4]
         os.lseek(fd, 0, os.SEEK_SET)
         digest = hashing.file_digest(self.algorithm, fd, PIECE).hex()
@@ -651,8 +722,14 @@ class Store:
 
     def _cached(self, path: str, entry: "Entry") -> "Optional[str]":
         c = self.cache.get(path)
-        if (c is not None and c[0] == entry.size and c[1] == entry.mtime_ns and c[2] == entry.ctime_ns
-                and c[3] == entry.ino and not self._racy(entry.mtime_ns)):
+        if (
+            c is not None
+            and c[0] == entry.size
+            and c[1] == entry.mtime_ns
+            and c[2] == entry.ctime_ns
+            and c[3] == entry.ino
+            and not self._racy(entry.mtime_ns)
+        ):
             return c[4]
         return None
 
@@ -815,7 +892,9 @@ class Store:
         n = 0
         for item in items:
             cur = self.current(item.path)
-            if cur is not None and self._matches(cur, [item.kind, item.mode, item.hash or item.target]):
+            if cur is not None and self._matches(
+                cur, [item.kind, item.mode, item.hash or item.target]
+            ):
                 self._record(item.path, cur)
                 n += 1
         self.gen += 1
@@ -845,16 +924,22 @@ class Store:
         fd, st = self._open_file(path)
         if st.st_size > MAX_SIGNED:
             os.close(fd)
-            raise ProtocolError("%s: too large for a delta (its signature would not fit in an "
-                                "answer); it is sent whole" % path)
+            raise ProtocolError(
+                "%s: too large for a delta (its signature would not fit in an "
+                "answer); it is sent whole" % path
+            )
         with io.FileIO(fd, "rb", closefd=True) as fh:
             tee = _Tee(fh, self.algorithm)
-            sig = delta_mod.signature_file_bytes(tee, algorithm=self.algorithm,  # type: ignore[arg-type]
-                                                 bufsize=PIECE)
+            sig = delta_mod.signature_file_bytes(
+                tee,
+                algorithm=self.algorithm,  # type: ignore[arg-type]
+                bufsize=PIECE,
+            )
             return sig, tee.hasher.digest().hex()
 
-    def read(self, path: str, *, sig: "Optional[bytes]" = None, offset: int = 0,
-             length: int = -1) -> "Tuple[M.Listed, str, bytes]":
+    def read(
+        self, path: str, *, sig: "Optional[bytes]" = None, offset: int = 0, length: int = -1
+    ) -> "Tuple[M.Listed, str, bytes]":
         """Content of a file: (what it is, "data" or "delta", payload). A delta is made
         reading the file in pieces; data is read from ``offset``, ``length`` bytes."""
         fd, st = self._open_file(path)
@@ -865,17 +950,24 @@ class Store:
                 from fetchsync.protocol import delta as delta_mod  # see _write_temp
 
                 if len(sig) > MAX_READ_SIG:  # its chunks' index would outgrow the file's pieces
-                    raise ProtocolError("%s: the signature is too large for a delta here; read the "
-                                        "file in pieces" % path)
+                    raise ProtocolError(
+                        "%s: the signature is too large for a delta here; read the "
+                        "file in pieces" % path
+                    )
 
                 base_sig = delta_mod.Signature.from_bytes(sig)
                 fh.seek(0)
-                return item, M.SRC_DELTA, delta_mod.encode_delta(
-                    delta_mod.delta_file(fh, base_sig, bufsize=PIECE))  # type: ignore[arg-type]
+                return (
+                    item,
+                    M.SRC_DELTA,
+                    delta_mod.encode_delta(delta_mod.delta_file(fh, base_sig, bufsize=PIECE)),
+                )  # type: ignore[arg-type]
             want = max(0, st.st_size - offset) if length < 0 else length
             if offset < 0 or want > MAX_READ:
-                raise ProtocolError("%s: bad read range, or more than %d MiB at once: read it in "
-                                    "pieces" % (path, MAX_READ >> 20))
+                raise ProtocolError(
+                    "%s: bad read range, or more than %d MiB at once: read it in "
+                    "pieces" % (path, MAX_READ >> 20)
+                )
             fh.seek(offset)
             return item, M.SRC_DATA, fh.read() if length < 0 else fh.read(length)
 
@@ -895,8 +987,9 @@ class Store:
             return None
         except OSError as exc:
             if exc.errno in paths.NOT_A_DIR:
-                raise StoreError("%s is a symlink or not a directory: fetchsync does not read "
-                                 "through it" % shown) from None
+                raise StoreError(
+                    "%s is a symlink or not a directory: fetchsync does not read through it" % shown
+                ) from None
             raise
         return paths.Root(fd, shown)
 
@@ -950,8 +1043,9 @@ class Store:
             os.close(root.fd)
         return out, False
 
-    def read_kept(self, where: str, stamp: str, path: str, offset: int,
-                  length: int) -> "Tuple[int, bytes]":
+    def read_kept(
+        self, where: str, stamp: str, path: str, offset: int, length: int
+    ) -> "Tuple[int, bytes]":
         """``(size, bytes)`` of the kept file ``.fetchsync/<where>/<stamp>/<path>`` from
         ``offset`` (at most MAX_READ at once); every component opened O_NOFOLLOW."""
         if "/" in paths.validate(stamp):
@@ -984,9 +1078,15 @@ class Store:
         if self.readonly:
             raise StoreError("the workspace was opened read-only: nothing is written")
 
-    def apply(self, ops: "List[M.Op]", blob: bytes, *, policy: str = "preserve",
-              zpart: "Optional[List[int]]" = None,
-              unpacked: "Optional[Tuple[bytes, Any]]" = None) -> "List[M.Result]":
+    def apply(
+        self,
+        ops: "List[M.Op]",
+        blob: bytes,
+        *,
+        policy: str = "preserve",
+        zpart: "Optional[List[int]]" = None,
+        unpacked: "Optional[Tuple[bytes, Any]]" = None,
+    ) -> "List[M.Result]":
         """Apply ``ops`` in order; one result each. Per-file failures are results.
 
         ``zpart`` = [compressed length, length] says the blob starts with one
@@ -1004,7 +1104,9 @@ class Store:
             packed = b""
         batch = _Batch(self, blob, packed, policy)
         meta = self._meta()
-        fd = os.open(BATCH_MARK, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=meta)
+        fd = os.open(
+            BATCH_MARK, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=meta
+        )
         os.close(fd)
         try:
             batch.results = [batch.run(op, i) for i, op in enumerate(ops)]
@@ -1043,8 +1145,11 @@ class Store:
         except OSError as exc:
             os.close(fd)
             if exc.errno in paths.NOT_A_DIR:
-                raise OSError(errno.ENOTDIR, "%s/%s holds a symlink or a file where fetchsync keeps "
-                              "a directory" % (META, where)) from None
+                raise OSError(
+                    errno.ENOTDIR,
+                    "%s/%s holds a symlink or a file where fetchsync keeps "
+                    "a directory" % (META, where),
+                ) from None
             raise
         return fd, parts[-1], os.path.join(META, where, *parts)
 
@@ -1118,7 +1223,9 @@ class Store:
 
     def _prune_trash(self) -> None:
         total = sum(n for _d, n in self.trash_log)
-        while self.trash_log and (len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES):
+        while self.trash_log and (
+            len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES
+        ):
             top, n = self.trash_log.pop(0)
             try:
                 trash = self._meta_dir("trash")
@@ -1180,7 +1287,7 @@ class _Batch:
         data = self.zpart if op.z else self.blob
         if off + length > len(data):
             raise ProtocolError("operation on %r points past the request's data" % op.path)
-        return memoryview(data)[off:off + length]
+        return memoryview(data)[off : off + length]
 
     def run(self, op: "M.Op", idx: int) -> "M.Result":
         try:
@@ -1282,7 +1389,9 @@ class _Batch:
                 if moved:
                     s._put_back(dir_fd, name, op.path, moved)
                 raise
-        item = s._at(op.path, dir_fd, name)  # made with the mode asked, unless umask or setgid say otherwise
+        item = s._at(
+            op.path, dir_fd, name
+        )  # made with the mode asked, unless umask or setgid say otherwise
         if item is None or item.kind != DIR:
             raise OSError(errno.EEXIST, "something else was put there meanwhile")
         if item.mode != mode:
@@ -1300,8 +1409,12 @@ class _Batch:
             # its content was changed here: a mode alone cannot make it the sender's;
             # the robot's version is kept now, whatever the sender does next
             kept = s._keep_copy(dir_fd, name, op.path, "conflicts") if cur.kind == FILE else ""
-            return M.Result(M.BASE_MISMATCH, "%s was changed here since the last sync%s" % (
-                op.path, "; kept at " + kept if kept else ""), preserved=kept)
+            return M.Result(
+                M.BASE_MISMATCH,
+                "%s was changed here since the last sync%s"
+                % (op.path, "; kept at " + kept if kept else ""),
+                preserved=kept,
+            )
         _chmod_at(dir_fd, name, op.mode)
         item = s._at(op.path, dir_fd, name)
         s._record(op.path, item)
@@ -1316,7 +1429,9 @@ class _Batch:
         tmp_dir = s._meta_dir(TMP)
         try:
             s._uploads.add(part)
-            fd = os.open(part, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=tmp_dir)
+            fd = os.open(
+                part, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=tmp_dir
+            )
         finally:
             os.close(tmp_dir)
         try:
@@ -1469,8 +1584,15 @@ class _Batch:
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
-    def _swap_in(self, op: "M.Op", dir_fd: int, name: str, tmp: str, before: "Optional[os.stat_result]",
-                 preserved: str) -> bool:
+    def _swap_in(
+        self,
+        op: "M.Op",
+        dir_fd: int,
+        name: str,
+        tmp: str,
+        before: "Optional[os.stat_result]",
+        preserved: str,
+    ) -> bool:
         """Put the temporary in place with renameat2, so nothing the robot does between the
         check and the rename is lost: over nothing, only if nothing appeared meanwhile
         (RENAME_NOREPLACE); over a file, by exchanging the two, the old version then
@@ -1484,8 +1606,11 @@ class _Batch:
             return False
         self.exchanged = True
         out = lstat_at(tmp, dir_fd)
-        if out is not None and (out.st_ino, out.st_size, out.st_mtime_ns) == \
-                (before.st_ino, before.st_size, before.st_mtime_ns):
+        if out is not None and (out.st_ino, out.st_size, out.st_mtime_ns) == (
+            before.st_ino,
+            before.st_size,
+            before.st_mtime_ns,
+        ):
             os.unlink(tmp, dir_fd=dir_fd)  # exactly what was checked (and kept, if edited)
         return True
 
@@ -1505,8 +1630,17 @@ class _Batch:
 RENAME_NOREPLACE = 1
 RENAME_EXCHANGE = 2
 # renameat2's system call number (glibc has a wrapper only from 2.28, after Ubuntu 18.04's)
-_RENAMEAT2 = {"x86_64": 316, "aarch64": 276, "riscv64": 276, "i386": 353, "i686": 353,
-              "armv6l": 382, "armv7l": 382, "armv8l": 382, "ppc64le": 357}
+_RENAMEAT2 = {
+    "x86_64": 316,
+    "aarch64": 276,
+    "riscv64": 276,
+    "i386": 353,
+    "i686": 353,
+    "armv6l": 382,
+    "armv7l": 382,
+    "armv8l": 382,
+    "ppc64le": 357,
+}
 _renameat2_works = True
 
 
@@ -1519,10 +1653,20 @@ def _renameat2(dir_fd: int, src: str, dst: str, flags: int) -> bool:
     if not _renameat2_works or number is None:
         return False
     import ctypes
+
     if _libc is None:
         _libc = ctypes.CDLL(None, use_errno=True)
-    if _libc.syscall(ctypes.c_long(number), ctypes.c_int(dir_fd), ctypes.c_char_p(os.fsencode(src)),
-                     ctypes.c_int(dir_fd), ctypes.c_char_p(os.fsencode(dst)), ctypes.c_uint(flags)) == 0:
+    if (
+        _libc.syscall(
+            ctypes.c_long(number),
+            ctypes.c_int(dir_fd),
+            ctypes.c_char_p(os.fsencode(src)),
+            ctypes.c_int(dir_fd),
+            ctypes.c_char_p(os.fsencode(dst)),
+            ctypes.c_uint(flags),
+        )
+        == 0
+    ):
         return True
     err = ctypes.get_errno()
     if err == errno.ENOSYS:

@@ -21,24 +21,32 @@ IGNORE_FILE = ".fetchsyncignore"
 
 
 class Entry(NamedTuple):
-    kind: str           # FILE, DIR or LINK
-    mode: int           # permission bits (0o7777); 0 for links
-    size: int           # bytes for files, 0 otherwise
+    kind: str  # FILE, DIR or LINK
+    mode: int  # permission bits (0o7777); 0 for links
+    size: int  # bytes for files, 0 otherwise
     mtime_ns: int
     ctime_ns: int
     ino: int
-    target: str = ""    # symlink target
+    target: str = ""  # symlink target
 
     def same_stat(self, other: "Entry") -> bool:
-        return (self.kind == other.kind and self.mode == other.mode and self.size == other.size
-                and self.mtime_ns == other.mtime_ns and self.ctime_ns == other.ctime_ns
-                and self.ino == other.ino and self.target == other.target)
+        return (
+            self.kind == other.kind
+            and self.mode == other.mode
+            and self.size == other.size
+            and self.mtime_ns == other.mtime_ns
+            and self.ctime_ns == other.ctime_ns
+            and self.ino == other.ino
+            and self.target == other.target
+        )
 
 
 def entry_from_stat(st: "os.stat_result", target: str = "") -> "Optional[Entry]":
     mode = st.st_mode
     if stat_mod.S_ISREG(mode):
-        return Entry(FILE, stat_mod.S_IMODE(mode), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+        return Entry(
+            FILE, stat_mod.S_IMODE(mode), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
+        )
     if stat_mod.S_ISDIR(mode):
         return Entry(DIR, stat_mod.S_IMODE(mode), 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
     if stat_mod.S_ISLNK(mode):
@@ -63,12 +71,18 @@ def stat_path(full: str) -> "Optional[Entry]":
 
 class ScanResult(NamedTuple):
     entries: "Dict[str, Entry]"
-    skipped: "List[Tuple[str, str]]"   # (path, reason): sockets, FIFOs, unreadable dirs
+    skipped: "List[Tuple[str, str]]"  # (path, reason): sockets, FIFOs, unreadable dirs
 
 
-def scan(root: str, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None,
-         start: str = "", on_dir: "Optional[Callable[[str, str], None]]" = None,
-         rules_out: "Optional[Dict[str, object]]" = None) -> "ScanResult":
+def scan(
+    root: str,
+    rules=None,
+    *,
+    is_temp: "Optional[Callable[[str], bool]]" = None,
+    start: str = "",
+    on_dir: "Optional[Callable[[str, str], None]]" = None,
+    rules_out: "Optional[Dict[str, object]]" = None,
+) -> "ScanResult":
     """Stat every entry under ``root`` (not following symlinks), honouring ``rules``.
 
     ``rules`` is an ``IgnoreRules`` (or None); ``.fetchsyncignore`` files met on
@@ -85,8 +99,12 @@ def scan(root: str, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = 
         for depth in range(len(parts)):
             anc = "/".join(parts[:depth])
             try:
-                with open(os.path.join(root, anc, IGNORE_FILE), "r", encoding="utf-8",
-                          errors="surrogateescape") as fh:
+                with open(
+                    os.path.join(root, anc, IGNORE_FILE),
+                    "r",
+                    encoding="utf-8",
+                    errors="surrogateescape",
+                ) as fh:
                     rules = rules.with_file(anc, fh.read())
             except OSError:
                 pass
@@ -113,13 +131,17 @@ def scan(root: str, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = 
                         with open(de.path, "r", encoding="utf-8", errors="surrogateescape") as fh:
                             dir_rules = dir_rules.with_file(rel, fh.read())
                     except OSError as exc:
-                        skipped.append((rel + "/" + IGNORE_FILE if rel else IGNORE_FILE,
-                                        "cannot read: %s" % exc.strerror))
+                        skipped.append(
+                            (
+                                rel + "/" + IGNORE_FILE if rel else IGNORE_FILE,
+                                "cannot read: %s" % exc.strerror,
+                            )
+                        )
                     break
         if rules_out is not None:
             rules_out[rel] = dir_rules
         for de, path in _kept(items, rel, dir_rules, is_temp):
-            if _record(de, path, lambda: os.readlink(de.path), entries, skipped):
+            if _record(de, path, lambda de=de: os.readlink(de.path), entries, skipped):
                 stack.append((path, dir_rules))
     return ScanResult(entries, skipped)
 
@@ -143,8 +165,13 @@ def _kept(items: "List[Any]", rel: str, dir_rules, is_temp: "Optional[Callable[[
         yield de, path
 
 
-def _record(de: "Any", path: str, readlink: "Callable[[], Any]", entries: "Dict[str, Entry]",
-            skipped: "List[Tuple[str, str]]") -> bool:
+def _record(
+    de: "Any",
+    path: str,
+    readlink: "Callable[[], Any]",
+    entries: "Dict[str, Entry]",
+    skipped: "List[Tuple[str, str]]",
+) -> bool:
     """Record the entry ``de`` at wire path ``path`` (``readlink()`` reads a symlink's
     target); True when it is a directory to list in turn."""
     try:
@@ -153,8 +180,9 @@ def _record(de: "Any", path: str, readlink: "Callable[[], Any]", entries: "Dict[
         return False  # vanished while we looked
     mode = st.st_mode
     if S_ISREG(mode):
-        entries[path] = Entry(FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
-                              st.st_ino)
+        entries[path] = Entry(
+            FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
+        )
     elif S_ISDIR(mode):
         entries[path] = Entry(DIR, mode & 0o7777, 0, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
         return True
@@ -172,6 +200,7 @@ def _record(de: "Any", path: str, readlink: "Callable[[], Any]", entries: "Dict[
 def _read_at(name: str, dir_fd: int, limit: int = 1 << 20) -> "Optional[bytes]":
     """The content of regular file ``name`` in ``dir_fd`` (not through a symlink), or None."""
     from fetchsync.protocol.paths import O_FILE
+
     try:
         fd = os.open(name, O_FILE, dir_fd=dir_fd)
     except OSError:
@@ -200,8 +229,14 @@ def scandir_fd(fd: int) -> "Any":
     return os.scandir("/proc/self/fd/%d" % fd)
 
 
-def _list_dir(fd: int, rel: str, dir_rules, is_temp: "Optional[Callable[[str], bool]]",  # type: ignore[no-untyped-def]
-              entries: "Dict[str, Entry]", skipped: "List[Tuple[str, str]]"):
+def _list_dir(
+    fd: int,
+    rel: str,
+    dir_rules,
+    is_temp: "Optional[Callable[[str], bool]]",  # type: ignore[no-untyped-def]
+    entries: "Dict[str, Entry]",
+    skipped: "List[Tuple[str, str]]",
+):
     """Record the entries of the directory at ``fd`` (wire path ``rel``); the names of its
     subdirectories and the rules in force below it."""
     with scandir_fd(fd) as it:
@@ -215,19 +250,21 @@ def _list_dir(fd: int, rel: str, dir_rules, is_temp: "Optional[Callable[[str], b
                 break
     subdirs = []
     for de, path in _kept(items, rel, dir_rules, is_temp):
-        if _record(de, path, lambda: os.readlink(de.name, dir_fd=fd), entries, skipped):
+        if _record(de, path, lambda de=de: os.readlink(de.name, dir_fd=fd), entries, skipped):
             subdirs.append(de.name)
     return subdirs, dir_rules
 
 
-def scan_fd(root_fd: int, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None,
-            prefix: str = "") -> "ScanResult":
+def scan_fd(
+    root_fd: int, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None, prefix: str = ""
+) -> "ScanResult":
     """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
     parent's descriptor without following symlinks (a directory swapped for a symlink
     while we look is skipped, never followed). ``prefix``: the wire path of ``root_fd``'s
     directory, which the paths returned start with. At most one descriptor per level
     is open at a time; ``root_fd`` stays open."""
     from fetchsync.protocol.paths import NOT_A_DIR, open_dir
+
     entries = {}  # type: Dict[str, Entry]
     skipped = []  # type: List[Tuple[str, str]]
 

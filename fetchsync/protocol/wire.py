@@ -36,18 +36,18 @@ MAGIC = b"\x89FSYNC\r\n"
 VERSION = 1
 MAX_NOISE = 64 * 1024
 MAX_HELLO = 64 * 1024
-MAX_FRAME = 64 * 1024 * 1024       # compressed or not, on the wire
-MAX_BODY = 96 * 1024 * 1024        # after decompression
+MAX_FRAME = 64 * 1024 * 1024  # compressed or not, on the wire
+MAX_BODY = 96 * 1024 * 1024  # after decompression
 MAX_HEADER = 32 * 1024 * 1024
 
-FLAG_ZLIB = 0x01   # the whole body is zlib-compressed
+FLAG_ZLIB = 0x01  # the whole body is zlib-compressed
 FLAG_ZHEAD = 0x02  # only the JSON header is (the blob carries its own compression)
 
 # frame types
 T_REQUEST = 1
 T_RESPONSE = 2
-T_ERROR = 3        # the request failed as a whole; header {"error": str, "kind": str}
-T_PROGRESS = 4     # still working on the request: header {}; only if the client asked
+T_ERROR = 3  # the request failed as a whole; header {"error": str, "kind": str}
+T_PROGRESS = 4  # still working on the request: header {}; only if the client asked
 FRAME_TYPES = (T_REQUEST, T_RESPONSE, T_ERROR, T_PROGRESS)
 
 _FRAME = struct.Struct(">IBBI")
@@ -68,8 +68,9 @@ def _json_default(obj: "Any") -> "Any":
     raise TypeError("not JSON-serialisable: %r" % type(obj))
 
 
-def encode_frame(frame: "Frame", *, compress: bool = False, compress_blob: bool = True,
-                 level: int = 1) -> bytes:
+def encode_frame(
+    frame: "Frame", *, compress: bool = False, compress_blob: bool = True, level: int = 1
+) -> bytes:
     head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
     flags = 0
     if compress and not compress_blob and len(head) >= COMPRESS_MIN:
@@ -88,8 +89,9 @@ def encode_frame(frame: "Frame", *, compress: bool = False, compress_blob: bool 
     return _FRAME.pack(len(body), frame.type, flags, frame.req_id) + body
 
 
-def encode_frame_parts(frame: "Frame", blob_parts: "list[bytes]", *, compress: bool = False,
-                       level: int = 1) -> "list[bytes]":
+def encode_frame_parts(
+    frame: "Frame", blob_parts: "list[bytes]", *, compress: bool = False, level: int = 1
+) -> "list[bytes]":
     """A frame whose blob carries its own compression, as byte strings to send in order:
     the blob's parts are not copied into one (a batch's are megabytes)."""
     head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
@@ -102,8 +104,10 @@ def encode_frame_parts(frame: "Frame", blob_parts: "list[bytes]", *, compress: b
     body_len = _U32.size + len(head) + sum(len(p) for p in blob_parts)
     if body_len > MAX_FRAME:
         raise ProtocolError("frame of %d bytes is over the cap of %d" % (body_len, MAX_FRAME))
-    return [_FRAME.pack(body_len, frame.type, flags, frame.req_id) + _U32.pack(len(head)) + head,
-            *blob_parts]
+    return [
+        _FRAME.pack(body_len, frame.type, flags, frame.req_id) + _U32.pack(len(head)) + head,
+        *blob_parts,
+    ]
 
 
 def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> "Frame":
@@ -114,7 +118,7 @@ def decode_body(ftype: int, flags: int, req_id: int, body: bytes) -> "Frame":
     if flags & FLAG_ZLIB:
         body = inflate(body, MAX_BODY)
     hlen = _header_length(body[:4], len(body))
-    return _frame(ftype, flags, req_id, body[4:4 + hlen], body[4 + hlen:])
+    return _frame(ftype, flags, req_id, body[4 : 4 + hlen], body[4 + hlen :])
 
 
 def _header_length(prefix: bytes, body_len: int) -> int:
@@ -132,7 +136,7 @@ def _frame(ftype: int, flags: int, req_id: int, raw_head: bytes, blob: bytes) ->
     try:
         header = json.loads(raw_head.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
-        raise ProtocolError("frame header is not JSON: %s" % exc)
+        raise ProtocolError("frame header is not JSON: %s" % exc) from None
     if not isinstance(header, dict):
         raise ProtocolError("frame header is not an object")
     return Frame(ftype, req_id, header, blob)
@@ -146,7 +150,7 @@ def inflate(data: "bytes | memoryview", limit: int) -> bytes:
         if d.unconsumed_tail or not d.eof:
             raise ProtocolError("compressed data is truncated or over %d bytes" % limit)
     except zlib.error as exc:
-        raise ProtocolError("corrupt compressed data: %s" % exc)
+        raise ProtocolError("corrupt compressed data: %s" % exc) from None
     return out
 
 
@@ -162,7 +166,7 @@ def compressible(data: bytes, *, level: int = 1, worth: float = WORTH_COMPRESSIN
     larger) shrinks to ``worth`` of its size or less, enough to make compressing all
     of it worth the time."""
     half = len(data) // 2
-    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[half:half + 16384]
+    sample = data[:32768] if len(data) <= 65536 else data[:16384] + data[half : half + 16384]
     return len(zlib.compress(sample, level)) <= worth * len(sample)
 
 
@@ -187,8 +191,11 @@ class Reader:
     frame's large blob is read into a ``bytearray`` of its own, not copied.
     """
 
-    def __init__(self, recv: "Callable[[int], bytes]",
-                 recv_into: "Optional[Callable[[memoryview], Optional[int]]]" = None) -> None:
+    def __init__(
+        self,
+        recv: "Callable[[int], bytes]",
+        recv_into: "Optional[Callable[[memoryview], Optional[int]]]" = None,
+    ) -> None:
         self._recv = recv
         self._recv_into = recv_into
         self._buf = bytearray()
@@ -222,14 +229,16 @@ class Reader:
         while True:
             idx = self._buf.find(MAGIC)
             if idx > MAX_NOISE:
-                raise ProtocolError("no fetchsync endpoint answered (got %r...)"
-                                    % bytes(self._buf[:80]))
+                raise ProtocolError(
+                    "no fetchsync endpoint answered (got %r...)" % bytes(self._buf[:80])
+                )
             if idx >= 0:
-                del self._buf[:idx + len(MAGIC)]
+                del self._buf[: idx + len(MAGIC)]
                 break
             if len(self._buf) > MAX_NOISE + len(MAGIC):
-                raise ProtocolError("no fetchsync endpoint answered (got %r...)"
-                                    % bytes(self._buf[:80]))
+                raise ProtocolError(
+                    "no fetchsync endpoint answered (got %r...)" % bytes(self._buf[:80])
+                )
             if not self._fill(len(self._buf) + 1):
                 noise = bytes(self._buf[:200]).decode("utf-8", "replace").strip()
                 raise EOFError("endpoint ended before its hello" + (": " + noise if noise else ""))
@@ -239,7 +248,7 @@ class Reader:
         try:
             hello = json.loads(self._take(n).decode("utf-8"))
         except (UnicodeDecodeError, ValueError) as exc:
-            raise ProtocolError("hello is not JSON: %s" % exc)
+            raise ProtocolError("hello is not JSON: %s" % exc) from None
         if not isinstance(hello, dict):
             raise ProtocolError("hello is not an object")
         hello["version"] = version
@@ -253,7 +262,9 @@ class Reader:
         # every header field is checked before the body is waited for: garbage
         # must end in an error, not in waiting for bytes that never come
         if blen > MAX_FRAME:
-            raise ProtocolError("frame of %d bytes announced, over the cap of %d" % (blen, MAX_FRAME))
+            raise ProtocolError(
+                "frame of %d bytes announced, over the cap of %d" % (blen, MAX_FRAME)
+            )
         if ftype not in FRAME_TYPES:
             raise ProtocolError("unknown frame type %d" % ftype)
         if flags & ~(FLAG_ZLIB | FLAG_ZHEAD) or flags == FLAG_ZLIB | FLAG_ZHEAD:

@@ -125,9 +125,14 @@ def uid_min() -> int:
 def run(argv: List[str], *, stdin: Optional[bytes] = None) -> None:
     """Run a system tool; raise Failure with its stderr (never its stdin) when it fails."""
     try:
-        proc = subprocess.run(argv, input=stdin if stdin is not None else b"",
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_tool_env(),
-                              check=False)
+        proc = subprocess.run(
+            argv,
+            input=stdin if stdin is not None else b"",
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=_tool_env(),
+            check=False,
+        )
     except OSError as exc:
         raise Failure(f"cannot run {argv[0]} on the robot: {exc.strerror}") from None
     if proc.returncode != 0:
@@ -150,8 +155,9 @@ def set_password(name: str, password: str) -> None:
     run(["chpasswd"], stdin=f"{name}:{password}\n".encode())
 
 
-def add_groups(name: str, entry: pwd.struct_passwd,
-               wanted: List[str]) -> Tuple[List[str], List[str]]:
+def add_groups(
+    name: str, entry: pwd.struct_passwd, wanted: List[str]
+) -> Tuple[List[str], List[str]]:
     """Add ``name`` to those of ``wanted`` that exist; (added, absent)."""
     added, absent = [], []
     for group in wanted:
@@ -178,8 +184,13 @@ def ensure_home(entry: pwd.struct_passwd) -> bool:
     return True
 
 
-def in_home_as(entry: pwd.struct_passwd, request: Dict[str, Any], *,
-               overwrite: bool, password: Optional[str] = None) -> Dict[str, Any]:
+def in_home_as(
+    entry: pwd.struct_passwd,
+    request: Dict[str, Any],
+    *,
+    overwrite: bool,
+    password: Optional[str] = None,
+) -> Dict[str, Any]:
     """Do the home-directory work in a child that has become the user; its result."""
     read_fd, write_fd = os.pipe()
     sys.stdout.flush()
@@ -220,8 +231,13 @@ def become(entry: pwd.struct_passwd) -> None:
     os.chdir(entry.pw_dir)
 
 
-def furnish(entry: pwd.struct_passwd, request: Dict[str, Any], *,
-            overwrite: bool, password: Optional[str] = None) -> Dict[str, Any]:
+def furnish(
+    entry: pwd.struct_passwd,
+    request: Dict[str, Any],
+    *,
+    overwrite: bool,
+    password: Optional[str] = None,
+) -> Dict[str, Any]:
     """As the user: key, skeleton, initialize.sh. Runs in the home directory."""
     out: Dict[str, Any] = {"key": install_key(request.get("key"))}
     out["skeleton_added"] = copy_skeleton(request.get("skeleton") or [], overwrite=overwrite)
@@ -250,8 +266,9 @@ def furnish(entry: pwd.struct_passwd, request: Dict[str, Any], *,
         # Nothing resolved on the laptop: say what initialize.sh chose.
         chosen = read_exports(WORKSPACE_FILE).get("FETCH_WORKSPACE")
         if chosen:
-            out.update(workspace=chosen, workspace_record="initialize.sh",
-                       workspace_file=WORKSPACE_FILE)
+            out.update(
+                workspace=chosen, workspace_record="initialize.sh", workspace_file=WORKSPACE_FILE
+            )
     return out
 
 
@@ -432,8 +449,9 @@ def write_file(path: str, data: bytes, mode: int) -> None:
         raise
 
 
-def run_init(entry: pwd.struct_passwd, script: str, extra: Dict[str, str], *,
-             password: Optional[str] = None) -> int:
+def run_init(
+    entry: pwd.struct_passwd, script: str, extra: Dict[str, str], *, password: Optional[str] = None
+) -> int:
     """Run initialize.sh as the user (we are the user already), its output on our stderr.
 
     With the account's password known (a new account, --reset-password), its
@@ -469,10 +487,16 @@ def run_init(entry: pwd.struct_passwd, script: str, extra: Dict[str, str], *,
             write_file(os.path.join(bin_dir, "sudo"), sudo_wrapper(real_sudo, fd).encode(), 0o700)
             env["PATH"] = os.path.abspath(bin_dir) + ":" + env["PATH"]
         # Its output is progress for the user: stderr, so stdout carries only our result.
-        proc = subprocess.run(["/bin/bash", script], cwd=entry.pw_dir, env=env,
-                              stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(),
-                              stderr=sys.stderr.fileno(), check=False,
-                              pass_fds=(fd,) if fd is not None else ())
+        proc = subprocess.run(
+            ["/bin/bash", script],
+            cwd=entry.pw_dir,
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=sys.stderr.fileno(),
+            stderr=sys.stderr.fileno(),
+            check=False,
+            pass_fds=(fd,) if fd is not None else (),
+        )
     finally:
         if fd is not None:
             os.close(fd)

@@ -22,17 +22,21 @@ import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
-from fetchsync.link.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.errors import ConflictError, RemoteError, SyncError
-from fetchsync.sync.plan import COPY, DELTA, WHOLE, Planned, catkin_toplevel, plan
+from fetchsync.link.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
-from fetchsync.protocol.ignore import IGNORE_FILENAME, MAX_IGNORE_FILE_SIZE, IgnoreRules
-from fetchsync.protocol.ignore import build_rules  # noqa: F401  (the verbs' name for it)
+from fetchsync.protocol.ignore import (
+    IGNORE_FILENAME,
+    MAX_IGNORE_FILE_SIZE,
+    IgnoreRules,
+    build_rules,  # noqa: F401  (the verbs' name for it)
+)
 from fetchsync.protocol.paths import ancestors
 from fetchsync.protocol.store import Store, is_temp
 from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan, stat_path
+from fetchsync.sync.plan import COPY, DELTA, WHOLE, Planned, catkin_toplevel, plan
 from fetchsync.sync.state import State, Synced
 
 log = logging.getLogger(__name__)
@@ -45,15 +49,15 @@ try:
 except ImportError:  # no wheel for this platform: the standard library's
     _deflate = zlib
 
-SIG_MIN = 16 * 1024            # smaller files are sent whole: a delta saves too little
-BIG = 32 * 1024 * 1024         # larger files travel in UPLOAD pieces
+SIG_MIN = 16 * 1024  # smaller files are sent whole: a delta saves too little
+BIG = 32 * 1024 * 1024  # larger files travel in UPLOAD pieces
 PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
-READ_TRIES = 5                 # reads of a file that changes while read, before giving up on it
+READ_TRIES = 5  # reads of a file that changes while read, before giving up on it
 VANISHED = "vanished while it was being read; treated as deleted"
 
 # A test seam: when set, called as ``read_hook(full_path, event)`` where a push
@@ -68,7 +72,7 @@ Progress = Callable[[int, int], None]
 class Report:
     verb: str
     robot: str = ""
-    connection: str = ""     # "ssh", "master" (a persistent connection) or "local"
+    connection: str = ""  # "ssh", "master" (a persistent connection) or "local"
     local: str = ""
     remote: str = ""
     files: int = 0
@@ -123,7 +127,7 @@ class LocalTree:
     items: dict[str, M.Listed]
     stats: dict[str, Entry]
     skipped: list[tuple[str, str]]
-    unhashed: set[str] = field(default_factory=set)   # new files whose hash nobody needed yet
+    unhashed: set[str] = field(default_factory=set)  # new files whose hash nobody needed yet
 
     def guarded(self) -> Callable[[str], bool]:
         """Whether a path is one the laptop could not read, or lies below one: the robot's
@@ -146,7 +150,9 @@ class LocalTree:
             try:
                 digest = _hash_file(os.path.join(root, path), algorithm)
             except OSError as exc:
-                self.skipped.append((path, VANISHED if _gone(exc) else f"cannot read: {exc.strerror}"))
+                self.skipped.append(
+                    (path, VANISHED if _gone(exc) else f"cannot read: {exc.strerror}")
+                )
                 del self.items[path]
                 self.stats.pop(path, None)
             else:
@@ -239,8 +245,15 @@ def _searchable(full: str, _rel: str) -> None:
     os.lstat(os.path.join(full, "."))
 
 
-def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str, *,
-               lazy: bool = False, scanned: ScanResult | None = None) -> LocalTree:
+def scan_local(
+    root: str,
+    rules: IgnoreRules,
+    synced: dict[str, Synced],
+    algorithm: str,
+    *,
+    lazy: bool = False,
+    scanned: ScanResult | None = None,
+) -> LocalTree:
     """The local tree with content hashes; the state vouches for files whose stat is unchanged.
 
     With ``lazy``, files the state does not know are left unhashed (hash ``""``,
@@ -253,14 +266,20 @@ def scan_local(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorit
     skipped = list(result.skipped)
     unhashed: set[str] = set()
     for path, e in result.entries.items():
-        _add_entry(root, path, e, synced, algorithm, items, stats, skipped,
-                   unhashed if lazy else None)
+        _add_entry(
+            root, path, e, synced, algorithm, items, stats, skipped, unhashed if lazy else None
+        )
     return LocalTree(items, stats, skipped, unhashed)
 
 
-def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algorithm: str,
-                 paths: set[str], dirs: set[str]
-                 ) -> tuple[LocalTree, Callable[[str], bool], set[str] | None]:
+def scan_touched(
+    root: str,
+    rules: IgnoreRules,
+    synced: dict[str, Synced],
+    algorithm: str,
+    paths: set[str],
+    dirs: set[str],
+) -> tuple[LocalTree, Callable[[str], bool], set[str] | None]:
     """The local tree restricted to ``paths``, the subtrees below ``dirs`` and their
     ancestors, the predicate saying which paths that scope covers and, when no
     directory is involved, the set of those paths (so callers need not test
@@ -302,6 +321,7 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
 
     scope: Callable[[str], bool]
     if tops:
+
         def scope(path: str) -> bool:
             return path in singles or any(is_within(path, d) for d in tops)
     else:
@@ -309,15 +329,29 @@ def scan_touched(root: str, rules: IgnoreRules, synced: dict[str, Synced], algor
     return LocalTree(items, stats, skipped), scope, (None if tops else singles)
 
 
-def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algorithm: str,
-               items: dict[str, M.Listed], stats: dict[str, Entry], skipped: list[tuple[str, str]],
-               unhashed: set[str] | None = None) -> None:
+def _add_entry(
+    root: str,
+    path: str,
+    e: Entry,
+    synced: dict[str, Synced],
+    algorithm: str,
+    items: dict[str, M.Listed],
+    stats: dict[str, Entry],
+    skipped: list[tuple[str, str]],
+    unhashed: set[str] | None = None,
+) -> None:
     """Add one scanned entry; a file the state cannot vouch for is hashed now, or,
     given ``unhashed``, left for later with hash ``""``."""
     if e.kind == "f":
         s = synced.get(path)
-        if (s is not None and s.kind == "f" and s.size == e.size and s.mtime_ns == e.mtime_ns
-                and s.ctime_ns == e.ctime_ns and s.ino == e.ino):
+        if (
+            s is not None
+            and s.kind == "f"
+            and s.size == e.size
+            and s.mtime_ns == e.mtime_ns
+            and s.ctime_ns == e.ctime_ns
+            and s.ino == e.ino
+        ):
             digest = s.hash
         elif unhashed is not None:
             digest = ""
@@ -337,8 +371,13 @@ def _add_entry(root: str, path: str, e: Entry, synced: dict[str, Synced], algori
 
 
 def _same_file(a: os.stat_result, b: os.stat_result) -> bool:
-    return (a.st_ino, a.st_dev, a.st_size, a.st_mtime_ns, a.st_ctime_ns) == \
-        (b.st_ino, b.st_dev, b.st_size, b.st_mtime_ns, b.st_ctime_ns)
+    return (a.st_ino, a.st_dev, a.st_size, a.st_mtime_ns, a.st_ctime_ns) == (
+        b.st_ino,
+        b.st_dev,
+        b.st_size,
+        b.st_mtime_ns,
+        b.st_ctime_ns,
+    )
 
 
 def _still_there(full: str, st: os.stat_result) -> bool:
@@ -349,12 +388,13 @@ def _still_there(full: str, st: os.stat_result) -> bool:
 
 def _pause(attempt: int) -> None:
     if attempt:
-        time.sleep(0.025 * (1 << attempt))   # 0.05, 0.1, 0.2, 0.4 s: bounded, lets a save finish
+        time.sleep(0.025 * (1 << attempt))  # 0.05, 0.1, 0.2, 0.4 s: bounded, lets a save finish
 
 
 def _not_regular(full: str) -> OSError:
-    return OSError(errno.EBUSY, "it is no longer a regular file; the robot keeps its previous "
-                   "version", full)
+    return OSError(
+        errno.EBUSY, "it is no longer a regular file; the robot keeps its previous version", full
+    )
 
 
 def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
@@ -392,8 +432,11 @@ def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
             entry = entry_from_stat(after)
             assert entry is not None
             return data, entry
-    raise OSError(errno.EBUSY, f"it kept changing while it was read ({tries} tries); "
-                  "the robot keeps its previous version", full)
+    raise OSError(
+        errno.EBUSY,
+        f"it kept changing while it was read ({tries} tries); the robot keeps its previous version",
+        full,
+    )
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
@@ -404,12 +447,22 @@ def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
         # too fresh to trust its stat (a same-size rewrite within the
         # timestamp granularity would not show): the next scan hashes it
         return Synced(item.kind, item.mode, item.hash, item.target, size)
-    return Synced(item.kind, item.mode, item.hash, item.target, entry.size, entry.mtime_ns,
-                  entry.ctime_ns, entry.ino)
+    return Synced(
+        item.kind,
+        item.mode,
+        item.hash,
+        item.target,
+        entry.size,
+        entry.mtime_ns,
+        entry.ctime_ns,
+        entry.ino,
+    )
 
 
 # --------------------------------------------------------------------------- batching
 SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs more than it saves
+
+
 class _Batcher:
     """Packs operations into pipelined requests; collects results in order.
 
@@ -419,8 +472,9 @@ class _Batcher:
     previous one.
     """
 
-    def __init__(self, conn: Connection, header: dict[str, Any], progress: Progress | None,
-                 total: int) -> None:
+    def __init__(
+        self, conn: Connection, header: dict[str, Any], progress: Progress | None, total: int
+    ) -> None:
         self.conn = conn
         self.header = header
         self.items: list[tuple[M.Op, bytes, bool]] = []
@@ -431,8 +485,9 @@ class _Batcher:
         self.progress = progress
         self.total = total
         self.done = 0
-        self._queue: queue.Queue[tuple[dict[str, Any], list[tuple[M.Op, bytes, bool]], list[Any]] | None] \
-            = queue.Queue(maxsize=1)
+        self._queue: queue.Queue[
+            tuple[dict[str, Any], list[tuple[M.Op, bytes, bool]], list[Any]] | None
+        ] = queue.Queue(maxsize=1)
         self._sender: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._mark: tuple[int, int] = (-1, -1)
@@ -441,14 +496,20 @@ class _Batcher:
         self.stale = False
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
-        z = bool(data) and self.conn.compress and (len(data) < SAMPLE_FROM or wire.compressible(data))
+        z = (
+            bool(data)
+            and self.conn.compress
+            and (len(data) < SAMPLE_FROM or wire.compressible(data))
+        )
         self.items.append((op, data, z))
         self.tags.append(tag)
         self.raw_len += len(data)
         # the first batches are smaller, so the robot starts writing while the
         # next ones are read here, and is not idle waiting for a whole 8 MiB
-        if self.raw_len >= BATCH_BYTES >> FIRST_BATCHES_SMALLER.get(self.batches, 0) \
-                or len(self.items) >= BATCH_OPS:
+        if (
+            self.raw_len >= BATCH_BYTES >> FIRST_BATCHES_SMALLER.get(self.batches, 0)
+            or len(self.items) >= BATCH_OPS
+        ):
             self.flush()
 
     def flush(self, **extra: Any) -> None:
@@ -460,7 +521,9 @@ class _Batcher:
         header["gen"] = self.header["gen"] + self.batches
         self.batches += 1
         if self._sender is None:
-            self._sender = threading.Thread(target=self._send_loop, name="fetchsync-sender", daemon=True)
+            self._sender = threading.Thread(
+                target=self._send_loop, name="fetchsync-sender", daemon=True
+            )
             self._sender.start()
         if self._failure is None:
             job = (header, self.items, self.tags)
@@ -494,7 +557,9 @@ class _Batcher:
             except BaseException as exc:  # re-raised in results(), on the main thread
                 self._failure = exc
 
-    def _send(self, header: dict[str, Any], items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> None:
+    def _send(
+        self, header: dict[str, Any], items: list[tuple[M.Op, bytes, bool]], tags: list[Any]
+    ) -> None:
         ops: list[dict[str, Any]] = []
         packed: list[bytes] = []
         raw: list[bytes] = []
@@ -573,8 +638,10 @@ class _Batcher:
             results = frame.header.get("results", [])
             if len(results) != len(tags):
                 raise SyncError("the robot answered a different number of operations")
-            out.extend((t, M.Result.from_wire(r, t[0].op if t is not None else None))
-                       for t, r in zip(tags, results))
+            out.extend(
+                (t, M.Result.from_wire(r, t[0].op if t is not None else None))
+                for t, r in zip(tags, results)
+            )
         return out
 
 
@@ -582,8 +649,16 @@ class _Batcher:
 class Syncer:
     """Pushes a local tree to one remote workspace over a connection, keeping state."""
 
-    def __init__(self, conn: Connection, state: State, *, local_root: str, remote_workspace: str,
-                 rules: IgnoreRules, policy: str = "preserve") -> None:
+    def __init__(
+        self,
+        conn: Connection,
+        state: State,
+        *,
+        local_root: str,
+        remote_workspace: str,
+        rules: IgnoreRules,
+        policy: str = "preserve",
+    ) -> None:
         self.conn = conn
         self.state = state
         self.local_root = local_root
@@ -603,8 +678,13 @@ class Syncer:
     def _open_header(self, *, readonly: bool = False) -> dict[str, Any]:
         """``readonly``: the endpoint neither creates the workspace nor locks it nor
         rewrites its index, and refuses writes (a dry run)."""
-        return {"op": "open", "workspace": self.remote_workspace, "rules": self.rules.to_wire(),
-                "create": not readonly, "readonly": readonly}
+        return {
+            "op": "open",
+            "workspace": self.remote_workspace,
+            "rules": self.rules.to_wire(),
+            "create": not readonly,
+            "readonly": readonly,
+        }
 
     def _open_readonly(self) -> bool:
         """Open the workspace read-only (a dry run); False if it does not exist yet."""
@@ -632,8 +712,14 @@ class Syncer:
             self._synced = synced
         return self._synced
 
-    def push(self, *, dry_run: bool = False, progress: Progress | None = None,
-             scanned: ScanResult | None = None, confirm_deletions: bool = False) -> Report:
+    def push(
+        self,
+        *,
+        dry_run: bool = False,
+        progress: Progress | None = None,
+        scanned: ScanResult | None = None,
+        confirm_deletions: bool = False,
+    ) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
         ``scanned``: the local tree scanned (by :func:`scan_tree`) since the last push,
@@ -648,47 +734,83 @@ class Syncer:
         synced = self._load_synced()
         fresh = bool(synced) and self.state.epoch != ""
         exists = self._open_readonly() if dry_run else True
-        open_req = self.conn.send(self._open_header()) if self.opened is None and not dry_run else None
+        open_req = (
+            self.conn.send(self._open_header()) if self.opened is None and not dry_run else None
+        )
         epoch, gen = self.state.epoch, self.state.gen
         # ask for the robot's changes now, so its scan overlaps with ours
-        list_req = self.conn.send({"op": "list", "mode": "drift" if fresh else "full",
-                                   "epoch": epoch, "gen": gen}) if exists else None
+        list_req = (
+            self.conn.send(
+                {"op": "list", "mode": "drift" if fresh else "full", "epoch": epoch, "gen": gen}
+            )
+            if exists
+            else None
+        )
         if scanned is None:
             scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
             self.opened = self.conn.wait(open_req).header
-        listing = self.conn.wait(list_req).header if list_req is not None else \
-            {"full": True, "entries": [], "epoch": "", "gen": -1}  # a dry run's robot that holds nothing
-        differing = None if dry_run else _local_changes(
-            scanned, synced, listing, epoch, gen, LocalRules(self.local_root, self.rules))
+        listing = (
+            self.conn.wait(list_req).header
+            if list_req is not None
+            else {"full": True, "entries": [], "epoch": "", "gen": -1}
+        )  # a dry run's robot that holds nothing
+        differing = (
+            None
+            if dry_run
+            else _local_changes(
+                scanned, synced, listing, epoch, gen, LocalRules(self.local_root, self.rules)
+            )
+        )
         if differing is not None:
             # the robot holds what we last synced: only the paths that changed here
             # since need a plan, as the watch agent pushes them
             self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
             if differing:
-                done = self.push_paths(differing, progress=progress,
-                                       confirm_deletions=confirm_deletions)
-                done.bytes_sent, done.bytes_received = self.conn.bytes_out - b_out, self.conn.bytes_in - b_in
+                done = self.push_paths(
+                    differing, progress=progress, confirm_deletions=confirm_deletions
+                )
+                done.bytes_sent, done.bytes_received = (
+                    self.conn.bytes_out - b_out,
+                    self.conn.bytes_in - b_in,
+                )
                 done.seconds = time.monotonic() - t0
                 return done
         else:
             remote = self._apply_listing(listing, synced)
-            local = scan_local(self.local_root, self.rules, synced, self.algorithm, lazy=True,
-                               scanned=scanned)
+            local = scan_local(
+                self.local_root, self.rules, synced, self.algorithm, lazy=True, scanned=scanned
+            )
             epoch, gen = listing["epoch"], listing["gen"]
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
-            self._converge(local, remote, synced, epoch, gen, report, dry_run=dry_run,
-                           progress=progress, confirm_deletions=confirm_deletions,
-                           listed=remote if listing.get("full") else
-                           [x[0] for x in listing.get("entries", [])])
+            self._converge(
+                local,
+                remote,
+                synced,
+                epoch,
+                gen,
+                report,
+                dry_run=dry_run,
+                progress=progress,
+                confirm_deletions=confirm_deletions,
+                listed=remote
+                if listing.get("full")
+                else [x[0] for x in listing.get("entries", [])],
+            )
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
         return report
 
-    def push_paths(self, paths: Iterable[str], dirs: Iterable[str] = (), *,
-                   progress: Progress | None = None, confirm_deletions: bool = False) -> Report:
+    def push_paths(
+        self,
+        paths: Iterable[str],
+        dirs: Iterable[str] = (),
+        *,
+        progress: Progress | None = None,
+        confirm_deletions: bool = False,
+    ) -> Report:
         """Push only what changed at ``paths`` and below ``dirs`` (the watch agent's fast path).
 
         No listing from the robot: the plan starts from the last-synced state,
@@ -707,16 +829,26 @@ class Syncer:
         paths.discard("")
         if not paths and not dirs:
             return report
-        local, scope, only = scan_touched(self.local_root, self.rules, synced, self.algorithm,
-                                          paths, dirs)
+        local, scope, only = scan_touched(
+            self.local_root, self.rules, synced, self.algorithm, paths, dirs
+        )
         if only is not None:
             remote = {p: synced[p].listed(p) for p in only if p in synced}
         else:
             remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
         _report_skipped(local, report)
-        stale = self._converge(local, remote, synced, self.state.epoch, self.state.gen, report,
-                               scope=scope, scope_paths=only, progress=progress,
-                               confirm_deletions=confirm_deletions)
+        stale = self._converge(
+            local,
+            remote,
+            synced,
+            self.state.epoch,
+            self.state.gen,
+            report,
+            scope=scope,
+            scope_paths=only,
+            progress=progress,
+            confirm_deletions=confirm_deletions,
+        )
         if stale:
             return self.push(progress=progress, confirm_deletions=confirm_deletions)
         report.bytes_sent = self.conn.bytes_out - b_out
@@ -724,11 +856,22 @@ class Syncer:
         report.seconds = time.monotonic() - t0
         return report
 
-    def _converge(self, local: LocalTree, remote: dict[str, M.Listed], synced: dict[str, Synced],
-                  epoch: str, gen: int, report: Report, *, dry_run: bool = False,
-                  progress: Progress | None = None, scope: Callable[[str], bool] | None = None,
-                  scope_paths: set[str] | None = None, listed: Iterable[str] | None = None,
-                  confirm_deletions: bool = False) -> bool:
+    def _converge(
+        self,
+        local: LocalTree,
+        remote: dict[str, M.Listed],
+        synced: dict[str, Synced],
+        epoch: str,
+        gen: int,
+        report: Report,
+        *,
+        dry_run: bool = False,
+        progress: Progress | None = None,
+        scope: Callable[[str], bool] | None = None,
+        scope_paths: set[str] | None = None,
+        listed: Iterable[str] | None = None,
+        confirm_deletions: bool = False,
+    ) -> bool:
         """Plan, send and settle rounds until the robot holds ``local`` (within ``scope``),
         then advance the state. Returns True if an incremental run met another writer.
 
@@ -764,8 +907,14 @@ class Syncer:
             rnd.commit()
         return False
 
-    def _check_deletions(self, planned: list[Planned], remote: dict[str, M.Listed],
-                         synced: dict[str, Synced], *, confirmed: bool) -> None:
+    def _check_deletions(
+        self,
+        planned: list[Planned],
+        remote: dict[str, M.Listed],
+        synced: dict[str, Synced],
+        *,
+        confirmed: bool,
+    ) -> None:
         """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files this
         Syncer deleted in the last RECENT seconds too: the watch agent sees an
         ``rm -rf`` as several batches, each of which may be small."""
@@ -774,12 +923,20 @@ class Syncer:
         if confirmed:
             self._deleted = []
             return
-        doomed = refuse_mass_deletion(planned, remote, synced, recent=sum(n for _t, n in self._deleted))
+        doomed = refuse_mass_deletion(
+            planned, remote, synced, recent=sum(n for _t, n in self._deleted)
+        )
         if doomed:
             self._deleted.append((now, doomed))
 
-    def _commit(self, upserts: dict[str, tuple[Synced, bytes | None]], deletes: set[str],
-                new_synced: dict[str, Synced], epoch: str, gen: int) -> None:
+    def _commit(
+        self,
+        upserts: dict[str, tuple[Synced, bytes | None]],
+        deletes: set[str],
+        new_synced: dict[str, Synced],
+        epoch: str,
+        gen: int,
+    ) -> None:
         if self._signed is not None and self._synced is not None:
             for path, (s, sig) in upserts.items():
                 old = self._synced.get(path)
@@ -789,22 +946,37 @@ class Syncer:
                 elif sig is not None:
                     self._signed.add(path)
             self._signed.difference_update(deletes)
-        self.state.commit(upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
-                          deletes=deletes, meta={"epoch": epoch, "gen": str(gen),
-                                                 "algorithm": self.algorithm})
+        self.state.commit(
+            upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
+            deletes=deletes,
+            meta={"epoch": epoch, "gen": str(gen), "algorithm": self.algorithm},
+        )
         self._synced = new_synced
         self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
 
-    def _robot_signatures(self, planned: list[Planned], remote: dict[str, M.Listed],
-                          robot_sigs: dict[str, bytes], whole_only: set[str]) -> list[Planned]:
+    def _robot_signatures(
+        self,
+        planned: list[Planned],
+        remote: dict[str, M.Listed],
+        robot_sigs: dict[str, bytes],
+        whole_only: set[str],
+    ) -> list[Planned]:
         """Ask the robot to sign its copies of large files we would otherwise send whole.
 
         That happens when the state has no signature for them: a first push
         onto a tree someone else put there, or after a base mismatch.
         """
-        wanted = [p for p in planned if p.op.kind == M.WRITE and p.how == WHOLE
-                  and p.op.size >= SIG_MIN and p.op.path not in whole_only
-                  and (r := remote.get(p.op.path)) is not None and r.kind == "f" and r.size >= SIG_MIN]
+        wanted = [
+            p
+            for p in planned
+            if p.op.kind == M.WRITE
+            and p.how == WHOLE
+            and p.op.size >= SIG_MIN
+            and p.op.path not in whole_only
+            and (r := remote.get(p.op.path)) is not None
+            and r.kind == "f"
+            and r.size >= SIG_MIN
+        ]
         if not wanted:
             return planned
         frame = self.conn.request({"op": "sigs", "items": [{"p": p.op.path} for p in wanted]})
@@ -814,12 +986,13 @@ class Syncer:
             if ans.get("c") != M.OK or ans.get("h") != r.hash:
                 continue
             off, length = ans["bl"]
-            robot_sigs[p.op.path] = frame.blob[off:off + length]
-            upgraded[p.op.path] = Planned(p.op.but(source=M.SRC_DELTA, base=r.hash),
-                                          DELTA, p.item)
+            robot_sigs[p.op.path] = frame.blob[off : off + length]
+            upgraded[p.op.path] = Planned(p.op.but(source=M.SRC_DELTA, base=r.hash), DELTA, p.item)
         return [upgraded.get(p.op.path, p) if p.op.kind == M.WRITE else p for p in planned]
 
-    def _apply_listing(self, listing: dict[str, Any], synced: dict[str, Synced]) -> dict[str, M.Listed]:
+    def _apply_listing(
+        self, listing: dict[str, Any], synced: dict[str, Synced]
+    ) -> dict[str, M.Listed]:
         if listing.get("full"):
             return {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
         remote = {p: s.listed(p) for p, s in synced.items()}
@@ -830,13 +1003,21 @@ class Syncer:
             remote.pop(path, None)
         return remote
 
-    def _send_op(self, batcher: _Batcher, p: Planned, local: LocalTree, report: Report,
-                 robot_sigs: dict[str, bytes]) -> bool:
+    def _send_op(
+        self,
+        batcher: _Batcher,
+        p: Planned,
+        local: LocalTree,
+        report: Report,
+        robot_sigs: dict[str, bytes],
+    ) -> bool:
         """Add one planned operation, reading its content now. Returns True if the local
         file vanished meanwhile (it is then dropped from ``local``: a delete to plan)."""
         op = p.op
         if op.kind != M.WRITE or p.how == COPY:
-            sig = self.state.signature(op.from_path) if p.how == COPY and op.size >= SIG_MIN else None
+            sig = (
+                self.state.signature(op.from_path) if p.how == COPY and op.size >= SIG_MIN else None
+            )
             batcher.add(op, tag=(p, sig))
             return False
         full = os.path.join(self.local_root, op.path)
@@ -857,7 +1038,11 @@ class Syncer:
             report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
             return False
         digest = hashing.digest(self.algorithm, data).hex()
-        sig = delta_mod.signature(data, algorithm=self.algorithm).to_bytes() if worth_signing(data) else None
+        sig = (
+            delta_mod.signature(data, algorithm=self.algorithm).to_bytes()
+            if worth_signing(data)
+            else None
+        )
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
             op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
@@ -867,7 +1052,9 @@ class Syncer:
         if p.how == DELTA:
             stored = robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None:
-                d = delta_mod.encode_delta(delta_mod.delta(data, delta_mod.Signature.from_bytes(stored)))
+                d = delta_mod.encode_delta(
+                    delta_mod.delta(data, delta_mod.Signature.from_bytes(stored))
+                )
                 if len(d) < len(data):
                     batcher.total -= op.size - len(d)  # the progress counts what travels
                     batcher.add(op, d, tag=(p, sig))
@@ -877,8 +1064,9 @@ class Syncer:
         batcher.add(op, data, tag=(p, sig))
         return False
 
-    def _send_big(self, batcher: _Batcher, p: Planned, full: str, report: Report,
-                  local: LocalTree) -> None:
+    def _send_big(
+        self, batcher: _Batcher, p: Planned, full: str, report: Report, local: LocalTree
+    ) -> None:
         """A large file travels in pieces to the robot's upload area, then is renamed into place.
 
         The robot renames the upload only if it matches the hash of what was read, and it
@@ -889,7 +1077,7 @@ class Syncer:
         changing or vanished is reused by a later upload of this session (see
         ``_spare_uploads``). Raises OSError as :func:`read_stable`.
         """
-        upload, uploaded = "", 0   # the upload part, and how far it may reach on the robot
+        upload, uploaded = "", 0  # the upload part, and how far it may reach on the robot
         done = False
         try:
             for attempt in range(READ_TRIES):
@@ -922,17 +1110,26 @@ class Syncer:
                     after = os.fstat(fd)
                 finally:
                     os.close(fd)
-                if offset == after.st_size and _same_file(before, after) and _still_there(full, after):
+                if (
+                    offset == after.st_size
+                    and _same_file(before, after)
+                    and _still_there(full, after)
+                ):
                     done = True
                     break
         finally:
             if not done:
                 self._spare(upload, uploaded)
         if not done:
-            raise OSError(errno.EBUSY, f"it kept changing while it was read ({READ_TRIES} tries); "
-                          "the robot keeps its previous version", full)
-        op = p.op.but(source=M.SRC_UPLOAD, upload=upload, base="", hash=h.digest().hex(),
-                     size=offset)
+            raise OSError(
+                errno.EBUSY,
+                f"it kept changing while it was read ({READ_TRIES} tries); "
+                "the robot keeps its previous version",
+                full,
+            )
+        op = p.op.but(
+            source=M.SRC_UPLOAD, upload=upload, base="", hash=h.digest().hex(), size=offset
+        )
         entry = entry_from_stat(after)
         item = M.Listed(op.path, "f", p.op.mode, offset, hash=op.hash)
         local.items[op.path] = item
@@ -953,20 +1150,29 @@ class Syncer:
             self._spare_uploads[upload] = extent
 
 
-
 class Round:
     """One push's rounds: its plan, batches, answers and their settling, until the robot
     holds the local tree (within a scope); then the state's new rows. What lives across
     pushes (the connection, the state, upload parts, recent deletions) is the Syncer's.
     """
 
-    def __init__(self, syncer: Syncer, local: LocalTree, remote: dict[str, M.Listed],
-                 synced: dict[str, Synced], epoch: str, gen: int, report: Report, *,
-                 scope: Callable[[str], bool] | None, listed: Iterable[str] | None) -> None:
+    def __init__(
+        self,
+        syncer: Syncer,
+        local: LocalTree,
+        remote: dict[str, M.Listed],
+        synced: dict[str, Synced],
+        epoch: str,
+        gen: int,
+        report: Report,
+        *,
+        scope: Callable[[str], bool] | None,
+        listed: Iterable[str] | None,
+    ) -> None:
         self.syncer = syncer
         self.local = local
-        self.remote = remote          # what the robot holds, as its answers say
-        self.synced = synced          # what the state says was last synced
+        self.remote = remote  # what the robot holds, as its answers say
+        self.synced = synced  # what the state says was last synced
         self.new_synced = dict(synced)
         self.upserts: dict[str, tuple[Synced, bytes | None]] = {}
         self.deletes: set[str] = set()
@@ -982,8 +1188,9 @@ class Round:
         self.now_ns = time.time_ns()
         self.excluded = LocalRules(syncer.local_root, syncer.rules)
         self.unreadable = local.guarded()
-        self.left_alone = {p for p, r in remote.items()
-                           if p not in local.items and self.excluded(p, r.kind == "d")}
+        self.left_alone = {
+            p for p, r in remote.items() if p not in local.items and self.excluded(p, r.kind == "d")
+        }
 
     def expect(self, path: str) -> str:
         s = self.new_synced.get(path)
@@ -991,15 +1198,30 @@ class Round:
 
     def plan(self) -> list[Planned]:
         """The next round's operations (see :func:`reconcile`)."""
-        signed, whole_only, new_synced = self.syncer._signed or set(), self.whole_only, self.new_synced
+        signed, whole_only, new_synced = (
+            self.syncer._signed or set(),
+            self.whole_only,
+            self.new_synced,
+        )
 
         def has_signature(path: str, dst: M.Listed) -> bool:
             s = new_synced.get(path)
-            return (path in signed and path not in whole_only and s is not None and s.kind == "f"
-                    and s.hash == dst.hash and dst.size >= SIG_MIN)
+            return (
+                path in signed
+                and path not in whole_only
+                and s is not None
+                and s.kind == "f"
+                and s.hash == dst.hash
+                and dst.size >= SIG_MIN
+            )
 
-        return reconcile(self.local.items, self.remote, self.expect, guarded=self.guarded,
-                         has_signature=has_signature)
+        return reconcile(
+            self.local.items,
+            self.remote,
+            self.expect,
+            guarded=self.guarded,
+            has_signature=has_signature,
+        )
 
     def guarded(self, path: str) -> bool:
         """What the laptop could not read, and what its rules now exclude (an --exclude, a
@@ -1011,8 +1233,9 @@ class Round:
         for p in planned:
             self.report.count(p)
             self.report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
-        self.report.conflicts += _conflicts_ahead(planned, self.remote, self.expect,
-                                                  refuse=self.syncer.policy == "refuse")
+        self.report.conflicts += _conflicts_ahead(
+            planned, self.remote, self.expect, refuse=self.syncer.policy == "refuse"
+        )
 
     def run(self, planned: list[Planned], progress: Progress | None) -> bool:
         """Send one round and settle its answers. Returns whether another round is worth
@@ -1022,15 +1245,20 @@ class Round:
         syncer = self.syncer
         self.report.rounds += 1
         planned = syncer._robot_signatures(planned, self.remote, self.robot_sigs, self.whole_only)
-        batcher = _Batcher(syncer.conn, {"policy": syncer.policy, "epoch": self.epoch, "gen": self.gen,
-                                         "require_fresh": True}, progress,
-                           sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)))
+        batcher = _Batcher(
+            syncer.conn,
+            {"policy": syncer.policy, "epoch": self.epoch, "gen": self.gen, "require_fresh": True},
+            progress,
+            sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)),
+        )
         again = False
         # settled as the robot answers, so a large push never holds every
         # operation and every answer at once
         planned.reverse()
         while planned:
-            again |= syncer._send_op(batcher, planned.pop(), self.local, self.report, self.robot_sigs)
+            again |= syncer._send_op(
+                batcher, planned.pop(), self.local, self.report, self.robot_sigs
+            )
             if len(planned) % 512 == 0:
                 again |= self.settle(batcher.answered())
         # no post-apply scan: the robot reported its changes at the start of
@@ -1097,13 +1325,20 @@ class Round:
             # that write keeps it in conflicts/
             remote[path] = written
             return True
-        if p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK) and path in remote and remote[path].kind == "d" \
-                and written.kind != "d":
+        if (
+            p.op.kind in (M.MKDIR, M.WRITE, M.SYMLINK)
+            and path in remote
+            and remote[path].kind == "d"
+            and written.kind != "d"
+        ):
             self._forget_below(path, including=False)
         remote[path] = written
         item = self.local.items.get(path)
-        s = _synced_from(written, self.local.stats.get(path) if item is not None and item.hash == written.hash
-                         else None, self.now_ns)
+        s = _synced_from(
+            written,
+            self.local.stats.get(path) if item is not None and item.hash == written.hash else None,
+            self.now_ns,
+        )
         self.new_synced[path] = s
         self.upserts[path] = (s, sig)
         self.deletes.discard(path)
@@ -1127,13 +1362,23 @@ class Round:
         """Report it if the robot still differs after the rounds (and nothing else says why)."""
         report, local = self.report, self.local
         failed = {e["path"] for e in report.errors}
-        left = [] if _same_tree(local.items, self.remote) else \
-            [p for p in reconcile(local.items, self.remote, self.expect, guarded=self.guarded)
-             if p.op.path not in failed]
+        left = (
+            []
+            if _same_tree(local.items, self.remote)
+            else [
+                p
+                for p in reconcile(local.items, self.remote, self.expect, guarded=self.guarded)
+                if p.op.path not in failed
+            ]
+        )
         if left and not report.errors and not any(c.get("refused") for c in report.conflicts):
-            report.errors.append({"path": left[0].op.path, "error":
-                                  f"{len(left)} path(s) still differ on the robot after "
-                                  f"{report.rounds} rounds (is something there rewriting them?)"})
+            report.errors.append(
+                {
+                    "path": left[0].op.path,
+                    "error": f"{len(left)} path(s) still differ on the robot after "
+                    f"{report.rounds} rounds (is something there rewriting them?)",
+                }
+            )
 
     def take_identical(self, *, adopt: bool) -> None:
         """Paths already identical need no operation, but the state must know them, and so
@@ -1157,12 +1402,16 @@ class Round:
         """Drop the rows of what the robot no longer holds (within the scope). An excluded
         path the robot did not list keeps its row: it is left alone there."""
         new_synced = self.new_synced
-        candidates = list(new_synced) if scope_paths is None else \
-            [p for p in scope_paths if p in new_synced]
+        candidates = (
+            list(new_synced) if scope_paths is None else [p for p in scope_paths if p in new_synced]
+        )
         for path in candidates:
-            if path not in self.remote and path not in self.upserts \
-                    and (self.scope is None or self.scope(path)) \
-                    and not self.excluded(path, new_synced[path].kind == "d"):
+            if (
+                path not in self.remote
+                and path not in self.upserts
+                and (self.scope is None or self.scope(path))
+                and not self.excluded(path, new_synced[path].kind == "d")
+            ):
                 self.deletes.add(path)
                 del new_synced[path]
 
@@ -1170,24 +1419,45 @@ class Round:
         self.syncer._commit(self.upserts, self.deletes, self.new_synced, self.epoch, self.gen)
 
 
-def reconcile(local: Mapping[str, M.Listed], remote: Mapping[str, M.Listed],
-              expect: Callable[[str], str], *, guarded: Callable[[str], bool],
-              has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
-              pulling: bool = False) -> list[Planned]:
+def reconcile(
+    local: Mapping[str, M.Listed],
+    remote: Mapping[str, M.Listed],
+    expect: Callable[[str], str],
+    *,
+    guarded: Callable[[str], bool],
+    has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
+    pulling: bool = False,
+) -> list[Planned]:
     """The operations that make the robot (``remote``, as it holds it) hold ``local``,
     each expecting what ``expect(path)`` says was last synced there, leaving ``guarded``
     paths and the link of :func:`fetchsync.sync.plan.catkin_toplevel` as the robot has
     them. ``pulling``: the other way, ``local`` is the robot's tree and ``remote`` the
     laptop's. Pure: no I/O (see :func:`fetchsync.sync.plan.plan`)."""
     laptop, robot = (remote, local) if pulling else (local, remote)
-    return [p for p in plan(local, remote, expect, has_signature=has_signature)
-            if not guarded(p.op.path)
-            and not catkin_toplevel(p.op.path, laptop=laptop.get(p.op.path), robot=robot.get(p.op.path),
-                                    last_synced=expect(p.op.path))]
+    return [
+        p
+        for p in plan(local, remote, expect, has_signature=has_signature)
+        if not guarded(p.op.path)
+        and not catkin_toplevel(
+            p.op.path,
+            laptop=laptop.get(p.op.path),
+            robot=robot.get(p.op.path),
+            last_synced=expect(p.op.path),
+        )
+    ]
 
-def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspace: str,
-         rules: IgnoreRules, confirm: Callable[[Report], bool] | None = None,
-         dry_run: bool = False, progress: Progress | None = None) -> Report:
+
+def pull(
+    conn: Connection,
+    state: State,
+    *,
+    local_workspace: str,
+    remote_workspace: str,
+    rules: IgnoreRules,
+    confirm: Callable[[Report], bool] | None = None,
+    dry_run: bool = False,
+    progress: Progress | None = None,
+) -> Report:
     """Mirror the robot's ``src/`` into the local one.
 
     Every local file it replaces or deletes is kept in ``<workspace>/.fetchsync/trash/``
@@ -1199,10 +1469,19 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
     algorithm = conn.algorithm
     # read-only: a pull writes nothing on the robot (not even its index), so it works on
     # a robot whose disk is read-only too
-    conn.request({"op": "open", "workspace": remote_workspace, "rules": rules.to_wire(), "create": False,
-                  "readonly": True})
+    conn.request(
+        {
+            "op": "open",
+            "workspace": remote_workspace,
+            "rules": rules.to_wire(),
+            "create": False,
+            "readonly": True,
+        }
+    )
     listing = conn.request({"op": "list", "mode": "full"}).header
-    remote = {e.path: _no_setid(e) for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
+    remote = {
+        e.path: _no_setid(e) for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))
+    }
     synced = state.entries() if state.get("algorithm") in ("", algorithm) else {}
     local_root = os.path.join(local_workspace, "src")
     os.makedirs(local_root, exist_ok=True)
@@ -1232,6 +1511,7 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
             preview.count(p)
         if not confirm(preview):
             from fetchsync.errors import AbortedError
+
             raise AbortedError("pull cancelled; nothing was changed")
     failed = _apply_pulled(conn, _set_aside_first(planned, local.items), local_workspace, report)
     now_ns = time.time_ns()
@@ -1247,16 +1527,20 @@ def pull(conn: Connection, state: State, *, local_workspace: str, remote_workspa
             upserts.append((path, s, None))
     # the robot's index is left as it was: the next push finds the paths pulled as
     # changes there, identical to the laptop's, and adopts them then
-    state.commit(upserts=upserts, replace_all=True,
-                 meta={"epoch": listing["epoch"], "gen": str(listing["gen"]), "algorithm": algorithm})
+    state.commit(
+        upserts=upserts,
+        replace_all=True,
+        meta={"epoch": listing["epoch"], "gen": str(listing["gen"]), "algorithm": algorithm},
+    )
     report.bytes_sent = conn.bytes_out
     report.bytes_received = conn.bytes_in
     report.seconds = time.monotonic() - t0
     return report
 
 
-def _apply_pulled(conn: Connection, planned: list[Planned], local_workspace: str,
-                  report: Report) -> set[str]:
+def _apply_pulled(
+    conn: Connection, planned: list[Planned], local_workspace: str, report: Report
+) -> set[str]:
     """Fetch what ``planned`` needs from the robot and apply it to the local workspace,
     by the same endpoint code the robot runs; report each answer. Returns the paths
     that failed."""
@@ -1273,8 +1557,14 @@ def _apply_pulled(conn: Connection, planned: list[Planned], local_workspace: str
         if tag is None:
             continue
         if res.preserved:
-            report.conflicts.append({"path": tag.op.path, "kept": os.path.join(local_workspace, res.preserved)
-                                     if not os.path.isabs(res.preserved) else res.preserved})
+            report.conflicts.append(
+                {
+                    "path": tag.op.path,
+                    "kept": os.path.join(local_workspace, res.preserved)
+                    if not os.path.isabs(res.preserved)
+                    else res.preserved,
+                }
+            )
         if not res.ok:
             failed.add(tag.op.path)
             report.errors.append({"path": tag.op.path, "error": res.message or res.code})
@@ -1290,7 +1580,9 @@ SETID = stat_mod.S_ISUID | stat_mod.S_ISGID
 
 def _no_setid(item: M.Listed) -> M.Listed:
     """A robot's file as pull writes it: never setuid or setgid here (a pull may run as root)."""
-    return item._replace(mode=item.mode & ~SETID) if item.kind == "f" and item.mode & SETID else item
+    return (
+        item._replace(mode=item.mode & ~SETID) if item.kind == "f" and item.mode & SETID else item
+    )
 
 
 def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list[Planned]:
@@ -1311,8 +1603,9 @@ def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list
     return out
 
 
-def _fetch(conn: Connection, planned: list[Planned],
-           report: Report) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
+def _fetch(
+    conn: Connection, planned: list[Planned], report: Report
+) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
     """Read what the plan needs from the robot; return local operations with their blob."""
     ops: list[M.Op] = []
     blobs: list[bytes] = []
@@ -1339,8 +1632,14 @@ def _fetch(conn: Connection, planned: list[Planned],
                 ans, data = got
                 listed = M.Listed.from_wire(ans["l"])
                 # whole content: pull asks for no delta (see _set_aside_first)
-                op = op.but(hash=listed.hash, size=listed.size, mode=_no_setid(listed).mode,
-                            source=M.SRC_DATA, base="", blob=(pos, len(data)))
+                op = op.but(
+                    hash=listed.hash,
+                    size=listed.size,
+                    mode=_no_setid(listed).mode,
+                    source=M.SRC_DATA,
+                    base="",
+                    blob=(pos, len(data)),
+                )
                 blobs.append(data)
                 pos += len(data)
         ops.append(op)
@@ -1348,8 +1647,9 @@ def _fetch(conn: Connection, planned: list[Planned],
     return ops, blobs, tags
 
 
-def _read_small(conn: Connection, planned: list[Planned],
-                report: Report) -> dict[str, tuple[dict[str, Any], bytes]]:
+def _read_small(
+    conn: Connection, planned: list[Planned], report: Report
+) -> dict[str, tuple[dict[str, Any], bytes]]:
     """The robot's answers and content for the whole files of ``planned`` (those up to BIG),
     asked for in pipelined requests of about BATCH_BYTES."""
     pending: list[tuple[int, list[Planned]]] = []
@@ -1380,17 +1680,21 @@ def _read_small(conn: Connection, planned: list[Planned],
                 report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
                 continue
             off, length = ans["bl"]
-            fetched[p.op.path] = (ans, frame.blob[off:off + length])
+            fetched[p.op.path] = (ans, frame.blob[off : off + length])
     return fetched
 
 
-def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:
+def _fetch_big(
+    conn: Connection, p: Planned, report: Report
+) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:
     upload = os.urandom(8).hex()
     pieces: list[tuple[M.Op, bytes]] = []
     offset = 0
     listed = None
     while offset < p.op.size:
-        frame = conn.request({"op": "read", "items": [{"p": p.op.path, "off": offset, "len": PIECE}]})
+        frame = conn.request(
+            {"op": "read", "items": [{"p": p.op.path, "off": offset, "len": PIECE}]}
+        )
         ans = frame.header["items"][0]
         if ans.get("c") != M.OK:
             report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
@@ -1399,7 +1703,9 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
         off, length = ans["bl"]
         if length == 0:
             break
-        pieces.append((M.Op(M.UPLOAD, "", upload=upload, size=offset), frame.blob[off:off + length]))
+        pieces.append(
+            (M.Op(M.UPLOAD, "", upload=upload, size=offset), frame.blob[off : off + length])
+        )
         offset += length
     if listed is None or listed.hash != p.op.hash or offset != listed.size:
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
@@ -1407,8 +1713,13 @@ def _fetch_big(conn: Connection, p: Planned, report: Report) -> tuple[list[tuple
     return pieces, p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
 
 
-def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect: Callable[[str], str],
-                     *, refuse: bool) -> list[dict[str, str]]:
+def _conflicts_ahead(
+    planned: list[Planned],
+    remote: dict[str, M.Listed],
+    expect: Callable[[str], str],
+    *,
+    refuse: bool,
+) -> list[dict[str, str]]:
     """The conflicts ``planned`` would meet on the robot (a dry run's report): each
     operation whose path there holds something else than was last synced, and each
     directory it replaces or deletes with files edited there below it; as the endpoint
@@ -1416,8 +1727,11 @@ def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect
     out: list[dict[str, str]] = []
 
     def conflict(path: str) -> None:
-        out.append({"path": path, "kept": "", "refused": "changed on the robot since the last sync"}
-                   if refuse else {"path": path, "kept": ".fetchsync/conflicts/"})
+        out.append(
+            {"path": path, "kept": "", "refused": "changed on the robot since the last sync"}
+            if refuse
+            else {"path": path, "kept": ".fetchsync/conflicts/"}
+        )
 
     for p in planned:
         op = p.op
@@ -1430,13 +1744,17 @@ def _conflicts_ahead(planned: list[Planned], remote: dict[str, M.Listed], expect
             # the endpoint keeps (or, strict, refuses for) the files edited below, as one
             # conflict at the directory
             prefix = op.path + "/"
-            if any(k.startswith(prefix) and v.kind != "d" and v.expectation() != expect(k)
-                   for k, v in remote.items()):
+            if any(
+                k.startswith(prefix) and v.kind != "d" and v.expectation() != expect(k)
+                for k, v in remote.items()
+            ):
                 conflict(op.path)
     return out
 
 
-MASS_MIN = 20  # deleting more of the robot's files than this, and more than half, needs a confirmation
+MASS_MIN = (
+    20  # deleting more of the robot's files than this, and more than half, needs a confirmation
+)
 RECENT = 10.0  # seconds: deletions this close together count as one
 
 
@@ -1444,8 +1762,13 @@ class MassDeletionError(SyncError):
     """A push would delete most of the robot's files; nothing was sent."""
 
 
-def refuse_mass_deletion(planned: list[Planned], remote: dict[str, M.Listed],
-                         synced: dict[str, Synced], *, recent: int = 0) -> int:
+def refuse_mass_deletion(
+    planned: list[Planned],
+    remote: dict[str, M.Listed],
+    synced: dict[str, Synced],
+    *,
+    recent: int = 0,
+) -> int:
     """Raise :class:`MassDeletionError` if ``planned`` deletes more than MASS_MIN of the
     robot's files (and links), and more than half of them, counting ``recent`` files
     deleted just before as part of the same deletion; else return how many it deletes.
@@ -1458,26 +1781,42 @@ def refuse_mass_deletion(planned: list[Planned], remote: dict[str, M.Listed],
     gone = {p.op.path for p in planned if p.op.kind == M.DELETE}
     if not gone:
         return 0
-    doomed = sum(1 for path, r in remote.items()
-                 if r.kind != "d" and (path in gone or any(a in gone for a in ancestors(path))))
+    doomed = sum(
+        1
+        for path, r in remote.items()
+        if r.kind != "d" and (path in gone or any(a in gone for a in ancestors(path)))
+    )
     if doomed + recent <= MASS_MIN:
         return doomed
-    total = max(sum(1 for r in remote.values() if r.kind != "d"),
-                sum(1 for s in synced.values() if s.kind != "d")) + recent
+    total = (
+        max(
+            sum(1 for r in remote.values() if r.kind != "d"),
+            sum(1 for s in synced.values() if s.kind != "d"),
+        )
+        + recent
+    )
     if (doomed + recent) * 2 > total:
         so_far = f" ({recent} of them deleted in the last {RECENT:.0f} s)" if recent else ""
-        raise MassDeletionError(f"this push would delete {doomed + recent} of the robot's {total} "
-                                f"files{so_far}; nothing more was changed",
-                                hint="restore them here, or confirm with fetchsync push --force "
-                                     "(deleted files go to the robot's .fetchsync/trash/)")
+        raise MassDeletionError(
+            f"this push would delete {doomed + recent} of the robot's {total} "
+            f"files{so_far}; nothing more was changed",
+            hint="restore them here, or confirm with fetchsync push --force "
+            "(deleted files go to the robot's .fetchsync/trash/)",
+        )
     return doomed
 
 
 QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted
 
 
-def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict[str, Any],
-                   epoch: str, gen: int, excluded: Callable[[str, bool], bool]) -> set[str] | None:
+def _local_changes(
+    scanned: ScanResult,
+    synced: dict[str, Synced],
+    listing: dict[str, Any],
+    epoch: str,
+    gen: int,
+    excluded: Callable[[str, bool], bool],
+) -> set[str] | None:
     """The local paths that differ from what the state recorded when it synced them, if the
     robot reports no drift since the state's generation and they are few; else None.
 
@@ -1487,21 +1826,41 @@ def _local_changes(scanned: ScanResult, synced: dict[str, Synced], listing: dict
     changed, and so is hashed again.
     """
     entries = scanned.entries
-    if (listing.get("full") or listing.get("entries") or listing.get("gone")
-            or listing.get("epoch") != epoch or listing.get("gen") != gen or scanned.skipped):
+    if (
+        listing.get("full")
+        or listing.get("entries")
+        or listing.get("gone")
+        or listing.get("epoch") != epoch
+        or listing.get("gen") != gen
+        or scanned.skipped
+    ):
         return None
     out: set[str] = set()
     for path, e in entries.items():
         s = synced.get(path)
-        if s is None or s.kind != e.kind or s.mode != e.mode or (
-                (s.size != e.size or s.mtime_ns != e.mtime_ns or s.ctime_ns != e.ctime_ns
-                 or s.ino != e.ino) if e.kind == "f" else (e.kind == "l" and s.target != e.target)):
+        if (
+            s is None
+            or s.kind != e.kind
+            or s.mode != e.mode
+            or (
+                (
+                    s.size != e.size
+                    or s.mtime_ns != e.mtime_ns
+                    or s.ctime_ns != e.ctime_ns
+                    or s.ino != e.ino
+                )
+                if e.kind == "f"
+                else (e.kind == "l" and s.target != e.target)
+            )
+        ):
             out.add(path)
             if len(out) > QUICK_MAX:
                 return None
     if len(entries) - len(out) != len(synced):
         # gone here, unless the laptop's rules now exclude it (its row is kept: left alone)
-        out.update(p for p, s in synced.items() if p not in entries and not excluded(p, s.kind == "d"))
+        out.update(
+            p for p, s in synced.items() if p not in entries and not excluded(p, s.kind == "d")
+        )
         if len(out) > QUICK_MAX:
             return None
     return out
@@ -1531,9 +1890,16 @@ def _same_content(a: M.Listed, b: M.Listed) -> bool:
 def _as_sent(wire: Any, item: M.Listed | None) -> M.Listed:
     """What the robot reports it wrote, as the item we sent when it is that (the usual case):
     a large push then keeps one copy of each path and hash, not a second one per answer."""
-    if (item is not None and isinstance(wire, list) and len(wire) == 5 and wire[0] == item.path
-            and wire[1] == item.kind and wire[2] == item.mode and wire[3] == item.size
-            and wire[4] == (item.target if item.kind == "l" else item.hash)):
+    if (
+        item is not None
+        and isinstance(wire, list)
+        and len(wire) == 5
+        and wire[0] == item.path
+        and wire[1] == item.kind
+        and wire[2] == item.mode
+        and wire[3] == item.size
+        and wire[4] == (item.target if item.kind == "l" else item.hash)
+    ):
         return item
     return M.Listed.from_wire(wire)
 
@@ -1552,10 +1918,14 @@ def raise_for(report: Report, *, strict: bool) -> None:
     """Turn a report's failures into the exception the CLI maps to an exit code."""
     refused = [c for c in report.conflicts if c.get("refused")]
     if refused:
-        raise ConflictError(f"{len(refused)} path(s) were changed on the robot since the last sync; "
-                            f"nothing was overwritten there (first: {refused[0]['path']})",
-                            hint="pull them first, or push without --strict to keep them aside")
+        raise ConflictError(
+            f"{len(refused)} path(s) were changed on the robot since the last sync; "
+            f"nothing was overwritten there (first: {refused[0]['path']})",
+            hint="pull them first, or push without --strict to keep them aside",
+        )
     if report.errors:
         first = report.errors[0]
-        raise SyncError(f"{len(report.errors)} path(s) failed; first: {first['path']}: {first['error']}")
+        raise SyncError(
+            f"{len(report.errors)} path(s) failed; first: {first['path']}: {first['error']}"
+        )
     _ = RemoteError, strict

@@ -26,15 +26,16 @@ class Planned:
     """An operation and, for writes, how its content will be produced."""
 
     op: M.Op
-    how: str = ""            # WHOLE, DELTA or COPY for writes
-    item: M.Listed | None = None   # the source entry this op makes dest hold
+    how: str = ""  # WHOLE, DELTA or COPY for writes
+    item: M.Listed | None = None  # the source entry this op makes dest hold
 
 
 CATKIN_TOPLEVEL = "catkin/cmake/toplevel.cmake"
 
 
-def catkin_toplevel(path: str, *, laptop: M.Listed | None, robot: M.Listed | None,
-                    last_synced: str) -> bool:
+def catkin_toplevel(
+    path: str, *, laptop: M.Listed | None, robot: M.Listed | None, last_synced: str
+) -> bool:
     """Whether ``path`` is the ``src/CMakeLists.txt`` link the robot's ``catkin_make``
     made where the laptop has none: push and pull leave it alone. ``last_synced`` is
     the expectation of what was last synced there: a link this laptop pushed (it ran
@@ -47,9 +48,14 @@ def catkin_toplevel(path: str, *, laptop: M.Listed | None, robot: M.Listed | Non
     when ``catkin_make`` makes it again), or pull a link into the robot's ROS install
     onto the laptop. A laptop that has its own ``src/CMakeLists.txt`` pushes it.
     """
-    return (path == "CMakeLists.txt" and laptop is None and robot is not None and robot.kind == "l"
-            and (robot.target == CATKIN_TOPLEVEL or robot.target.endswith("/" + CATKIN_TOPLEVEL))
-            and last_synced != robot.expectation())
+    return (
+        path == "CMakeLists.txt"
+        and laptop is None
+        and robot is not None
+        and robot.kind == "l"
+        and (robot.target == CATKIN_TOPLEVEL or robot.target.endswith("/" + CATKIN_TOPLEVEL))
+        and last_synced != robot.expectation()
+    )
 
 
 def _same(a: M.Listed, b: M.Listed) -> bool:
@@ -62,10 +68,14 @@ def _same(a: M.Listed, b: M.Listed) -> bool:
     return a.mode == b.mode
 
 
-def plan(source: Mapping[str, M.Listed], dest: Mapping[str, M.Listed],
-         expect: Callable[[str], str], *,
-         has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
-         reuse: bool = True) -> list[Planned]:
+def plan(
+    source: Mapping[str, M.Listed],
+    dest: Mapping[str, M.Listed],
+    expect: Callable[[str], str],
+    *,
+    has_signature: Callable[[str, M.Listed], bool] = lambda p, d: False,
+    reuse: bool = True,
+) -> list[Planned]:
     """Operations that make ``dest`` hold what ``source`` holds.
 
     ``expect(path)`` is what dest should hold at ``path`` (the last-synced
@@ -105,11 +115,16 @@ def plan(source: Mapping[str, M.Listed], dest: Mapping[str, M.Listed],
         if dst is not None and dst.kind == "f" and dst.hash == src.hash:
             writes.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
             continue
-        base: dict[str, Any] = dict(kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size)
+        base: dict[str, Any] = dict(
+            kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size
+        )
         reuse_from = by_hash.get(src.hash) if src.size > 0 else None
         if reuse_from is not None:
-            writes.append(Planned(M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base),
-                                  COPY, src))
+            writes.append(
+                Planned(
+                    M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base), COPY, src
+                )
+            )
         elif dst is not None and dst.kind == "f" and dst.size > 0 and has_signature(path, dst):
             writes.append(Planned(M.Op(source=M.SRC_DELTA, base=dst.hash, **base), DELTA, src))
         else:

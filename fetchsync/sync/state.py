@@ -53,8 +53,14 @@ class Synced(NamedTuple):
     ino: int = -1
 
     def listed(self, path: str) -> M.Listed:
-        return M.Listed(path, self.kind, self.mode, self.size if self.kind == "f" else 0,
-                        hash=self.hash, target=self.target)
+        return M.Listed(
+            path,
+            self.kind,
+            self.mode,
+            self.size if self.kind == "f" else 0,
+            hash=self.hash,
+            target=self.target,
+        )
 
     def expectation(self) -> str:
         if self.kind == "d":
@@ -65,12 +71,16 @@ class Synced(NamedTuple):
 
 
 def state_dir() -> Path:
-    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(
+        os.path.expanduser("~"), ".local", "state"
+    )
     return Path(base) / "fetchsync"
 
 
 def state_path(robot_id: str, remote_workspace: str) -> Path:
-    key = hashlib.sha256(f"{robot_id}\0{remote_workspace}".encode("utf-8", "surrogateescape")).hexdigest()
+    key = hashlib.sha256(
+        f"{robot_id}\0{remote_workspace}".encode("utf-8", "surrogateescape")
+    ).hexdigest()
     slug = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{robot_id}_{remote_workspace}")[:60].strip("_")
     return state_dir() / f"{slug}-{key[:12]}.sqlite"
 
@@ -86,16 +96,19 @@ class State:
         try:
             path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         except OSError as exc:
-            raise StateError(f"cannot make the state's directory {path.parent}: "
-                             f"{exc.strerror or exc}") from None
+            raise StateError(
+                f"cannot make the state's directory {path.parent}: {exc.strerror or exc}"
+            ) from None
         try:
             self.db = self._open()
         except sqlite3.OperationalError as exc:  # not damage: permissions, a full disk
             raise StateError(f"cannot open the state {path}: {exc}") from None
         except sqlite3.DatabaseError as exc:
             aside = self._set_aside()
-            self.note = (f"the state {path.name} was damaged ({exc}); set aside as {aside.name}, "
-                         "rebuilt from the robot's listing")
+            self.note = (
+                f"the state {path.name} was damaged ({exc}); set aside as {aside.name}, "
+                "rebuilt from the robot's listing"
+            )
             self.db = self._open()
 
     def _open(self) -> sqlite3.Connection:
@@ -107,8 +120,10 @@ class State:
             db.execute("PRAGMA synchronous=FULL")
             db.executescript(SCHEMA)
             # read every page of the tables: damage shows now, not in the middle of a push
-            db.execute("SELECT count(*), sum(length(path) + length(hash) + ifnull(length(sig), 0)) "
-                       "FROM entries").fetchone()
+            db.execute(
+                "SELECT count(*), sum(length(path) + length(hash) + ifnull(length(sig), 0)) "
+                "FROM entries"
+            ).fetchone()
             db.execute("SELECT count(*) FROM meta").fetchone()
         except BaseException:
             db.close()
@@ -124,8 +139,10 @@ class State:
             except FileNotFoundError:
                 pass
             except OSError as exc:
-                raise StateError(f"the state {self.path} is damaged and cannot be set aside: "
-                                 f"{exc.strerror or exc}") from None
+                raise StateError(
+                    f"the state {self.path} is damaged and cannot be set aside: "
+                    f"{exc.strerror or exc}"
+                ) from None
         return aside
 
     def close(self) -> None:
@@ -147,7 +164,8 @@ class State:
     def entries(self) -> dict[str, Synced]:
         out = {}
         for row in self.db.execute(
-                "SELECT path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino FROM entries"):
+            "SELECT path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino FROM entries"
+        ):
             out[_decode(row[0])] = Synced(*row[1:])
         return out
 
@@ -160,11 +178,18 @@ class State:
 
     def signed_paths(self) -> set[str]:
         """Paths whose stored entry has a delta signature."""
-        return {_decode(r[0]) for r in self.db.execute("SELECT path FROM entries WHERE sig IS NOT NULL")}
+        return {
+            _decode(r[0]) for r in self.db.execute("SELECT path FROM entries WHERE sig IS NOT NULL")
+        }
 
-    def commit(self, *, upserts: Iterable[tuple[str, Synced, bytes | None]] = (),
-               deletes: Iterable[str] = (), meta: dict[str, str] | None = None,
-               replace_all: bool = False) -> None:
+    def commit(
+        self,
+        *,
+        upserts: Iterable[tuple[str, Synced, bytes | None]] = (),
+        deletes: Iterable[str] = (),
+        meta: dict[str, str] | None = None,
+        replace_all: bool = False,
+    ) -> None:
         """Apply one batch of changes atomically. A ``None`` signature keeps the stored one
         only when the content hash is unchanged."""
         with self._transaction() as cur:
@@ -172,8 +197,21 @@ class State:
                 cur.execute("DELETE FROM entries")
             # rows are made as SQLite takes them: a first push of 100,000 paths
             # would otherwise hold them all, twice, next to everything else
-            rows = ((_encode(path), s.kind, s.mode, s.hash, s.target, s.size, s.mtime_ns,
-                     s.ctime_ns, s.ino, sig) for path, s, sig in upserts)
+            rows = (
+                (
+                    _encode(path),
+                    s.kind,
+                    s.mode,
+                    s.hash,
+                    s.target,
+                    s.size,
+                    s.mtime_ns,
+                    s.ctime_ns,
+                    s.ino,
+                    sig,
+                )
+                for path, s, sig in upserts
+            )
             cur.executemany(_UPSERT, rows)
             cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
             for name, value in (meta or {}).items():
