@@ -1,7 +1,8 @@
 """The agent's control socket: ``status``, ``flush`` and ``push`` for other processes.
 
 One JSON object per line each way, over an owner-only unix socket in the
-user's runtime directory. :func:`call` is the client side used by the CLI;
+user's runtime directory. ``flush`` with ``skip_offline`` gives up on a robot that is
+offline (a fleet's flush, which must not wait on one robot out of range). :func:`call` is the client side used by the CLI;
 it returns None when no agent is running for the target.
 """
 
@@ -95,8 +96,15 @@ class ControlServer:
             paths = req.get("paths") or []
             if not isinstance(paths, list) or not all(isinstance(p, str) for p in paths):
                 raise ValueError("paths must be a list of strings")
+            if req.get("skip_offline") and self.agent.status().get("offline_since"):
+                return self._offline()  # a fleet's flush: the agent catches it up once back
             seq = self.agent.request(paths=set(paths)) if paths else self.agent.request(full=True)
-            ok, why = self.agent.wait_for(seq, timeout)
+            if req.get("skip_offline"):
+                ok, why, offline = self._wait(seq, timeout)
+                if offline:
+                    return self._offline()
+            else:
+                ok, why = self.agent.wait_for(seq, timeout)
             return {"ok": ok, "error": why, "status": self.agent.status()}
         if cmd == "push":
             if self.agent.status().get("offline_since"):

@@ -117,8 +117,17 @@ class Agent:
         cap: float | None = None,
         on_event: Callable[[str], None] | None = None,
         build: dict[str, Any] | None = None,
+        own_watcher: bool = True,
+        asking: Any = None,
     ) -> None:
+        """``own_watcher=False``: changes come from outside through :meth:`request` (a fleet
+        watch, :mod:`fetchsync.agent.fleet`, whose one watcher feeds every robot's agent).
+        ``asking``: a lock held around the first connection, which may ask on the terminal
+        (a host key, a password), so that a fleet's robots ask one at a time."""
         self.target = target
+        self.own_watcher = own_watcher
+        self.asking = asking
+        self._asked = False
         self.rules = rules
         self.policy = policy
         self.accept_fingerprint = accept_fingerprint
@@ -190,7 +199,8 @@ class Agent:
         server = ControlServer(self.socket_path, self)
         server.start()
         watcher = threading.Thread(target=self._watch, name="fetchsync-watch", daemon=True)
-        watcher.start()
+        if self.own_watcher:
+            watcher.start()
         syncer = threading.Thread(target=self._sync_loop, name="fetchsync-sync", daemon=True)
         syncer.start()
         threading.Thread(target=self._monitor, name="fetchsync-monitor", daemon=True).start()
@@ -203,7 +213,8 @@ class Agent:
             with self.cond:
                 self.cond.notify_all()
             syncer.join(1.5)
-            watcher.join(0.5)
+            if self.own_watcher:
+                watcher.join(0.5)
             server.stop()
             if self.builder is not None:
                 self.builder.stop()
@@ -362,14 +373,18 @@ class Agent:
     def _ensure_connected(self) -> None:
         if self._syncer is not None:
             return
+        from contextlib import nullcontext
+
         from fetchsync.link.connection import Connection
         from fetchsync.link.session import open_transport
         from fetchsync.sync.engine import Syncer
         from fetchsync.sync.state import open_state
 
-        transport = open_transport(
-            self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
-        )
+        first, self._asked = not self._asked, True
+        with self.asking if first and self.asking is not None else nullcontext():
+            transport = open_transport(
+                self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
+            )
         try:
             conn = Connection.open(transport)
         except BaseException:

@@ -8,7 +8,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import click
 
@@ -114,9 +114,15 @@ def watch(
     path), its output streamed here.
     """
     from fetchsync.agent.service import Agent
+    from fetchsync.cli.fleet import names_given
     from fetchsync.sync.engine import build_rules
 
-    target = resolve(robot, user, workspace, remote_workspace)
+    names = names_given(robot)
+    if names is not None and (install_service or uninstall_service):
+        raise UsageError(
+            f"a service watches one robot ({', '.join(names)} given): install one per robot"
+        )
+    target = resolve(names[0] if names else robot, user, workspace, remote_workspace)
     given = [*builds, *([build_args] if build_args is not None else [])]
     with_args = [b for b in given if b.strip()]
     if len(with_args) > 1:
@@ -167,6 +173,20 @@ def watch(
     build_options = (
         {"tool": build_tool, "build_type": build_type, "args": build_args} if build else None
     )
+    if names is not None:
+        _fleet_watch(
+            names,
+            src=src,
+            user=user,
+            workspace=workspace,
+            remote_workspace=remote_workspace,
+            accept_host_key=accept_host_key,
+            excludes=excludes,
+            strict=strict,
+            build_options=build_options,
+            say=say,
+        )
+        return
     agent = Agent(
         target,
         rules=build_rules(excludes),
@@ -191,6 +211,107 @@ def watch(
     click.echo(f"{_stamp()} stopped", err=True)
 
 
+def _fleet_watch(
+    names: list[str],
+    *,
+    src: Path,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    excludes: tuple[str, ...],
+    strict: bool,
+    build_options: dict[str, Any] | None,
+    say: Callable[[str], None],
+) -> None:
+    """``watch`` of several robots: one watcher feeding one agent per robot
+    (:mod:`fetchsync.agent.fleet`); each robot's lines are prefixed ``[robot]``."""
+    from fetchsync.agent.fleet import FleetWatch
+    from fetchsync.agent.service import Agent
+    from fetchsync.cli.fleet import question_lock
+    from fetchsync.console import printable
+    from fetchsync.sync.engine import build_rules
+
+    asking = question_lock()
+    agents: list[Agent] = []
+    for name in names:
+        target = resolve(name, user, workspace, remote_workspace)
+        prefix = f"[{printable(name)}] "
+        agents.append(
+            Agent(
+                target,
+                rules=build_rules(excludes),
+                policy="refuse" if strict else "preserve",
+                accept_fingerprint=accept_host_key,
+                on_event=lambda line, prefix=prefix: say(prefix + line),
+                build=build_options,
+                own_watcher=False,
+                asking=asking,
+            )
+        )
+    fleet = FleetWatch(agents, src=str(src), rules=build_rules(excludes), say=say)
+    fleet.acquire()
+
+    def on_signal(_signo: int, _frame: Any) -> None:
+        fleet.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    for name, agent in zip(names, agents):
+        t = agent.target
+        where = where_line("watch", t, local=src, remote=t.remote_workspace + "/src")
+        click.echo(f"{_stamp()} [{printable(name)}] {where}", err=True)
+    click.echo(f"{_stamp()} watching for {len(agents)} robots (status: fetchsync status)", err=True)
+    try:
+        fleet.run()
+    finally:
+        fleet.release()
+    click.echo(f"{_stamp()} stopped", err=True)
+
+
+def _fleet_sockets(
+    robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
+) -> list[tuple[str, Path]] | None:
+    """The robots and agent sockets status and flush talk to when they are several: those
+    ``--robot`` (or the robot variables) name as a fleet, else, with no ``--robot``, those
+    of a fleet watch running on this workspace; None for the single-robot way."""
+    from fetchsync.agent.control import call
+    from fetchsync.agent.fleet import fleet_paths
+    from fetchsync.agent.service import agent_paths
+    from fetchsync.cli.fleet import names_given
+    from fetchsync.config import resolve_workspace
+
+    names = names_given(robot)
+    if names is not None:
+        return [
+            (name, agent_paths(resolve(name, user, workspace, remote_workspace))[1])
+            for name in names
+        ]
+    if robot is not None:
+        return None
+    src = resolve_workspace(workspace) / "src"
+    reply = call(fleet_paths(src)[1], {"cmd": "status"}, timeout=5)
+    fleet = reply.get("fleet") if reply else None
+    if not isinstance(fleet, dict):
+        return None
+    return [
+        (str(r["robot"]), Path(str(r["socket"])))
+        for r in fleet.get("robots", [])
+        if isinstance(r, dict) and "robot" in r and "socket" in r
+    ] or None
+
+
+def _in_parallel(
+    sockets: list[tuple[str, Path]], ask: Callable[[Path], dict[str, Any] | None]
+) -> list[dict[str, Any] | None]:
+    """``ask(socket)`` of each robot's agent at once (one offline robot's wait is not the
+    others'), the replies in the robots' order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, min(len(sockets), 32))) as pool:
+        return list(pool.map(lambda pair: ask(pair[1]), sockets))
+
+
 def _agent_socket(
     robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
 ) -> tuple[Any, Path]:
@@ -212,7 +333,36 @@ def status(
 ) -> None:
     """Show what the running agent is doing: live, syncing or offline."""
     from fetchsync.agent.control import call
+    from fetchsync.console import printable
 
+    several = _fleet_sockets(robot, user, workspace, remote_workspace)
+    if several is not None:
+        replies = _in_parallel(several, lambda sock: call(sock, {"cmd": "status"}, timeout=5))
+        states = [r["status"] if r and isinstance(r.get("status"), dict) else None for r in replies]
+        if as_json:
+            click.echo(
+                json.dumps(
+                    [
+                        st or {"state": "stopped", "robot": name}
+                        for (name, _), st in zip(several, states)
+                    ],
+                    sort_keys=True,
+                )
+            )
+        else:
+            for (name, _), st in zip(several, states):
+                if st is None:
+                    click.echo(
+                        f"[{printable(name)}] stopped: no agent is watching for {printable(name)}"
+                    )
+                    continue
+                line = _status_line(st)
+                if st.get("last_error") and st.get("state") != "live":
+                    line += f"; last error: {printable(st['last_error'])}"
+                click.echo(f"[{printable(name)}] {line}")
+        if any(st is None for st in states):
+            sys.exit(3)
+        return
     target, sock = _agent_socket(robot, user, workspace, remote_workspace)
     reply = call(sock, {"cmd": "status"}, timeout=5)
     if reply is None:
@@ -225,6 +375,13 @@ def status(
     if as_json:
         click.echo(json.dumps(st, sort_keys=True))
         return
+    click.echo(_status_line(st))
+    if st.get("last_error"):
+        click.echo(f"last error: {printable(st['last_error'])}")
+
+
+def _status_line(st: dict[str, Any]) -> str:
+    """One agent's status as one line: state, places, last sync, pending, conflicts, build."""
     when = (
         time.strftime("%H:%M:%S", time.localtime(st["last_sync"]))
         if st.get("last_sync")
@@ -247,11 +404,7 @@ def status(
                 else " ".join(last["packages"])
             )
             line += f", last {last['result']} ({pk})"
-    click.echo(line)
-    if st.get("last_error"):
-        from fetchsync.console import printable
-
-        click.echo(f"last error: {printable(st['last_error'])}")
+    return line
 
 
 @click.command()
@@ -281,19 +434,26 @@ def flush(
     """
     from fetchsync.agent.control import call
 
+    several = _fleet_sockets(robot, user, workspace, remote_workspace)
+    if several is not None:
+        from fetchsync.config import resolve_workspace
+
+        rel = _relative(paths, (resolve_workspace(workspace) / "src").resolve())
+        _fleet_flush(
+            several,
+            rel,
+            timeout=timeout,
+            options={
+                "robot": robot,
+                "user": user,
+                "workspace": workspace,
+                "remote_workspace": remote_workspace,
+                "accept_host_key": accept_host_key,
+            },
+        )
+        return
     target, sock = _agent_socket(robot, user, workspace, remote_workspace)
-    src = (target.workspace / "src").resolve()
-    rel: list[str] = []
-    for p in paths:
-        full = Path(os.path.abspath(p))
-        try:
-            rel.append(
-                full.relative_to(src).as_posix()
-                if full.is_relative_to(src)
-                else Path(os.path.realpath(full)).relative_to(src).as_posix()
-            )
-        except ValueError:
-            raise UsageError(f"{p} is not under {src}") from None
+    rel = _relative(paths, (target.workspace / "src").resolve())
     reply = call(sock, {"cmd": "flush", "paths": rel}, timeout=timeout)
     if reply is None:
         ctx = click.get_current_context()
@@ -310,3 +470,56 @@ def flush(
         return
     if not reply.get("ok"):
         raise SyncError(f"not on the robot yet: {reply.get('error') or 'unknown error'}")
+
+
+def _relative(paths: tuple[str, ...], src: Path) -> list[str]:
+    """The saved files as paths under ``src``; a one-line error for one outside it."""
+    rel: list[str] = []
+    for p in paths:
+        full = Path(os.path.abspath(p))
+        try:
+            rel.append(
+                full.relative_to(src).as_posix()
+                if full.is_relative_to(src)
+                else Path(os.path.realpath(full)).relative_to(src).as_posix()
+            )
+        except ValueError:
+            raise UsageError(f"{p} is not under {src}") from None
+    return rel
+
+
+def _fleet_flush(
+    sockets: list[tuple[str, Path]],
+    rel: list[str],
+    *,
+    timeout: float,
+    options: dict[str, Any],
+) -> None:
+    """``flush`` of several robots: each agent at once; returns once the files are on every
+    robot that is online, and fails naming each robot they are not on (one that is offline
+    is not waited for: its agent sends them when it is back). With no agent for any of
+    them, a fleet push of the robots named (``options``: the target options), as a single
+    flush pushes."""
+    from fetchsync.agent.control import call
+    from fetchsync.cli.fleet import _write
+    from fetchsync.console import printable
+
+    payload = {"cmd": "flush", "paths": rel, "skip_offline": True}
+    replies = _in_parallel(sockets, lambda sock: call(sock, payload, timeout=timeout))
+    if all(r is None for r in replies) and options.get("robot") is not None:
+        from fetchsync.cli import push
+
+        click.get_current_context().invoke(push, **options)
+        return
+    missing = []
+    for (name, _), reply in zip(sockets, replies):
+        if reply is None:
+            why = "no agent is watching for it"
+        elif reply.get("ok"):
+            continue
+        else:
+            why = str(reply.get("error") or "unknown error")
+        missing.append(name)
+        _write(2, f"fetchsync: [{printable(name)}] not on the robot yet: {printable(why)}\n")
+    if missing:
+        raise SyncError(f"not on {len(missing)} of {len(sockets)} robots yet: {', '.join(missing)}")
