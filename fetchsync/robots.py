@@ -27,6 +27,9 @@ SETTINGS_TABLE = "robots"
 
 ROBOT_KEYS = frozenset({"remote_workspace"})
 
+FLEET_VERBS = "push, run and watch (with status and flush)"
+"""The verbs that take several robots, as the refusal of the others names them."""
+
 
 def groups_file(environ: Mapping[str, str] = os.environ) -> Path:
     """``$XDG_CONFIG_HOME/fetchsync/robots.toml``, else ``~/.config/fetchsync/robots.toml``."""
@@ -126,7 +129,7 @@ def one_robot(value: str, source: str, *, environ: Mapping[str, str] = os.enviro
     names = expand(value, source=source, environ=environ)
     if len(names) > 1:
         raise UsageError(
-            f"several robots ({', '.join(names)}, from {source}): only push and run "
+            f"several robots ({', '.join(names)}, from {source}): only {FLEET_VERBS} "
             "take several; give one robot"
         )
     return names[0]

@@ -233,13 +233,13 @@ def test_the_ssh_configs_user_is_named_and_noted(tmp_path: Path) -> None:
 @pytest.mark.parametrize("args", [["--robot", "a", "--robot", "b"], ["--robot", "a,b"]])
 def test_several_robots_are_refused_in_one_line(args: list[str], tmp_path: Path) -> None:
     env = clean_env(HOME=str(tmp_path), FETCHSYNC_WORKSPACE=str(make_workspace(tmp_path / "ws")))
-    for verb in (["pull", "--yes", *args], ["watch", *args], ["config", *args]):
+    for verb in (["pull", "--yes", *args], ["config", *args]):
         result = invoke(verb, env)
         assert result.exit_code == 2, (verb, result.output)
         [line] = result.output.splitlines()
         assert line == (
-            "fetchsync: error: several robots (a, b, from --robot): only push and run "
-            "take several; give one robot"
+            "fetchsync: error: several robots (a, b, from --robot): only push, run and watch "
+            "(with status and flush) take several; give one robot"
         )
 
 
@@ -251,9 +251,7 @@ def test_several_robots_in_a_variable_are_refused(tmp_path: Path) -> None:
     )
     result = invoke(["pull", "--yes"], env)
     assert result.exit_code == 2
-    assert (
-        "several robots (a, b, from FETCH_ROBOT): only push and run take several" in result.output
-    )
+    assert "several robots (a, b, from FETCH_ROBOT): only push, run and watch" in result.output
 
 
 # -- push: a missing src/ ---------------------------------------------------------

@@ -142,16 +142,14 @@ def test_a_fleet_run_prefixes_each_robots_output_and_fails_if_one_fails(fleet_en
     assert _rows(proc.stderr)["fetch2"][0] == "failed"
 
 
-def test_pull_and_watch_refuse_several_robots(fleet_env):
-    for verb in (["pull", "--yes"], ["watch"], ["workspace-status"]):
+def test_pull_refuses_several_robots(fleet_env):
+    for verb in (["pull", "--yes"], ["workspace-status"]):
         proc = fetchsync(
             *verb, "--robot", "fetch1", "--robot", "fetch2", env=fleet_env, check=False
         )
         assert proc.returncode == 2, (verb, proc.stderr.decode())
         [line] = [x for x in proc.stderr.decode().splitlines() if x.strip()]
-        assert (
-            "several robots (fetch1, fetch2, from --robot): only push and run take several" in line
-        )
+        assert "several robots (fetch1, fetch2, from --robot): only push, run and watch" in line
 
 
 # -- naming, without a robot ---------------------------------------------------------
