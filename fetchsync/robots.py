@@ -27,7 +27,7 @@ SETTINGS_TABLE = "robots"
 
 ROBOT_KEYS = frozenset({"remote_workspace"})
 
-FLEET_VERBS = "push, run and watch (with status and flush)"
+FLEET_VERBS = "push, run, watch, create-account, workspace-status and snapshot"
 """The verbs that take several robots, as the refusal of the others names them."""
 
 

@@ -238,8 +238,8 @@ def test_several_robots_are_refused_in_one_line(args: list[str], tmp_path: Path)
         assert result.exit_code == 2, (verb, result.output)
         [line] = result.output.splitlines()
         assert line == (
-            "fetchsync: error: several robots (a, b, from --robot): only push, run and watch "
-            "(with status and flush) take several; give one robot"
+            "fetchsync: error: several robots (a, b, from --robot): only push, run, watch, "
+            "create-account, workspace-status and snapshot take several; give one robot"
         )
 
 
@@ -251,7 +251,7 @@ def test_several_robots_in_a_variable_are_refused(tmp_path: Path) -> None:
     )
     result = invoke(["pull", "--yes"], env)
     assert result.exit_code == 2
-    assert "several robots (a, b, from FETCH_ROBOT): only push, run and watch" in result.output
+    assert "several robots (a, b, from FETCH_ROBOT): only push, run, watch," in result.output
 
 
 # -- push: a missing src/ ---------------------------------------------------------

@@ -33,7 +33,8 @@ def target_options(func: Callable[..., Any] | None = None, *, host_key: bool = T
             callback=_robots,
             metavar="NAME",
             shell_complete=complete_robot,
-            help="Robot host name (or 'local'); push, run and watch take several (repeated, "
+            help="Robot host name (or 'local'); push, run, watch, create-account, workspace-status and snapshot take "
+            "several (repeated, "
             "a,b, or @group of robots.toml). "
             "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI.",
         ),

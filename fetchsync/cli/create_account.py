@@ -12,12 +12,15 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Callable
 
 import click
 
+from fetchsync.cli.common import _robots as robots_option  # --robot's values as a,b
 from fetchsync.cli.common import complete_robot
+from fetchsync.cli.fleet import fleet_options
 
 NEW_PASSWORD_VAR = "FETCHSYNC_NEW_PASSWORD"
 ADMIN_PASSWORD_VAR = "FETCHSYNC_ADMIN_PASSWORD"
@@ -46,24 +49,52 @@ class _Secret:
         self._value: str | None = None
         # Taken out of the environment at once: no process this one starts inherits it.
         self._given = os.environ.pop(variable, None)
+        self._asked = False  # a fleet asked before its robots were worked on: never again
+        self._lock = threading.Lock()
+
+    def ask_first(self, *, optional: str = "") -> None:
+        """Ask now (a fleet, before its parallel phase), unless a variable gives it or there
+        is no terminal; ``optional``: the prompt's note that Enter means none."""
+        from fetchsync.chores.account import check_password
+
+        with self._lock:
+            self._asked = True
+            if self._given or not sys.stdin.isatty():
+                return
+            value = click.prompt(
+                self.prompt + (f" ({optional})" if optional else ""),
+                hide_input=True,
+                confirmation_prompt=self.confirm,
+                err=True,
+                default="" if optional else None,
+                show_default=False,
+            )
+            if value:
+                self._value = check_password(value, what=self.prompt.lower())
 
     def get(self) -> str:
         from fetchsync.chores.account import check_password
         from fetchsync.errors import UsageError
 
-        if self._value is None:
-            value = self._given
-            if not value:
-                if not sys.stdin.isatty():
-                    raise UsageError(
-                        f"{self.prompt.lower()} is needed and there is no terminal to ask it on",
-                        hint=f"set {self.variable}",
+        with self._lock:  # a fleet's robots ask from their threads
+            if self._value is None:
+                value = self._given
+                if not value:
+                    if not sys.stdin.isatty():
+                        raise UsageError(
+                            f"{self.prompt.lower()} is needed and there is no terminal to ask it on",
+                            hint=f"set {self.variable}",
+                        )
+                    if self._asked:
+                        raise UsageError(
+                            f"{self.prompt.lower()} is needed and none was given",
+                            hint="run again and type it when asked",
+                        )
+                    value = click.prompt(
+                        self.prompt, hide_input=True, confirmation_prompt=self.confirm, err=True
                     )
-                value = click.prompt(
-                    self.prompt, hide_input=True, confirmation_prompt=self.confirm, err=True
-                )
-            self._value = check_password(value, what=self.prompt.lower())
-        return self._value
+                self._value = check_password(value, what=self.prompt.lower())
+            return self._value
 
 
 def _login_callback(admin_password: _Secret) -> Callable[[str], str | None]:
@@ -137,34 +168,39 @@ def _say_where(robot: str, user: str, workspace: str | None) -> None:
     say_where("create-account", place, remote=workspace)
 
 
-def _print_report(report: Any, *, key_path: Path | None, skeleton: Any) -> None:
+def _report_lines(report: Any, *, key_path: Path | None, skeleton: Any) -> list[str]:
+    """What was done on the robot, one line each."""
+    lines: list[str] = []
     if report.created:
-        click.echo(f"create-account: created {report.user} on {report.robot} (home {report.home})")
+        lines.append(
+            f"create-account: created {report.user} on {report.robot} (home {report.home})"
+        )
     else:
-        click.echo(
+        lines.append(
             f"create-account: {report.user} already existed on {report.robot}; "
             f"checked and repaired (home {report.home})"
         )
-    click.echo(f"  password: {'set' if report.password_set else 'unchanged'}")
+    lines.append(f"  password: {'set' if report.password_set else 'unchanged'}")
     groups = f"added {', '.join(report.groups_added)}" if report.groups_added else "all present"
     if report.groups_absent:
         groups += f"; not on the robot: {', '.join(report.groups_absent)}"
-    click.echo(f"  groups: {groups}")
+    lines.append(f"  groups: {groups}")
     where = f" ({key_path})" if key_path else ""
-    click.echo(f"  key: {_KEY_WORDS.get(report.key, report.key)}{where}")
+    lines.append(f"  key: {_KEY_WORDS.get(report.key, report.key)}{where}")
     added = len(report.skeleton_added)
-    click.echo(f"  skeleton: {skeleton.source}: {added} file{'s' if added != 1 else ''} added")
-    click.echo(f"  initialize.sh: {_INIT_WORDS.get(report.initialize, report.initialize)}")
+    lines.append(f"  skeleton: {skeleton.source}: {added} file{'s' if added != 1 else ''} added")
+    lines.append(f"  initialize.sh: {_INIT_WORDS.get(report.initialize, report.initialize)}")
     if report.workspace:
         how = _WORKSPACE_WORDS.get(report.workspace_record, report.workspace_record)
         was = f"; was {report.workspace_was}" if report.workspace_was else ""
         where = f" in ~/{report.workspace_file}" if report.workspace_file else ""
-        click.echo(f"  workspace: {report.workspace} ({how}{where}{was})")
+        lines.append(f"  workspace: {report.workspace} ({how}{where}{was})")
     elif report.workspace_record == "unresolved":
-        click.echo(
+        lines.append(
             "  workspace: none resolved here (source ROS or pass --workspace, then run "
             "create-account again to record it)"
         )
+    return lines
 
 
 _KEY_WORDS = {"added": "added", "present": "already there", "none": "none installed"}
@@ -186,8 +222,13 @@ _INIT_WORDS = {
 @click.command("create-account")
 @click.option(
     "--robot",
+    multiple=True,
+    callback=robots_option,
     shell_complete=complete_robot,
-    help="Robot host name. Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI.",
+    metavar="NAME",
+    help="Robot host name; several (repeated, a,b, or @group of robots.toml) are done in "
+    "parallel, the passwords asked once first. "
+    "Default: $FETCHSYNC_ROBOT, $FETCH_ROBOT, the host of $ROS_MASTER_URI.",
 )
 @click.option(
     "--user",
@@ -235,6 +276,7 @@ _INIT_WORDS = {
     help="Accept the robot's host key with this fingerprint (shown when it is unknown).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print a JSON report instead of text.")
+@fleet_options
 @click.option("--password", expose_value=False, hidden=True, callback=_refuse_password_option)
 @click.option("--fetch-password", expose_value=False, hidden=True, callback=_refuse_password_option)
 def command(
@@ -249,6 +291,9 @@ def command(
     reset_password: bool,
     accept_host_key: str | None,
     as_json: bool,
+    jobs: int,
+    fail_fast: bool,
+    retry_failed: bool,
 ) -> None:
     """Create a user's account on the robot, or repair an existing one.
 
@@ -262,30 +307,29 @@ def command(
     existing account only what is missing is added; its password is kept
     unless --reset-password, and its recorded workspace is set to the one push
     uses now (run it again after changing workspaces).
+
+    On several robots (--robot a,b or @group) the passwords are asked once,
+    before the robots are worked on in parallel; a table ends it.
     """
     from fetchsync.chores.account import (
         DEFAULT_ADMIN,
-        GROUPS,
-        AccountRequest,
-        AdminSession,
-        check_fullname,
         check_user_name,
         find_public_key,
         find_skeleton,
-        is_legacy_skeleton,
         load_skeleton,
         read_public_key,
     )
+    from fetchsync.cli.fleet import robots_for
     from fetchsync.config import resolve_robot
-    from fetchsync.errors import RemoteError, UsageError
-    from fetchsync.link.connection import remote_python
+    from fetchsync.errors import UsageError
     from fetchsync.link.transport import LOCAL_ROBOT
 
+    robots = robots_for("create-account", robot, retry_failed=retry_failed)
     name = check_user_name(_account_user(user))
     admin = (admin_user or DEFAULT_ADMIN).strip()
     check_user_name(admin)
-    target = resolve_robot(robot)
-    if target == LOCAL_ROBOT:
+    targets = robots if robots is not None else [resolve_robot(robot)]
+    if LOCAL_ROBOT in targets:
         raise UsageError(
             "create-account needs a real robot, not the local one", hint="pass --robot NAME"
         )
@@ -299,62 +343,204 @@ def command(
             "none is installed, pass --key FILE to add one",
             err=True,
         )
-    env = {}
-    distro = os.environ.get("ROS_DISTRO", "").strip()
-    if distro:
-        env["ROS_DISTRO"] = distro
-    account_ws = _account_workspace(robot, name, workspace, remote_workspace)
-    _say_where(target, name, account_ws)
-    if account_ws:
-        env["FETCH_WORKSPACE"] = account_ws
-
-    admin_password = _Secret(ADMIN_PASSWORD_VAR, f"Password of {admin} on {target}", confirm=False)
-    new_password = _Secret(NEW_PASSWORD_VAR, f"New password for {name}", confirm=True)
-
-    from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only now
-
-    transport = SSHTransport.connect(
-        target,
-        user=admin,
-        accept_fingerprint=accept_host_key,
-        password_callback=_login_callback(admin_password),
+    account = _Account(
+        name=name,
+        admin=admin,
+        fullname=fullname,
+        skeleton_dir=skeleton_dir,
+        skeleton=sk,
+        key=public_key,
+        reset_password=reset_password,
+        accept_host_key=accept_host_key,
+        new_password=_Secret(NEW_PASSWORD_VAR, f"New password for {name}", confirm=True),
+        admin_password=_Secret(
+            ADMIN_PASSWORD_VAR,
+            f"Password of {admin} on {targets[0] if robots is None else 'the robots'}",
+            confirm=False,
+        ),
     )
-    try:
-        session = AdminSession(transport, admin=admin, robot=target, python=remote_python())
-        found = session.probe(name)
-        if found.exists and not as_json:
-            click.echo(
-                f"create-account: {name} already exists on {target}; adding what is missing",
-                err=True,
+    if robots is not None:
+        sys.exit(
+            _fleet_create(
+                robots,
+                account,
+                workspace=workspace,
+                remote_workspace=remote_workspace,
+                key_path=key_path,
+                as_json=as_json,
+                jobs=jobs,
+                fail_fast=fail_fast,
             )
-        password = new_password.get() if not found.exists or reset_password else None
-        sudo_password = None
-        if not found.admin_is_root and session.sudo_asks_password():
-            sudo_password = admin_password.get()
-            session.check_sudo(sudo_password)
-        request = AccountRequest(
-            user=name,
-            fullname=check_fullname(fullname or name),
-            groups=GROUPS,
-            key=public_key,
-            skeleton=sk,
-            env=env,
-            password=password,
-            workspace=account_ws,
-            ros_snippet="fetch_tools" if is_legacy_skeleton(skeleton_dir) else "fetchsync",
         )
-        report = session.apply(
-            request, sudo=not found.admin_is_root, sudo_password=sudo_password, on_stderr=_to_stderr
-        )
-    finally:
-        transport.close()
-    report.skeleton = str(sk.source)
+    account_ws = _account_workspace(robot, name, workspace, remote_workspace)
+    _say_where(targets[0], name, account_ws)
+    report = account.create(
+        targets[0],
+        workspace=account_ws,
+        say=lambda line: None if as_json else click.echo(line, err=True),
+        on_stderr=_to_stderr,
+    )
     if as_json:
         click.echo(json.dumps(report.to_json(), sort_keys=True))
     else:
-        _print_report(report, key_path=key_path, skeleton=sk)
+        for line in _report_lines(report, key_path=key_path, skeleton=sk):
+            click.echo(line)
     if report.error:
+        from fetchsync.errors import RemoteError
+
         raise RemoteError(report.error)
+
+
+class _Account:
+    """The account to make, the same on every robot: who, with what, and the passwords
+    (each asked at most once, whatever the number of robots)."""
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        admin: str,
+        fullname: str | None,
+        skeleton_dir: Any,
+        skeleton: Any,
+        key: str | None,
+        reset_password: bool,
+        accept_host_key: str | None,
+        new_password: _Secret,
+        admin_password: _Secret,
+    ) -> None:
+        self.name = name
+        self.admin = admin
+        self.fullname = fullname
+        self.skeleton_dir = skeleton_dir
+        self.skeleton = skeleton
+        self.key = key
+        self.reset_password = reset_password
+        self.accept_host_key = accept_host_key
+        self.new_password = new_password
+        self.admin_password = admin_password
+
+    def create(
+        self,
+        robot: str,
+        *,
+        workspace: str | None,
+        say: Callable[[str], None],
+        on_stderr: Callable[[bytes], None],
+        asking: Any = None,
+    ) -> Any:
+        """Create or repair the account on ``robot`` through the admin login: the report.
+        ``asking``: held while the login may ask on the terminal (a host key)."""
+        from contextlib import nullcontext
+
+        from fetchsync.chores.account import (
+            GROUPS,
+            AccountRequest,
+            AdminSession,
+            check_fullname,
+            is_legacy_skeleton,
+        )
+        from fetchsync.link.connection import remote_python
+        from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only now
+
+        env = {}
+        distro = os.environ.get("ROS_DISTRO", "").strip()
+        if distro:
+            env["ROS_DISTRO"] = distro
+        if workspace:
+            env["FETCH_WORKSPACE"] = workspace
+        with asking if asking is not None else nullcontext():
+            transport = SSHTransport.connect(
+                robot,
+                user=self.admin,
+                accept_fingerprint=self.accept_host_key,
+                password_callback=_login_callback(self.admin_password),
+            )
+        try:
+            session = AdminSession(transport, admin=self.admin, robot=robot, python=remote_python())
+            found = session.probe(self.name)
+            if found.exists:
+                say(
+                    f"create-account: {self.name} already exists on {robot}; adding what is missing"
+                )
+            password = self.new_password.get() if not found.exists or self.reset_password else None
+            sudo_password = None
+            if not found.admin_is_root and session.sudo_asks_password():
+                sudo_password = self.admin_password.get()
+                session.check_sudo(sudo_password)
+            request = AccountRequest(
+                user=self.name,
+                fullname=check_fullname(self.fullname or self.name),
+                groups=GROUPS,
+                key=self.key,
+                skeleton=self.skeleton,
+                env=env,
+                password=password,
+                workspace=workspace,
+                ros_snippet="fetch_tools" if is_legacy_skeleton(self.skeleton_dir) else "fetchsync",
+            )
+            report = session.apply(
+                request,
+                sudo=not found.admin_is_root,
+                sudo_password=sudo_password,
+                on_stderr=on_stderr,
+            )
+        finally:
+            transport.close()
+        report.skeleton = str(self.skeleton.source)
+        return report
+
+
+def _fleet_create(
+    robots: list[str],
+    account: _Account,
+    *,
+    workspace: str | None,
+    remote_workspace: str | None,
+    key_path: Path | None,
+    as_json: bool,
+    jobs: int,
+    fail_fast: bool,
+) -> int:
+    """create-account on each robot, in parallel once the passwords are asked (once each,
+    here: the new one, and the admin's, which Enter leaves out when the admin logs in with
+    a key and sudo asks none); each robot's lines prefixed; the table; the exit status."""
+    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, run_all
+    from fetchsync.errors import RemoteError
+
+    account.new_password.ask_first()
+    account.admin_password.ask_first(optional="Enter: none, it logs in with a key")
+    asking = question_lock()
+
+    def work(robot: str, out: Prefixed) -> RobotResult:
+        account_ws = _account_workspace(robot, account.name, workspace, remote_workspace)
+        report = account.create(
+            robot,
+            workspace=account_ws,
+            say=out.line,
+            on_stderr=lambda data: _write_all(out.err, data),
+            asking=asking,
+        )
+        if not as_json:
+            for line in _report_lines(report, key_path=key_path, skeleton=account.skeleton):
+                out.line(line, err=False)
+        error = report.error or ""
+        return RobotResult(
+            robot,
+            result="failed" if error else "ok",
+            exit_code=RemoteError.exit_code if error else 0,
+            error=error,
+            report=report.to_json(),
+        )
+
+    results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast)
+    return finish("create-account", results, as_json=as_json)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
 
 
 def _to_stderr(data: bytes) -> None:

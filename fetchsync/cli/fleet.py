@@ -334,10 +334,15 @@ def finish(verb: str, results: Sequence[RobotResult], *, as_json: bool = False) 
 
 
 # --------------------------------------------------------------------------- verbs
-def fleet_options(func: Callable[..., Any]) -> Callable[..., Any]:
-    """``-j/--jobs``, ``--fail-fast``, ``--retry-failed``: how a verb runs on several robots."""
+def fleet_options(
+    func: Callable[..., Any] | None = None, *, jobs: bool = True
+) -> Callable[..., Any]:
+    """``-j/--jobs``, ``--fail-fast``, ``--retry-failed``: how a verb runs on several robots.
+    ``jobs=False`` leaves out ``-j`` (a verb whose ``-j`` is its own, as snapshot's)."""
     import click
 
+    if func is None:
+        return lambda f: fleet_options(f, jobs=jobs)
     opts = [
         click.option(
             "--jobs",
@@ -358,7 +363,7 @@ def fleet_options(func: Callable[..., Any]) -> Callable[..., Any]:
             help="Run again on the robots that failed in the last call on several robots.",
         ),
     ]
-    for opt in reversed(opts):
+    for opt in reversed(opts if jobs else opts[1:]):
         func = opt(func)
     return func
 

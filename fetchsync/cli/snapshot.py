@@ -30,6 +30,7 @@ from fetchsync.chores.snapshot import (
     select_collectors,
 )
 from fetchsync.cli.common import resolve, target_options
+from fetchsync.cli.fleet import fleet_options, robots_for
 
 PASSWORD_VAR = "FETCHSYNC_SUDO_PASSWORD"
 FETCH_TOOLS_NAME = "debug-snapshot"
@@ -130,6 +131,7 @@ FETCH_LOGIN = "fetch"
     help="Print the collectors that would run and exit; connects to nothing.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
+@fleet_options(jobs=False)  # -j is the commands at once on each robot
 @click.pass_context
 def command(
     ctx: click.Context,
@@ -152,6 +154,8 @@ def command(
     jobs: int,
     list_only: bool,
     as_json: bool,
+    fail_fast: bool,
+    retry_failed: bool,
 ) -> None:
     """Collect diagnostics from the robot into one timestamped archive.
 
@@ -163,6 +167,9 @@ def command(
     lists every command with its exit code, duration and status.
 
     As debug-snapshot (fetch_tools' name): --profile fetch into a .zip.
+
+    On several robots (--robot a,b or @group), up to 8 robots at once, each
+    archive named after its robot in the --output directory; a table ends it.
     """
     fetch_tools = ctx.info_name == FETCH_TOOLS_NAME
     profile = profile or ("fetch" if fetch_tools else "generic")
@@ -197,6 +204,27 @@ def command(
     from fetchsync.chores.snapshot import take_snapshot
     from fetchsync.link.session import open_transport
 
+    robots = robots_for(ctx.info_name or "snapshot", robot, retry_failed=retry_failed)
+    if robots is not None:
+        sys.exit(
+            _fleet_snapshot(
+                robots,
+                user=user,
+                workspace=workspace,
+                remote_workspace=remote_workspace,
+                accept_host_key=accept_host_key,
+                collectors=collectors,
+                output=output,
+                jobs=jobs,
+                policy=policy,
+                password=_fleet_password(policy, fetch_password),
+                bag_topics=bag_topics,
+                bag_duration=bag_duration,
+                archive_format="zip" if as_zip else "tar",
+                as_json=as_json,
+                fail_fast=fail_fast,
+            )
+        )
     target, overlay = _target(robot, user, workspace, remote_workspace)
     from fetchsync.cli.common import say_where
 
@@ -270,6 +298,110 @@ def _password_source(robot: str, given: str | None) -> PasswordSource:
         return value or None
 
     return source
+
+
+def _fleet_password(policy: str, given: str | None) -> PasswordSource:
+    """The sudo password for several robots: --fetch-password or $FETCHSYNC_SUDO_PASSWORD,
+    else asked once here, before the robots are worked on, with --sudo at a terminal;
+    never asked from the robots' threads."""
+    fixed = given or os.environ.get(PASSWORD_VAR) or None
+    if fixed is None and policy == "always" and sys.stdin.isatty():
+        fixed = (
+            click.prompt(
+                "[sudo] password on the robots",
+                hide_input=True,
+                err=True,
+                default="",
+                show_default=False,
+            )
+            or None
+        )
+
+    def source(attempt: int) -> str | None:
+        return fixed if attempt == 0 else None
+
+    return source
+
+
+def _fleet_snapshot(
+    robots: list[str],
+    *,
+    user: str | None,
+    workspace: str | None,
+    remote_workspace: str | None,
+    accept_host_key: str | None,
+    collectors: tuple[Collector, ...],
+    output: str,
+    jobs: int,
+    policy: str,
+    password: PasswordSource,
+    bag_topics: tuple[str, ...],
+    bag_duration: float,
+    archive_format: str,
+    as_json: bool,
+    fail_fast: bool,
+) -> int:
+    """A snapshot of each robot into the ``output`` directory, in parallel; the table, the
+    exit status. A robot whose link was lost midway keeps its partial archive and fails."""
+    from fetchsync.chores.snapshot import take_snapshot
+    from fetchsync.cli.fleet import (
+        DEFAULT_JOBS,
+        Prefixed,
+        RobotResult,
+        finish,
+        question_lock,
+        run_all,
+    )
+    from fetchsync.errors import LinkLostError, UsageError
+    from fetchsync.link.session import open_transport
+
+    if not Path(output).is_dir():
+        raise UsageError(
+            f"with several robots, --output is a directory for their archives, not {output}"
+        )
+    asking = question_lock()
+
+    def work(name: str, out: Prefixed) -> RobotResult:
+        target, overlay = _target(name, user, workspace, remote_workspace)
+        with asking:
+            transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
+        try:
+            snap = take_snapshot(
+                transport,
+                robot=target.robot,
+                collectors=collectors,
+                output=output,
+                jobs=jobs,
+                sudo=policy,
+                password=password,
+                bag_topics=bag_topics,
+                bag_duration=bag_duration,
+                overlay=overlay,
+                progress=lambda _result: None,
+                archive_format=archive_format,
+            )
+        finally:
+            transport.close()
+        counts = snap.counts()
+        if not as_json:
+            out.line(
+                f"snapshot: {counts['ok']} ok, {counts['failed']} failed, "
+                f"{counts['missing']} missing; {_shown_path(snap.archive)} ({_human(snap.size)})",
+                err=False,
+            )
+        lost = f"{snap.link_lost}; the archive holds what was collected before"
+        return RobotResult(
+            name,
+            result="failed" if snap.link_lost else "ok",
+            exit_code=LinkLostError.exit_code if snap.link_lost else 0,
+            files=counts["ok"],
+            bytes_sent=snap.size,
+            error=lost if snap.link_lost else "",
+            report=snap.to_json(),
+        )
+
+    results = run_all(robots, work, jobs=DEFAULT_JOBS, fail_fast=fail_fast)
+    return finish("snapshot", results, as_json=as_json)
 
 
 class _Progress:
