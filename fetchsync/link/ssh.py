@@ -355,24 +355,38 @@ class SSHTransport:
             return True
         wait = timeout if timeout is not None else max(3 * self._keepalive, 5.0)
         with self._probe_lock:
-            answered = threading.Event()
-
-            def probe() -> None:
-                try:
-                    # Any reply, even "request failed", proves the link and the peer alive.
-                    self._transport.global_request(KEEPALIVE_REQUEST, wait=True)
-                except Exception as exc:  # noqa: BLE001 - a dead link is the answer we report
-                    log.debug("keepalive probe of %s failed: %s", self.name, exc)
-                else:
-                    answered.set()
-
-            threading.Thread(target=probe, name="fetchsync-ssh-probe", daemon=True).start()
-            if answered.wait(wait) and self._transport.is_active():
+            answered = self.ping()
+            if answered is not None and answered.wait(wait) and self._transport.is_active():
                 return True
         # the caller reports the lost link; a warning here would be a second line on stderr
         log.info("%s did not answer a keepalive in %.1f s; closing the link", self.name, wait)
         self.close()
         return False
+
+    def ping(self) -> threading.Event | None:
+        """Send one keepalive and return at once: the event is set when the robot answers
+        (however late), never if it does not; None if the connection has ended.
+
+        Unlike :meth:`is_alive` nothing is closed: a caller that can wait (the watch
+        agent, while the link is down) keeps the connection, whose held packets are
+        delivered when the link comes back.
+        """
+        if not self._transport.is_active():
+            return None
+        answered = threading.Event()
+
+        def probe() -> None:
+            try:
+                # Any reply, even "request failed", proves the link and the peer alive.
+                self._transport.global_request(KEEPALIVE_REQUEST, wait=True)
+            except Exception as exc:  # noqa: BLE001 - a dead link is the answer we report
+                log.debug("keepalive probe of %s failed: %s", self.name, exc)
+            else:
+                if self._transport.is_active():  # paramiko returns None once it has closed
+                    answered.set()
+
+        threading.Thread(target=probe, name="fetchsync-ssh-probe", daemon=True).start()
+        return answered
 
     def close(self) -> None:
         # on_close first: a process started (by on_close) while a ProxyCommand was
@@ -395,6 +409,48 @@ class SSHTransport:
         if isinstance(exc, ChannelException):
             return TransportError(f"{self.name} refused to {what}: {exc.text}")
         return TransportError(f"cannot {what} on {self.name}: {exc}")
+
+
+def sshd_answers(
+    host: str,
+    *,
+    user: str | None = None,
+    port: int | None = None,
+    config_path: str | os.PathLike[str] | None = None,
+    timeout: float = 2.0,
+) -> bool | None:
+    """Whether ``host``'s sshd answers a new connection with its banner, reached the way
+    :meth:`SSHTransport.connect` reaches it (ProxyCommand included), within ``timeout``.
+
+    No handshake and no login: next to nothing on either end, nothing in the robot's
+    auth log but a closed connection. The watch agent's probe of a robot that stopped
+    answering on its connection. None when the route goes through jump hosts (only a
+    login to them tells).
+    """
+    settings = resolve_host(host, config=load_ssh_config(config_path), user=user, port=port)
+    if settings.proxy_jump:
+        return None
+    sock: Any = None
+    try:
+        if settings.proxy_command:
+            sock = _ProxyCommand(settings.proxy_command)
+        else:
+            sock = socket.create_connection((settings.hostname, settings.port), timeout=timeout)
+        sock.settimeout(timeout)
+        seen = b""
+        while len(seen) < 8192:  # RFC 4253 4.2: lines before the banner are allowed
+            piece = sock.recv(1024)
+            if not piece:
+                return False
+            seen += piece
+            if seen.startswith(b"SSH-") or b"\nSSH-" in seen:
+                return True
+        return False
+    except (OSError, ConnectError, ProxyCommandFailure):
+        return False
+    finally:
+        if sock is not None:
+            sock.close()
 
 
 def env_prefix(env: dict[str, str]) -> str:
