@@ -1,0 +1,362 @@
+#!/usr/bin/env python3
+"""A fleet push against the slowest single robot's push: ``fetchsync push --robot @fleet``.
+
+    python3 bench/fleet.py [--robots 20] [--files 300 --size-mb 6] [--link wifi] [--json out.json]
+    python3 bench/fleet.py --robots 3 --quick --no-loopback     # the smoke test's run
+
+A lab pushes the same workspace to a class of twenty robots. Each robot here is a
+separate OpenSSH ``sshd`` on 127.0.0.1 (``tests/sshd.py``), each behind its own
+link (``bench/countproxy.py`` as its ``ProxyCommand``: shaped as ``--link``, and
+counting that robot's bytes), each with its own remote workspace; the laptop's
+workspace is the bench's generated tree (``bench/workspace.py``). Every push is a
+new ``fetchsync`` process without a connection master (``FETCHSYNC_PERSIST=0``:
+a first push of the day); the robots' endpoint cache is warm (one warm-up push).
+
+Scenarios, each timed as single pushes (one robot at a time, each robot once)
+and as one fleet push (every robot, ``-j`` robots at once):
+
+    initial   into empty remote workspaces, with no last-synced state
+    edit      one line of one .cpp changed
+
+It reports the fleet push's time against the slowest single robot's push (the
+issue's target: at most 1.5x on the shaped link), the bytes each robot received
+in the fleet push against its single push, then a fleet push with two robots
+down (one robot's sshd stopped: refused; one link blackholed: a robot out of
+range, given up after its ConnectTimeout) and the table fetchsync printed, and
+the same fleet on unshaped loopback (reported, not targeted: there every robot's
+endpoint and sshd share this machine's CPUs with the laptop).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+for _p in (str(BENCH), str(REPO / "tests")):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
+
+from countproxy import LINKS, Counter, proxy_command, set_link_state
+from run import robot_python
+from sshd import SSHD, running_sshd
+from workspace import generate
+
+TARGET = 1.5  # fleet push time / the slowest single robot's, at most (shaped link)
+CONNECT_TIMEOUT = 10  # the ssh config's ConnectTimeout: how long a blackholed robot is tried
+
+
+class Fleet:
+    """N robots (sshd + link each), one laptop HOME whose ssh config names them r01..rNN."""
+
+    def __init__(self, *, workdir: Path, sshds: list[SSHD], link: str, ws_root: Path) -> None:
+        self.workdir = workdir
+        self.sshds = sshds
+        self.link = link
+        self.ws_root = ws_root
+        self.names = [f"r{i + 1:02d}" for i in range(len(sshds))]
+        self.home = workdir / "home"
+        ssh = self.home / ".ssh"
+        ssh.mkdir(parents=True, mode=0o700, exist_ok=True)
+        identity = ssh / "id_ed25519"
+        if not identity.exists():
+            subprocess.run(
+                ["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(identity)],
+                check=True,
+                stdin=subprocess.DEVNULL,
+            )
+        pub = identity.with_suffix(".pub").read_text()
+        known = ssh / "known_hosts"
+        config = ssh / "config"
+        hosts, blocks = [], []
+        for name, sshd in zip(self.names, sshds):
+            with open(sshd.workdir / "authorized_keys", "a") as fh:
+                fh.write(pub)
+            hosts.append(f"[{sshd.host}]:{sshd.port} {sshd.host_key_pub}\n")
+            proxy = proxy_command(sshd.host, sshd.port, self.wire(name), LINKS[link])
+            blocks.append(
+                f"Host {name}\n    HostName {sshd.host}\n    Port {sshd.port}\n"
+                f"    User {sshd.user}\n    IdentityFile {identity}\n    IdentitiesOnly yes\n"
+                f"    UserKnownHostsFile {known}\n    GlobalKnownHostsFile /dev/null\n"
+                f"    StrictHostKeyChecking yes\n    UpdateHostKeys no\n"
+                f"    ConnectTimeout {CONNECT_TIMEOUT}\n    ProxyCommand {proxy}\n"
+            )
+        known.write_text("".join(hosts))
+        config.write_text("\n".join(blocks))
+        config.chmod(0o600)
+        conf = self.home / ".config/fetchsync"
+        conf.mkdir(parents=True, exist_ok=True)
+        (conf / "robots.toml").write_text(
+            f"fleet = {json.dumps(self.names)}\n\n"
+            + "".join(
+                f'[robots.{n}]\nremote_workspace = "{self.remote(n)}"\n\n' for n in self.names
+            )
+        )
+        self.state = 0
+
+    def wire(self, name: str) -> Path:
+        return self.workdir / "wire" / self.link / name
+
+    def remote(self, name: str) -> Path:
+        return self.workdir / "robots" / name
+
+    def counters(self) -> dict[str, Counter]:
+        return {n: Counter(self.wire(n)) for n in self.names}
+
+    def reset(self) -> None:
+        """Empty every robot's workspace and forget every last-synced state."""
+        for n in self.names:
+            shutil.rmtree(self.remote(n), ignore_errors=True)
+            self.remote(n).mkdir(parents=True)
+        self.state += 1
+
+    def env(self) -> dict[str, str]:
+        env = {
+            k: v
+            for k, v in os.environ.items()
+            if not k.startswith(("FETCHSYNC_", "FETCH_", "XDG_"))
+            and k not in ("SSH_AUTH_SOCK", "ROS_MASTER_URI")
+        }
+        env.update(
+            HOME=str(self.home),
+            PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")])),
+            FETCHSYNC_WORKSPACE=str(self.ws_root),
+            FETCHSYNC_PERSIST="0",
+            XDG_STATE_HOME=str(self.workdir / f"state-{self.state}"),
+            XDG_CACHE_HOME=str(self.workdir / "laptop-cache"),
+            XDG_RUNTIME_DIR=str(self.workdir / "run"),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.workdir / "robot-cache"),
+        )
+        (self.workdir / "run").mkdir(mode=0o700, exist_ok=True)
+        return env
+
+    def push(self, robots: list[str], *, jobs: int) -> dict[str, Any]:
+        """One ``fetchsync push`` of ``robots``: its time, exit status, table, reports, and
+        the bytes each robot's link carried."""
+        counters = self.counters()
+        before = {n: counters[n].read() for n in robots}
+        argv = [sys.executable, "-m", "fetchsync", "push", "--json", "--robot", ",".join(robots)]
+        if len(robots) > 1:
+            argv += ["-j", str(jobs)]
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            argv, env=self.env(), capture_output=True, text=True, stdin=subprocess.DEVNULL
+        )
+        seconds = time.perf_counter() - t0
+        wire = {}
+        for n in robots:
+            after = counters[n].settle(quiet=0.2, timeout=15)
+            wire[n] = after.up + after.down - before[n].up - before[n].down
+        reports: list[dict[str, Any]] = []
+        for line in reversed(proc.stdout.splitlines()):
+            if line.startswith(("[", "{")):
+                data = json.loads(line)
+                reports = data if isinstance(data, list) else [data]
+                break
+        table = [ln for ln in proc.stderr.splitlines() if not ln.startswith("[")]
+        return {
+            "seconds": seconds,
+            "exit": proc.returncode,
+            "bytes": wire,
+            "reports": reports,
+            "table": table,
+            "stderr": proc.stderr[-4000:],
+        }
+
+
+def _check(result: dict[str, Any], what: str) -> None:
+    if result["exit"] != 0:
+        raise SystemExit(f"{what} failed (exit {result['exit']}):\n{result['stderr']}")
+
+
+def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dict[str, Any]:
+    """Single pushes of every robot, then one fleet push, from the same starting point."""
+    out: dict[str, Any] = {"scenario": name}
+    for label in ("single", "fleet"):
+        if name == "initial":
+            fleet.reset()
+        else:
+            with open(edit, "a") as fh:  # one line more, on every robot
+                fh.write(f"// {label} {time.monotonic_ns()}\n")
+        if label == "single":
+            times, wire = {}, {}
+            for n in fleet.names:
+                r = fleet.push([n], jobs=1)
+                _check(r, f"{name}: push to {n}")
+                times[n], wire[n] = r["seconds"], r["bytes"][n]
+            out["single"] = {"seconds": times, "bytes": wire}
+            slowest = max(times, key=lambda k: times[k])
+            log(
+                f"{name:8} single: slowest {slowest} {times[slowest]:.2f}s, median "
+                f"{statistics.median(times.values()):.2f}s, sum {sum(times.values()):.1f}s"
+            )
+        else:
+            r = fleet.push(fleet.names, jobs=jobs)
+            _check(r, f"{name}: fleet push")
+            out["fleet"] = {"seconds": r["seconds"], "bytes": r["bytes"], "table": r["table"]}
+            log(f"{name:8} fleet:  {r['seconds']:.2f}s for {len(fleet.names)} robots")
+    single = out["single"]
+    out["ratio"] = out["fleet"]["seconds"] / max(single["seconds"].values())
+    out["bytes_ratio"] = {
+        n: out["fleet"]["bytes"][n] / single["bytes"][n] for n in fleet.names if single["bytes"][n]
+    }
+    return out
+
+
+def two_down(fleet: Fleet, sshds: list[SSHD], *, jobs: int, edit: Path) -> dict[str, Any]:
+    """A fleet push (after an edit) with robot 1's sshd stopped and robot 2's link blackholed."""
+    stopped, dark = fleet.names[0], fleet.names[1]
+    pid = int((sshds[0].workdir / "sshd.pid").read_text())
+    os.kill(pid, signal.SIGTERM)  # our own sshd, by its pid
+    set_link_state(fleet.wire(dark), "blackhole")
+    try:
+        with open(edit, "a") as fh:
+            fh.write(f"// two down {time.monotonic_ns()}\n")
+        r = fleet.push(fleet.names, jobs=jobs)
+    finally:
+        set_link_state(fleet.wire(dark), "up")
+    ok = [rep["robot"] for rep in r["reports"] if rep.get("ok")]
+    failed = {rep["robot"]: rep.get("error", "") for rep in r["reports"] if not rep.get("ok")}
+    return {
+        "seconds": r["seconds"],
+        "exit": r["exit"],
+        "ok": ok,
+        "failed": failed,
+        "down": {stopped: "sshd stopped", dark: "link blackholed"},
+        "table": r["table"],
+    }
+
+
+def machine() -> dict[str, Any]:
+    return {
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "kernel": platform.release(),
+        "load": os.getloadavg()[0],
+    }
+
+
+def report(data: dict[str, Any]) -> str:
+    p = data["params"]
+    lines = [
+        f"Fleet push: {p['robots']} robots (one sshd and one {p['link']} link each), "
+        f"-j {p['jobs']}, a workspace of {data['workspace']['files']} files, "
+        f"{data['workspace']['bytes'] / 2**20:.1f} MiB; {data['machine']['cpus']} CPUs, "
+        f"load {data['machine']['load']:.1f} at the start.",
+        "",
+        "| scenario | link | slowest single push | median single | sum of singles | fleet push "
+        "| fleet / slowest | target | bytes per robot, fleet / single (min-max) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for s in data["scenarios"]:
+        times = s["single"]["seconds"].values()
+        br = s["bytes_ratio"].values()
+        shaped = s["link"] != "loopback"
+        verdict = ("PASS" if s["ratio"] <= TARGET else "MISS") if shaped else "(reported)"
+        lines.append(
+            f"| {s['scenario']} | {s['link']} | {max(times):.2f} s | "
+            f"{statistics.median(times):.2f} s | {sum(times):.1f} s | {s['fleet']['seconds']:.2f} s "
+            f"| {s['ratio']:.2f}x | {'<= ' + str(TARGET) + 'x ' if shaped else ''}{verdict} | "
+            f"{min(br):.2f}-{max(br):.2f} |"
+        )
+    d = data.get("two_down")
+    if d:
+        lines += [
+            "",
+            f"Two robots down ({', '.join(f'{k}: {v}' for k, v in d['down'].items())}): "
+            f"{len(d['ok'])} of {len(d['ok']) + len(d['failed'])} succeeded in "
+            f"{d['seconds']:.1f} s, exit status {d['exit']}; the table's failed rows:",
+            "",
+            "```",
+            *[ln for ln in d["table"] if ln.startswith(("robot ", *d["failed"], "push:"))],
+            "```",
+        ]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--robots", type=int, default=20)
+    ap.add_argument("--jobs", type=int, help="robots at once in the fleet push (default: all)")
+    ap.add_argument("--files", type=int, default=300)
+    ap.add_argument("--size-mb", type=float, default=6.0)
+    ap.add_argument("--link", choices=[k for k in LINKS if k != "loopback"], default="wifi")
+    ap.add_argument("--no-loopback", action="store_true", help="skip the unshaped fleet figure")
+    ap.add_argument("--no-down", action="store_true", help="skip the two-robots-down push")
+    ap.add_argument("--quick", action="store_true", help="the initial push only (a smoke test)")
+    ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
+    ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
+    args = ap.parse_args()
+    if args.robots < 3:
+        ap.error("--robots: at least 3 (two are taken down)")
+    jobs = args.jobs or args.robots
+    workdir = Path(args.workdir or tempfile.mkdtemp(prefix="fsbench-fleet-")).resolve()
+    workdir.mkdir(parents=True, exist_ok=True)
+
+    def log(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    ws = generate(workdir / "ws", files=args.files, size_mb=args.size_mb)
+    data: dict[str, Any] = {
+        "params": {
+            "robots": args.robots,
+            "jobs": jobs,
+            "link": args.link,
+            "files": args.files,
+            "size_mb": args.size_mb,
+        },
+        "workspace": {"files": ws.files, "bytes": ws.bytes},
+        "machine": machine(),
+        "scenarios": [],
+    }
+    with contextlib.ExitStack() as stack:
+        sshds = [
+            stack.enter_context(running_sshd(workdir / "sshd" / f"{i:02d}"))
+            for i in range(args.robots)
+        ]
+        log(f"{len(sshds)} sshds up; workspace {ws.files} files, {ws.bytes / 2**20:.1f} MiB")
+        links = [args.link] + ([] if args.no_loopback else ["loopback"])
+        fleets = {}
+        for link in links:
+            fleet = fleets[link] = Fleet(
+                workdir=workdir / link, sshds=sshds, link=link, ws_root=ws.root
+            )
+            fleet.reset()
+            _check(fleet.push(fleet.names[:1], jobs=1), "warm-up push")  # the endpoint cache
+            for name in ("initial",) if args.quick else ("initial", "edit"):
+                s = scenario(fleet, name, jobs=jobs, edit=ws.edit_target, log=log)
+                s["link"] = link
+                data["scenarios"].append(s)
+        if not args.no_down:  # last: it stops a robot's sshd
+            d = data["two_down"] = two_down(
+                fleets[args.link], sshds, jobs=jobs, edit=ws.edit_target
+            )
+            log(f"two down: {len(d['ok'])} ok, failed {d['failed']}")
+    text = report(data)
+    print(text)
+    if args.json_out:
+        args.json_out.write_text(json.dumps(data, indent=1, sort_keys=True))
+    if not args.workdir:
+        shutil.rmtree(workdir, ignore_errors=True)
+    d = data.get("two_down")
+    if d and (len(d["failed"]) != 2 or len(d["ok"]) != args.robots - 2):
+        log("two robots down: expected exactly those two to fail")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""bench/fleet.py runs to the end with 3 robots (each its own sshd and shaped link): a smoke
+test, no timing asserted (the figures are the bench's, run by hand: bench/README.md)."""
+
+from __future__ import annotations
+
+import pytest
+from helpers import run_bench
+
+pytestmark = pytest.mark.ssh
+
+
+def test_the_fleet_bench_runs_with_three_robots(tmp_path):
+    out, data = run_bench(
+        "fleet.py",
+        "--robots",
+        "3",
+        "--files",
+        "200",
+        "--size-mb",
+        "3",
+        "--quick",
+        "--no-loopback",
+        tmp_path=tmp_path,
+    )
+    [initial] = data["scenarios"]
+    assert initial["scenario"] == "initial" and initial["link"] == "wifi"
+    assert sorted(initial["fleet"]["bytes"]) == ["r01", "r02", "r03"]
+    # each robot receives what a push to it alone sends (give or take the handshake's noise)
+    for name, ratio in initial["bytes_ratio"].items():
+        assert 0.8 < ratio < 1.25, (name, ratio)
+    assert all(b > 2**20 for b in initial["fleet"]["bytes"].values())  # the tree went over
+    down = data["two_down"]
+    assert down["ok"] == ["r03"] and sorted(down["failed"]) == ["r01", "r02"]
+    assert down["exit"] == 3, down
+    for name, why in down["failed"].items():  # each failed row says why, naming its robot
+        assert name in why, down
+    assert "| initial | wifi |" in out and "Two robots down" in out
