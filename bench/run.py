@@ -281,10 +281,12 @@ class FetchsyncPush(Tool):
         persist: bool = True,
         checkout: Path = REPO,
         name: str | None = None,
+        runtime: str | None = None,
     ) -> None:
         super().__init__(bench=bench, remote=remote)
         self.persist = persist
         self.checkout = checkout
+        self.runtime = runtime  # a subdirectory of the run's: its own connection master
         self.name = name or ("fetchsync" if persist else "fetchsync-cold")
         self.resets = 0
 
@@ -315,8 +317,8 @@ class FetchsyncPush(Tool):
                 self.bench.workdir / "robot" / f"{self.name}-cache"
             ),
         )
-        if self.name != "fetchsync":
-            env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / "b")
+        if self.runtime:
+            env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / self.runtime)
         if not self.persist:
             env["FETCHSYNC_PERSIST"] = "0"
         return [sys.executable, "-m", "fetchsync", "push", "--json"], env
@@ -443,12 +445,13 @@ class Bench:
         sshd: SSHD,
         params: Params,
         log: Callable[[str], None],
-        baseline: tuple[str, Path] | None = None,
+        baseline: tuple[str, Path] | list[tuple[str, Path]] | None = None,
         measured: tuple[str, Path] | None = None,
     ) -> None:
-        """``baseline``: (a short name of its revision, its source tree): a second
-        fetchsync pushed side by side with this one (an A/B run). ``measured``: the
-        same for the fetchsync measured, when it is not this checkout (``--rev``)."""
+        """``baseline``: (a short name of its revision, its source tree), or a list of
+        them: other fetchsyncs pushed side by side with this one (an A/B run; several
+        measure a series of commits in the same rounds). ``measured``: the same for the
+        fetchsync measured, when it is not this checkout (``--rev``)."""
         self.workdir = workdir
         self.ws = ws
         self.sshd = sshd
@@ -488,18 +491,23 @@ class Bench:
         ]
         if params.cold:
             self.tools.append(
-                FetchsyncPush(bench=self, remote=robot / "fetchsync-cold-ws", persist=False)
+                FetchsyncPush(
+                    bench=self, remote=robot / "fetchsync-cold-ws", persist=False, runtime="c"
+                )
             )
-        if baseline is not None:
-            rev, checkout = baseline
+        baselines = [baseline] if isinstance(baseline, tuple) else list(baseline or [])
+        for i, (rev, checkout) in enumerate(baselines):
             self.tools.append(
                 FetchsyncPush(
                     bench=self,
-                    remote=robot / "baseline-ws",
+                    remote=robot / ("baseline-ws" if i == 0 else f"baseline-{i}-ws"),
                     checkout=checkout,
                     name=f"fetchsync@{rev}",
+                    runtime=f"b{i}" if i else "b",
                 )
             )
+        # the revisions in the order given, the one measured last: a series of commits
+        self.series = [f"fetchsync@{rev}" for rev, _ in baselines] + ["fetchsync"]
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
         self.samples: list[Sample] = []
         self.failures: list[dict[str, Any]] = []
@@ -1001,6 +1009,44 @@ def _allocator_line(probe: dict[str, float] | None) -> str:
     return f"File creation on the robot's disk at the start: {probe['create_us']:.0f} us an inode{vs}{waited}."
 
 
+def _series_lines(bench: Bench, failed: set[tuple[str, str]]) -> list[str]:
+    """Each revision of a series against the one before it, in the same rounds: what
+    one commit did to each figure (issue 23's removals, measured one by one)."""
+    names = bench.series
+    scenarios = [sc for sc, _ in SCENARIOS if any(s.scenario == sc for s in bench.samples)]
+    titles = dict(SCENARIOS)
+    out = [
+        (
+            "Each revision against the one before it (time: ratio of the medians, median of "
+            "the rounds' ratios in brackets; above 1.00x the later one is slower; "
+            "✗: a tree failed verification)"
+        ),
+        "",
+        "| after vs before | " + " | ".join(titles[sc] for sc in scenarios) + " |",
+        "| --- |" + " ---: |" * len(scenarios),
+    ]
+    for before, after in zip(names, names[1:]):
+        rows = bench.summary(after, before, targets=False)
+        cells = []
+        for sc in scenarios:
+            row = rows.get(sc)
+            if row is None:
+                cells.append("—")
+                continue
+            bad = " ✗" if (sc, after) in failed or (sc, before) in failed else ""
+            cells.append(
+                f"{row[after]['seconds']:.3f} vs {row[before]['seconds']:.3f} s: "
+                f"{_ratio(row['time_ratio'])} ({_ratio(row.get('round_ratio'))}){bad}"
+            )
+        label = f"{after.removeprefix('fetchsync@')} vs {before.removeprefix('fetchsync@')}"
+        if after == "fetchsync":
+            label = (
+                f"{bench.measured_rev or 'this checkout'} vs {before.removeprefix('fetchsync@')}"
+            )
+        out.append(f"| {label} | " + " | ".join(cells) + " |")
+    return out
+
+
 def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> str:
     p = bench.params
     out = [
@@ -1061,6 +1107,8 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
             )
             out += ["", f"{base.name} against rsync", ""]
             out += _tables(bench.summary(base.name, "rsync"), base.name, "rsync", failed)
+    if len(bench.series) > 2:
+        out += ["", *_series_lines(bench, failed)]
     out.append("")
     if bench.verified_ok():
         out.append(
@@ -1274,7 +1322,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--baseline-rev",
         metavar="REV",
-        help="also push with the fetchsync of git revision REV, side by side (an A/B run)",
+        action="append",
+        help="also push with the fetchsync of git revision REV, side by side (an A/B run); "
+        "repeated, oldest first: a series of commits, each against the one before it",
     )
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--profile", action="store_true", help="also profile a no-op fetchsync push")
@@ -1310,7 +1360,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB in {ws.seconds:.1f} s")
         with running_sshd(workdir / "sshd") as sshd:
-            baseline = baseline_checkout(a.baseline_rev, workdir) if a.baseline_rev else None
+            baseline = [baseline_checkout(rev, workdir) for rev in a.baseline_rev or []]
             measured = baseline_checkout(a.rev, workdir) if a.rev else None
             if measured:
                 machine["fetchsync"] += f"; measured: the fetchsync of {measured[0]}"
@@ -1352,6 +1402,7 @@ def main(argv: list[str] | None = None) -> int:
                             for t in bench.tools
                             if isinstance(t, FetchsyncPush) and t.name.startswith("fetchsync@")
                         },
+                        "series": bench.series,
                         "verification": bench.verified,
                         "repairs": bench.repairs,
                         "failures": bench.failures,
