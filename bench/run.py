@@ -508,6 +508,11 @@ class Bench:
             )
         # the revisions in the order given, the one measured last: a series of commits
         self.series = [f"fetchsync@{rev}" for rev, _ in baselines] + ["fetchsync"]
+        self.sources = {
+            t.name: check_source(t.name, t.command()[1], t.checkout, workdir)
+            for t in self.tools
+            if isinstance(t, FetchsyncPush)
+        }
         self.tools.append(RsyncPush(bench=self, remote=robot / "rsync-ws"))
         self.samples: list[Sample] = []
         self.failures: list[dict[str, Any]] = []
@@ -1241,6 +1246,33 @@ def _workdir(path: str | None, keep: bool) -> Iterator[Path]:
             shutil.rmtree(p, ignore_errors=True)
 
 
+def imported_from(env: dict[str, str], cwd: Path) -> Path:
+    """The ``fetchsync`` package a ``python -m fetchsync`` started with ``env`` in ``cwd``
+    imports: its directory."""
+    proc = subprocess.run(
+        [sys.executable, "-c", "import fetchsync; print(fetchsync.__file__)"],
+        env=env,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"cannot import fetchsync: {proc.stderr.strip()[-500:]}")
+    return Path(proc.stdout.strip().splitlines()[-1]).resolve().parent
+
+
+def check_source(name: str, env: dict[str, str], checkout: Path, cwd: Path) -> str:
+    """Refuse to measure a fetchsync that does not import its own tree's modules (a
+    baseline picking up this checkout's, or an installed copy, would make an A/B of a
+    commit against itself). Returns where it imports fetchsync from."""
+    found = imported_from(env, cwd)
+    if not found.is_relative_to((checkout / "fetchsync").resolve()):
+        raise SystemExit(f"{name} imports fetchsync from {found}, not from {checkout}")
+    return str(found)
+
+
 def compile_checkout(checkout: Path = REPO) -> None:
     """Write the bytecode of the checkout measured, as ``pip install`` does for an
     installed fetchsync: with ``PYTHONDONTWRITEBYTECODE`` set (as on some machines
@@ -1403,6 +1435,7 @@ def main(argv: list[str] | None = None) -> int:
                             if isinstance(t, FetchsyncPush) and t.name.startswith("fetchsync@")
                         },
                         "series": bench.series,
+                        "sources": bench.sources,
                         "verification": bench.verified,
                         "repairs": bench.repairs,
                         "failures": bench.failures,

@@ -72,6 +72,7 @@ from countproxy import LINKS, Link, proxy_command, set_link_state
 from run import (
     _workdir,
     baseline_checkout,
+    check_source,
     differences,
     link_line,
     load_average,
@@ -803,7 +804,7 @@ def main(argv: list[str] | None = None) -> int:
     params = {
         "files": a.files or (300 if q else 2000),
         "size_mb": a.size_mb or (5 if q else 40),
-        "saves": a.saves or (8 if q else 50),
+        "saves": a.saves or (4 if q else 50),
         "gap": a.gap,
         "burst": a.burst or (40 if q else 500),
         "idle_files": a.idle_files if a.idle_files is not None else (300 if q else 7000),
@@ -835,6 +836,7 @@ def main(argv: list[str] | None = None) -> int:
         "start_seconds": {},
         "verification": {},
         "recovery": {},
+        "sources": {},
     }
     classes: dict[str, Callable[..., WatchTool]] = {"fetchsync": FetchsyncWatch, "lsyncd": Lsyncd}
     with _workdir(a.workdir, a.keep) as workdir:
@@ -844,8 +846,10 @@ def main(argv: list[str] | None = None) -> int:
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB")
         targets = pick_targets(ws)
         params["targets"] = len(targets)
+        checkouts: dict[str, Path] = {}
         if a.baseline_rev:
             rev, checkout = baseline_checkout(a.baseline_rev, workdir)
+            checkouts[f"fetchsync@{rev}"] = checkout
             classes[f"fetchsync@{rev}"] = baseline_watch(rev, checkout)
             tools.insert(
                 tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}"
@@ -855,6 +859,10 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 for name in tools:
                     tool = classes[name](bench, ws, workdir / "robot" / f"{name}-ws")
+                    if isinstance(tool, FetchsyncWatch):
+                        res["sources"][name] = check_source(
+                            name, tool.env(), checkouts.get(name, REPO), workdir
+                        )
                     tool.start()
                     try:
                         tool.wait_live()
