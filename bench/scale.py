@@ -2,7 +2,7 @@
 """fetchsync at scale: a 100,000-file workspace, time and peak memory of each step.
 
     python3 bench/scale.py                          # 100,000 files, 400 MiB, over the real sshd
-    python3 bench/scale.py --files 3000 --size-mb 20  # the CI smoke size (tests/test_scale_smoke.py)
+    python3 bench/scale.py --files 1000 --size-mb 6   # the CI smoke size (tests/test_scale_smoke.py)
     python3 bench/scale.py --robot local            # the endpoint as a local subprocess instead
 
 One run generates a seeded ROS-like workspace (``bench/workspace.py``), starts

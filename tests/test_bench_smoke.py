@@ -157,9 +157,42 @@ def test_link_profiles_and_custom_links() -> None:
             parse_link(bad)
 
 
+# the last commit before the modules moved into packages (fetchsync/link, fetchsync/sync, ...)
+FLAT_MODULES_REV = "48c1793"
+
+
+def _have_commit(rev: str) -> bool:
+    repo = BENCH.parent
+    return (
+        subprocess.run(
+            ["git", "-C", str(repo), "cat-file", "-e", f"{rev}^{{commit}}"],
+            capture_output=True,
+            check=False,
+        ).returncode
+        == 0
+    )
+
+
 @pytest.mark.ssh
 def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
-    stdout, raw = run_bench("run.py", "--quick", tmp_path=tmp_path, needs=("rsync",))
+    """``bench/run.py --quick`` (a smaller tree, one round) runs to the end, every tree
+    verified; with ``--baseline-rev`` of a commit whose modules sit elsewhere, that commit's
+    fetchsync runs from its own tree in the same rounds (an A/B of any two commits)."""
+    old = FLAT_MODULES_REV if _have_commit(FLAT_MODULES_REV) else None
+    ab = ["--baseline-rev", old] if old else []
+    stdout, raw = run_bench(
+        "run.py",
+        "--quick",
+        "--files",
+        "200",
+        "--size-mb",
+        "4",
+        "--reps",
+        "1",
+        *ab,
+        tmp_path=tmp_path,
+        needs=("rsync",),
+    )
     assert "| scenario | fetchsync | rsync | ratio (fetchsync/rsync) | target |" in stdout
     assert (
         "| scenario | fetchsync | rsync | ratio of the medians | median of the rounds' ratios "
@@ -169,7 +202,8 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert raw["verified"] is True
     scenarios = {s["scenario"] for s in raw["samples"]}
     assert scenarios == {"initial", "noop", "edit", "insert", "rename"}
-    assert {s["tool"] for s in raw["samples"]} == {"fetchsync", "rsync"}
+    tools = {"fetchsync", "rsync"} | ({f"fetchsync@{old}"} if old else set())
+    assert {s["tool"] for s in raw["samples"]} == tools
     initial = raw["summary"]["fetchsync"]["initial"]
     assert len(initial["round_ratios"]) == sum(
         1 for s in raw["samples"] if s["scenario"] == "initial" and s["tool"] == "fetchsync"
@@ -179,6 +213,15 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
     # the no-op push's wall time is set against the interpreter's start
     assert raw["startup"]["fetchsync"] > 0 and "No-op push of fetchsync: " in stdout
+    # each fetchsync imported its own tree's modules
+    repo = BENCH.parent.resolve()
+    assert Path(raw["sources"]["fetchsync"]) == repo / "fetchsync"
+    if old:
+        tree = (tmp_path / "work" / f"baseline-{old}" / "fetchsync").resolve()
+        assert Path(raw["sources"][f"fetchsync@{old}"]) == tree
+        assert raw["series"] == [f"fetchsync@{old}", "fetchsync"]
+        assert f"A/B: fetchsync (this checkout) against fetchsync@{old}" in stdout
+        assert set(raw["ab"][f"fetchsync@{old}"]) == scenarios
 
 
 @pytest.mark.ssh
