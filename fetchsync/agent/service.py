@@ -477,11 +477,10 @@ class Agent:
         """
         while not self.stop_event.wait(PROBE_EVERY):
             transport = self._transport
-            ping = getattr(transport, "ping", None)
-            if ping is None:
+            if transport is None or not transport.capabilities.keepalive:
                 continue
             try:
-                answered = ping()
+                answered = transport.ping()
             except Exception:  # a probe that fails in any way means the same
                 answered = None
             if answered is not None and answered.wait(KEEPALIVE_WAIT):

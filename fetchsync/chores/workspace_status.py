@@ -35,6 +35,7 @@ from fetchsync.errors import (
 )
 
 if TYPE_CHECKING:
+    from fetchsync.link.client import Listing
     from fetchsync.protocol import messages as M
     from fetchsync.protocol.ignore import IgnoreRules
 
@@ -479,7 +480,7 @@ class _Listing(threading.Thread):
         self.remembered = remembered
         self.accept_fingerprint = accept_fingerprint
         self.algorithm = ""
-        self.header: dict[str, Any] | None = None  # the list response
+        self.listing: Listing | None = None  # the robot's answer
         self.missing = False  # the remote workspace does not exist
         self.error: BaseException | None = None
         self.connected = threading.Event()  # set once connected, or failed
@@ -487,6 +488,7 @@ class _Listing(threading.Thread):
         self.abandoned = False
 
     def run(self) -> None:
+        from fetchsync.link.client import Endpoint
         from fetchsync.link.session import connect
 
         try:
@@ -497,50 +499,24 @@ class _Listing(threading.Thread):
                     return
                 r = self.remembered
                 fresh = bool(r.entries) and r.epoch != "" and r.algorithm in ("", conn.algorithm)
-                opened = conn.send(
-                    {
-                        "op": "open",
-                        "workspace": self.target.remote_workspace,
-                        "rules": self.rules.to_wire(),
-                        "create": False,
-                    }
+                endpoint = Endpoint(conn)
+                opened = endpoint.send_open(
+                    self.target.remote_workspace, rules=self.rules, create=False
                 )
-                listed = conn.send(
-                    {
-                        "op": "list",
-                        "mode": "drift" if fresh else "full",
-                        "epoch": r.epoch,
-                        "gen": r.gen,
-                    }
-                )
+                listed = endpoint.send_listing(since=(r.epoch, r.gen) if fresh else None)
                 try:
-                    conn.wait(opened)
+                    opened.wait()
                 except RemoteError as exc:
                     if "does not exist" not in str(exc):
                         raise
                     self.missing = True
                     return
-                self.header = conn.wait(listed).header
+                self.listing = listed.wait()
         except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
             self.error = exc
         finally:
             self.connected.set()
             self.finished.set()
-
-
-def _remote_tree(header: Mapping[str, Any], synced: Mapping[str, Any]) -> dict[str, M.Listed]:
-    """What the robot holds: a full listing, or the last-synced state plus its drift."""
-    from fetchsync.protocol import messages as M
-
-    if header.get("full"):
-        return {e.path: e for e in (M.Listed.from_wire(x) for x in header.get("entries", []))}
-    remote = {p: s.listed(p) for p, s in synced.items()}
-    for x in header.get("entries", []):
-        item = M.Listed.from_wire(x)
-        remote[item.path] = item
-    for path in header.get("gone", []):
-        remote.pop(path, None)
-    return remote
 
 
 def differing_paths(local: Mapping[str, M.Listed], remote: Mapping[str, M.Listed]) -> list[str]:
@@ -630,8 +606,8 @@ def compare_with_robot(
         raise exc
     if listing.missing:
         return everywhere(RobotView(NOT_PUSHED)), []
-    assert local is not None and listing.header is not None
-    remote = _remote_tree(listing.header, synced)
+    assert local is not None and listing.listing is not None
+    remote = listing.listing.tree(lambda: {p: s.listed(p) for p, s in synced.items()})
     local.hash_where_needed(str(src), remote, listing.algorithm)
     counts = count_by_row(differing_paths(local.items, remote), [f.path for f in found])
     views = {}

@@ -19,12 +19,15 @@ import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import click
 
 from fetchsync.cli.common import robot_place, say_where, target_options
 from fetchsync.errors import RemoteError, SyncError, UsageError
+
+if TYPE_CHECKING:
+    from fetchsync.link.client import Endpoint
 
 PIECE = 4 * 1024 * 1024  # bytes read from the robot per request
 MAX_DIFF = 8 * 1024 * 1024  # larger files are said to differ, with their sizes, not diffed
@@ -74,37 +77,22 @@ def _human(n: int) -> str:
     return human(n)
 
 
-def list_kept(conn: Any, where: str) -> tuple[list[Kept], bool]:
+def list_kept(endpoint: Endpoint, where: str) -> tuple[list[Kept], bool]:
     """The robot's kept files (oldest first), and whether it left some out."""
-    header = conn.request({"op": "kept", "where": where}).header
-    entries = header.get("entries")
-    if not isinstance(entries, list):
-        raise RemoteError("the robot's list of kept files is malformed")
-    return [_kept_from_wire(e, where) for e in entries], bool(header.get("more"))
+    listed = endpoint.kept(where)
+    return [_kept_from_wire(e, where) for e in listed.entries], listed.more
 
 
-def read_kept(conn: Any, kept: Kept, out: Any) -> int:
+def read_kept(endpoint: Endpoint, kept: Kept, out: BinaryIO) -> int:
     """Copy the kept file into ``out`` (a binary file), in pieces; its size."""
     offset = 0
     while True:
-        frame = conn.request(
-            {
-                "op": "kept",
-                "where": kept.where,
-                "at": kept.time,
-                "p": kept.path,
-                "off": offset,
-                "len": PIECE,
-            }
-        )
-        size = frame.header.get("size")
-        if not isinstance(size, int) or size < 0 or offset + len(frame.blob) > size:
-            raise RemoteError(f"the robot's answer for {kept.shown} is malformed")
-        out.write(frame.blob)
-        offset += len(frame.blob)
-        if offset == size:
-            return size
-        if not frame.blob:
+        piece = endpoint.kept_piece(kept.where, kept.time, kept.path, offset=offset, length=PIECE)
+        out.write(piece.data)
+        offset += len(piece.data)
+        if offset == piece.size:
+            return piece.size
+        if not piece.data:
             raise RemoteError(f"{kept.shown} changed on the robot while it was read; try again")
 
 
@@ -331,6 +319,7 @@ def command(
 
     from fetchsync.cli.common import resolve
     from fetchsync.console import printable
+    from fetchsync.link.client import Endpoint
     from fetchsync.link.session import connect
 
     if robot is not None and "," in robot:
@@ -352,10 +341,9 @@ def command(
             direction="from" if action == "restore" else "both",
         )
     with connect(target, accept_fingerprint=accept_host_key) as conn:
-        conn.request(
-            {"op": "open", "workspace": target.remote_workspace, "create": False, "readonly": True}
-        )
-        entries, more = list_kept(conn, where)
+        endpoint = Endpoint(conn)
+        endpoint.open(target.remote_workspace, create=False, readonly=True)
+        entries, more = list_kept(endpoint, where)
         if action == "list":
             if wire is not None:
                 entries = [k for k in entries if k.path == wire or k.path.startswith(wire + "/")]
@@ -391,7 +379,7 @@ def command(
         assert wire is not None
         kept = choose(entries, wire, at)
         with tempfile.TemporaryFile() as data:
-            size = read_kept(conn, kept, data)
+            size = read_kept(endpoint, kept, data)
             if action == "diff":
                 local, local_size = _read_local(target.workspace, wire)
                 data.seek(0)

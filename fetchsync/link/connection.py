@@ -359,8 +359,7 @@ class Connection:
         waiting for SSH window space on a link that silently died): a link
         that does not answer is closed, which wakes whatever is blocked on it.
         """
-        probe = getattr(self.transport, "is_alive", None)
-        if probe is not None and not probe():
+        if self.transport.capabilities.keepalive and not self.transport.is_alive():
             raise LinkLostError(
                 f"the link to {self.transport.name} was lost: "
                 "the robot stopped answering keepalives"
@@ -377,7 +376,7 @@ class Connection:
         # waiting for a response would wait forever. While no byte arrives,
         # ask the transport (SSH keepalive with a reply) whether the robot is
         # still there; a link that does not answer is closed and reported.
-        probe = getattr(self.transport, "is_alive", None)
+        probe = self.transport.is_alive if self.transport.capabilities.keepalive else None
         seen = self.reader.bytes_in
         while True:
             with self._arrived:

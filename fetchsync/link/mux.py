@@ -43,9 +43,13 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fetchsync.errors import ConnectError, LinkLostError
+from fetchsync.link.transport import Capabilities
+
+if TYPE_CHECKING:
+    from fetchsync.link.ssh import SSHTransport
 
 log = logging.getLogger(__name__)
 
@@ -240,6 +244,8 @@ class MuxChannel:
 class MuxTransport:
     """A transport whose commands run through a connection master's socket."""
 
+    capabilities = Capabilities()
+
     def __init__(self, path: Path, name: str) -> None:
         self.path = path
         self.name = name
@@ -296,6 +302,9 @@ class MuxTransport:
             sock.close()
             raise ConnectError(f"the connection master for {self.name} did not answer") from exc
         return MuxChannel(sock)
+
+    def is_alive(self, timeout: float | None = None) -> bool:
+        return True  # the master watches its link; a dead one ends this channel
 
     def close(self) -> None:
         pass
@@ -383,7 +392,9 @@ def _until_ready(channel: Any) -> bytes | None:
 class Master:
     """Serves the commands of later calls over one authenticated SSH connection."""
 
-    def __init__(self, transport: Any, path: Path, idle: float, warm: str | None = None) -> None:
+    def __init__(
+        self, transport: SSHTransport, path: Path, idle: float, warm: str | None = None
+    ) -> None:
         self.transport = transport
         self.path = path
         self.idle = idle
@@ -404,11 +415,8 @@ class Master:
         connected is refused as a new connection would refuse it, and the master exits."""
         if not self.transport.is_alive(timeout=0):
             raise ConnectError("the link to the robot is down")
-        verify = getattr(self.transport, "verify_host_key", None)
-        if verify is None:
-            return
         try:
-            verify()
+            self.transport.verify_host_key()
         except ConnectError:
             self.refused.set()
             raise

@@ -14,6 +14,7 @@ from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.errors import ConfigError, ConnectError, LinkLostError
+from fetchsync.link.client import Endpoint
 from fetchsync.link.connection import Connection, remote_python
 from fetchsync.link.transport import LocalTransport, Transport, local_robot_home
 
@@ -168,7 +169,7 @@ def open_connection(
     conn: Connection | None = None
     try:
         conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
-        conn.request({"op": "ping"})
+        Endpoint(conn).ping()
         return transport, conn
     except (LinkLostError, ConnectError) as exc:
         log.info(

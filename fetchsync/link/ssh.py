@@ -49,7 +49,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.link.transport import Channel
+from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 
 log = logging.getLogger(__name__)
@@ -236,6 +236,8 @@ class SSHChannel:
 
 class SSHTransport:
     """A connection to one robot over SSH (a :class:`fetchsync.link.transport.Transport`)."""
+
+    capabilities = Capabilities(keepalive=True)
 
     def __init__(
         self,

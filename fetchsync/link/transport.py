@@ -15,6 +15,7 @@ import shlex
 import signal
 import subprocess
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -47,15 +48,33 @@ class Channel(Protocol):
         """Close the channel; the remote command gets EOF/SIGHUP."""
 
 
+@dataclass(frozen=True)
+class Capabilities:
+    """What a transport can do besides running commands, declared rather than probed.
+
+    ``keepalive``: :meth:`Transport.is_alive` sends a keepalive the robot must answer,
+    and ``ping()`` sends one without waiting (see ``SSHTransport.ping``), so a caller
+    waiting on a silent link can tell a dead link from a slow robot (SSH); without it,
+    ``is_alive`` only says the transport was not closed, and a dead endpoint shows as
+    the end of its channel (the ``local`` robot, a connection master's socket).
+    """
+
+    keepalive: bool = False
+
+
 class Transport(Protocol):
     """Something that runs commands on one robot."""
 
     name: str
+    capabilities: Capabilities
 
     def exec(
         self, command: str, *, env: dict[str, str] | None = None, pty: bool = False
     ) -> Channel:
         """Start ``command`` (a shell command line) on the robot."""
+
+    def is_alive(self, timeout: float | None = None) -> bool:
+        """Whether the robot still answers (see :class:`Capabilities`)."""
 
     def close(self) -> None:
         """Drop the connection."""
@@ -156,9 +175,13 @@ class LocalTransport:
     """The ``local`` robot: commands run here, with HOME set to the robot's home."""
 
     name = LOCAL_ROBOT
+    capabilities = Capabilities()
 
     def __init__(self, home: Path | None = None) -> None:
         self.home = home if home is not None else local_robot_home()
+
+    def is_alive(self, timeout: float | None = None) -> bool:
+        return True  # a local endpoint that dies ends its pipes
 
     def exec(
         self, command: str, *, env: dict[str, str] | None = None, pty: bool = False

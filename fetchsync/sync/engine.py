@@ -9,6 +9,8 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import errno
 import gc
 import logging
@@ -23,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
 from fetchsync.errors import ConflictError, RemoteError, SyncError
+from fetchsync.link.client import Applied, Content, Endpoint, Failed, Listing, Opened, Pending
 from fetchsync.link.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.protocol import delta as delta_mod
 from fetchsync.protocol import hashing, wire
@@ -473,26 +476,35 @@ class _Batcher:
     """
 
     def __init__(
-        self, conn: Connection, header: dict[str, Any], progress: Progress | None, total: int
+        self,
+        endpoint: Endpoint,
+        *,
+        policy: str,
+        epoch: str,
+        gen: int,
+        progress: Progress | None,
+        total: int,
     ) -> None:
-        self.conn = conn
-        self.header = header
+        self.endpoint = endpoint
+        self.conn = endpoint.conn
+        self.policy, self.epoch, self.gen = policy, epoch, gen
         self.items: list[tuple[M.Op, bytes, bool]] = []
         self.tags: list[Any] = []
         self.raw_len = 0
         self.batches = 0
-        self.sent: list[tuple[int, list[Any]]] = []
+        # the batches sent and not answered yet, with their tags; each is let go of once
+        # its answer is read
+        self.sent: collections.deque[tuple[Pending[Applied], list[Any]]] = collections.deque()
         self.progress = progress
         self.total = total
         self.done = 0
-        self._queue: queue.Queue[
-            tuple[dict[str, Any], list[tuple[M.Op, bytes, bool]], list[Any]] | None
-        ] = queue.Queue(maxsize=1)
+        self._queue: queue.Queue[tuple[int, list[tuple[M.Op, bytes, bool]], list[Any]] | None] = (
+            queue.Queue(maxsize=1)
+        )
         self._sender: threading.Thread | None = None
         self._failure: BaseException | None = None
         self._mark: tuple[int, int] = (-1, -1)
-        self._taken = 0  # batches in ``sent`` whose answer was read
-        self.last: dict[str, Any] = {}
+        self.last: Applied | None = None
         self.stale = False
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
@@ -512,13 +524,12 @@ class _Batcher:
         ):
             self.flush()
 
-    def flush(self, **extra: Any) -> None:
-        if not self.items and not extra:
+    def flush(self) -> None:
+        if not self.items:
             return
-        header = dict(self.header, op="sync", **extra)
         # each batch applied moves the robot's generation on by one: batch k
         # of this round may apply only if nobody else wrote in between
-        header["gen"] = self.header["gen"] + self.batches
+        gen = self.gen + self.batches
         self.batches += 1
         if self._sender is None:
             self._sender = threading.Thread(
@@ -526,7 +537,7 @@ class _Batcher:
             )
             self._sender.start()
         if self._failure is None:
-            job = (header, self.items, self.tags)
+            job = (gen, self.items, self.tags)
             while True:
                 try:
                     self._queue.put(job, timeout=LIVENESS_INTERVAL)
@@ -551,16 +562,14 @@ class _Batcher:
                 return
             if self._failure is not None:
                 continue
-            header, items, tags = job
+            gen, items, tags = job
             try:
-                self._send(header, items, tags)
+                self._send(gen, items, tags)
             except BaseException as exc:  # re-raised in results(), on the main thread
                 self._failure = exc
 
-    def _send(
-        self, header: dict[str, Any], items: list[tuple[M.Op, bytes, bool]], tags: list[Any]
-    ) -> None:
-        ops: list[dict[str, Any]] = []
+    def _send(self, gen: int, items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> None:
+        ops: list[M.Op] = []
         packed: list[bytes] = []
         raw: list[bytes] = []
         zpos = rpos = nbytes = 0
@@ -575,7 +584,7 @@ class _Batcher:
                     op = op.but(blob=(rpos, len(data)))
                     raw.append(data)
                     rpos += len(data)
-            ops.append(op.to_wire())
+            ops.append(op)
         # one zlib stream over the compressible parts, made without joining them
         zparts: list[bytes] = []
         if packed:
@@ -583,17 +592,22 @@ class _Batcher:
             zparts = [deflate.compress(data) for data in packed]
             zparts.append(deflate.flush())
             del packed
-        header = dict(header, ops=ops)
-        if zparts:
-            header["zpart"] = [sum(len(p) for p in zparts), zpos]
         progress, base = self.progress, self.done
 
         def sent(k: int, n: int) -> None:  # the batch's share of the total, as its frame goes out
             if progress is not None:
                 progress(base + nbytes * k // max(n, 1), self.total)
 
-        req = self.conn.send(header, blob_parts=zparts + raw, sent=sent)
-        self.sent.append((req, tags))
+        pending = self.endpoint.send_sync(
+            ops,
+            policy=self.policy,
+            epoch=self.epoch,
+            gen=gen,
+            zpart=(sum(len(p) for p in zparts), zpos) if zparts else None,
+            blob_parts=zparts + raw,
+            sent=sent,
+        )
+        self.sent.append((pending, tags))
         self.done += nbytes
 
     def _drain(self) -> None:
@@ -624,24 +638,17 @@ class _Batcher:
         if wait:
             self._drain()
         out: list[tuple[Any, M.Result]] = []
-        while self._taken < len(self.sent):
-            req, tags = self.sent[self._taken]
-            if not wait and not self.conn.answered(req):
+        while self.sent:
+            pending, tags = self.sent[0]
+            if not wait and not pending.answered():
                 break
-            frame = self.conn.wait(req)
-            self.sent[self._taken] = (req, [])
-            self._taken += 1
-            if frame.header.get("stale"):
+            applied = pending.wait()
+            self.sent.popleft()
+            if applied.stale:
                 self.stale = True
                 continue
-            self.last = frame.header
-            results = frame.header.get("results", [])
-            if len(results) != len(tags):
-                raise SyncError("the robot answered a different number of operations")
-            out.extend(
-                (t, M.Result.from_wire(r, t[0].op if t is not None else None))
-                for t, r in zip(tags, results)
-            )
+            self.last = applied
+            out.extend(zip(tags, applied.results))
         return out
 
 
@@ -659,14 +666,14 @@ class Syncer:
         rules: IgnoreRules,
         policy: str = "preserve",
     ) -> None:
-        self.conn = conn
+        self.endpoint = Endpoint(conn)
         self.state = state
         self.local_root = local_root
         self.remote_workspace = remote_workspace
         self.rules = rules
         self.policy = policy
         self.algorithm = conn.algorithm
-        self.opened: dict[str, Any] | None = None
+        self.opened: Opened | None = None  # the workspace, once opened in this session
         self._synced: dict[str, Synced] | None = None  # the state's entries, kept between calls
         self._signed: set[str] | None = None  # paths whose state entry holds a signature
         # upload parts this session abandoned (id -> how far they reach): a later upload
@@ -675,21 +682,26 @@ class Syncer:
         self._spare_uploads: dict[str, int] = {}
         self._deleted: list[tuple[float, int]] = []  # (when, files): see _check_deletions
 
-    def _open_header(self, *, readonly: bool = False) -> dict[str, Any]:
+    @property
+    def conn(self) -> Connection:
+        """The connection to the robot (a new one may be set: a new session)."""
+        return self.endpoint.conn
+
+    @conn.setter
+    def conn(self, conn: Connection) -> None:
+        self.endpoint = Endpoint(conn)
+
+    def _send_open(self, *, readonly: bool = False) -> Pending[Opened]:
         """``readonly``: the endpoint neither creates the workspace nor locks it nor
         rewrites its index, and refuses writes (a dry run)."""
-        return {
-            "op": "open",
-            "workspace": self.remote_workspace,
-            "rules": self.rules.to_wire(),
-            "create": not readonly,
-            "readonly": readonly,
-        }
+        return self.endpoint.send_open(
+            self.remote_workspace, rules=self.rules, create=not readonly, readonly=readonly
+        )
 
     def _open_readonly(self) -> bool:
         """Open the workspace read-only (a dry run); False if it does not exist yet."""
         try:
-            self.opened = self.conn.request(self._open_header(readonly=True)).header
+            self.opened = self._send_open(readonly=True).wait()
         except RemoteError as exc:
             if "does not exist" in str(exc):
                 return False
@@ -734,26 +746,18 @@ class Syncer:
         synced = self._load_synced()
         fresh = bool(synced) and self.state.epoch != ""
         exists = self._open_readonly() if dry_run else True
-        open_req = (
-            self.conn.send(self._open_header()) if self.opened is None and not dry_run else None
-        )
+        open_req = self._send_open() if self.opened is None and not dry_run else None
         epoch, gen = self.state.epoch, self.state.gen
         # ask for the robot's changes now, so its scan overlaps with ours
         list_req = (
-            self.conn.send(
-                {"op": "list", "mode": "drift" if fresh else "full", "epoch": epoch, "gen": gen}
-            )
-            if exists
-            else None
+            self.endpoint.send_listing(since=(epoch, gen) if fresh else None) if exists else None
         )
         if scanned is None:
             scanned = scan_tree(self.local_root, self.rules)
         if open_req is not None:
-            self.opened = self.conn.wait(open_req).header
+            self.opened = open_req.wait()
         listing = (
-            self.conn.wait(list_req).header
-            if list_req is not None
-            else {"full": True, "entries": [], "epoch": "", "gen": -1}
+            list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
         )  # a dry run's robot that holds nothing
         differing = (
             None
@@ -765,7 +769,7 @@ class Syncer:
         if differing is not None:
             # the robot holds what we last synced: only the paths that changed here
             # since need a plan, as the watch agent pushes them
-            self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+            self._opened_at(epoch, gen)
             if differing:
                 done = self.push_paths(
                     differing, progress=progress, confirm_deletions=confirm_deletions
@@ -781,7 +785,7 @@ class Syncer:
             local = scan_local(
                 self.local_root, self.rules, synced, self.algorithm, lazy=True, scanned=scanned
             )
-            epoch, gen = listing["epoch"], listing["gen"]
+            epoch, gen = listing.epoch, listing.gen
             local.hash_where_needed(self.local_root, remote, self.algorithm)
             _report_skipped(local, report)
             self._converge(
@@ -794,9 +798,7 @@ class Syncer:
                 dry_run=dry_run,
                 progress=progress,
                 confirm_deletions=confirm_deletions,
-                listed=remote
-                if listing.get("full")
-                else [x[0] for x in listing.get("entries", [])],
+                listed=remote if listing.full else [e.path for e in listing.entries],
             )
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
@@ -952,7 +954,15 @@ class Syncer:
             meta={"epoch": epoch, "gen": str(gen), "algorithm": self.algorithm},
         )
         self._synced = new_synced
-        self.opened = dict(self.opened or {}, epoch=epoch, gen=gen)
+        self._opened_at(epoch, gen)
+
+    def _opened_at(self, epoch: str, gen: int) -> None:
+        """The robot's workspace is now at (``epoch``, ``gen``)."""
+        self.opened = (
+            dataclasses.replace(self.opened, epoch=epoch, gen=gen)
+            if self.opened is not None
+            else Opened(self.remote_workspace, epoch, gen)
+        )
 
     def _robot_signatures(
         self,
@@ -979,29 +989,18 @@ class Syncer:
         ]
         if not wanted:
             return planned
-        frame = self.conn.request({"op": "sigs", "items": [{"p": p.op.path} for p in wanted]})
+        answers = self.endpoint.sigs([p.op.path for p in wanted])
         upgraded: dict[str, Planned] = {}
-        for p, ans in zip(wanted, frame.header.get("items", [])):
+        for p, ans in zip(wanted, answers):
             r = remote[p.op.path]
-            if ans.get("c") != M.OK or ans.get("h") != r.hash:
+            if isinstance(ans, Failed) or ans.hash != r.hash:
                 continue
-            off, length = ans["bl"]
-            robot_sigs[p.op.path] = frame.blob[off : off + length]
+            robot_sigs[p.op.path] = ans.signature
             upgraded[p.op.path] = Planned(p.op.but(source=M.SRC_DELTA, base=r.hash), DELTA, p.item)
         return [upgraded.get(p.op.path, p) if p.op.kind == M.WRITE else p for p in planned]
 
-    def _apply_listing(
-        self, listing: dict[str, Any], synced: dict[str, Synced]
-    ) -> dict[str, M.Listed]:
-        if listing.get("full"):
-            return {e.path: e for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))}
-        remote = {p: s.listed(p) for p, s in synced.items()}
-        for x in listing.get("entries", []):
-            item = M.Listed.from_wire(x)
-            remote[item.path] = item
-        for path in listing.get("gone", []):
-            remote.pop(path, None)
-        return remote
+    def _apply_listing(self, listing: Listing, synced: dict[str, Synced]) -> dict[str, M.Listed]:
+        return listing.tree(lambda: {p: s.listed(p) for p, s in synced.items()})
 
     def _send_op(
         self,
@@ -1246,10 +1245,12 @@ class Round:
         self.report.rounds += 1
         planned = syncer._robot_signatures(planned, self.remote, self.robot_sigs, self.whole_only)
         batcher = _Batcher(
-            syncer.conn,
-            {"policy": syncer.policy, "epoch": self.epoch, "gen": self.gen, "require_fresh": True},
-            progress,
-            sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)),
+            syncer.endpoint,
+            policy=syncer.policy,
+            epoch=self.epoch,
+            gen=self.gen,
+            progress=progress,
+            total=sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)),
         )
         again = False
         # settled as the robot answers, so a large push never holds every
@@ -1266,15 +1267,15 @@ class Round:
         batcher.flush()
         again |= self.settle(batcher.answered(wait=True))
         self.stale = batcher.stale
-        if batcher.last:
-            self.epoch, self.gen = batcher.last["epoch"], batcher.last["gen"]
+        if batcher.last is not None:
+            self.epoch, self.gen = batcher.last.epoch, batcher.last.gen
         return again
 
     def relist(self) -> None:
         """Start again from what the robot holds now (another writer was met)."""
-        listing = self.syncer.conn.request({"op": "list", "mode": "full"}).header
+        listing = self.syncer.endpoint.listing()
         self.remote = self.syncer._apply_listing(listing, self.synced)
-        self.epoch, self.gen = listing["epoch"], listing["gen"]
+        self.epoch, self.gen = listing.epoch, listing.gen
         self.adopt_all = True
         self.stale = False
 
@@ -1384,19 +1385,19 @@ class Round:
         """Paths already identical need no operation, but the state must know them, and so
         must the robot's index if it did not (else every later drift check there would
         report them, and a no-op push would list them all); ``adopt``: tell the robot."""
-        wire_items: list[list[Any]] = []
+        to_adopt: list[M.Listed] = []
         for path, item in self.local.items.items():
             r = self.remote.get(path)
             if r is not None and r == item and path not in self.upserts:
                 if self.adopt_all or path in self.robot_listed:
-                    wire_items.append(item.to_wire())
+                    to_adopt.append(item)
                 s = _synced_from(item, self.local.stats.get(path), self.now_ns)
                 if self.new_synced.get(path) != s:
                     self.upserts[path] = (s, None)
                     self.new_synced[path] = s
-        if wire_items and adopt:
-            ad = self.syncer.conn.request({"op": "adopt", "entries": wire_items}).header
-            self.epoch, self.gen = ad["epoch"], ad["gen"]
+        if to_adopt and adopt:
+            adopted = self.syncer.endpoint.adopt(to_adopt)
+            self.epoch, self.gen = adopted.epoch, adopted.gen
 
     def forget_gone(self, scope_paths: set[str] | None) -> None:
         """Drop the rows of what the robot no longer holds (within the scope). An excluded
@@ -1467,27 +1468,18 @@ def pull(
     t0 = time.monotonic()
     report = Report("pull", dry_run=dry_run)
     algorithm = conn.algorithm
+    endpoint = Endpoint(conn)
     # read-only: a pull writes nothing on the robot (not even its index), so it works on
     # a robot whose disk is read-only too
-    conn.request(
-        {
-            "op": "open",
-            "workspace": remote_workspace,
-            "rules": rules.to_wire(),
-            "create": False,
-            "readonly": True,
-        }
-    )
-    listing = conn.request({"op": "list", "mode": "full"}).header
-    remote = {
-        e.path: _no_setid(e) for e in (M.Listed.from_wire(x) for x in listing.get("entries", []))
-    }
+    endpoint.open(remote_workspace, rules=rules, create=False, readonly=True)
+    listing = endpoint.listing()
+    remote = {e.path: _no_setid(e) for e in listing.entries}
     synced = state.entries() if state.get("algorithm") in ("", algorithm) else {}
     local_root = os.path.join(local_workspace, "src")
     os.makedirs(local_root, exist_ok=True)
     local = scan_local(local_root, rules, synced, algorithm)
     _report_skipped(local, report)
-    report.skipped += [{"path": p, "reason": r} for p, r in listing.get("skipped", [])]
+    report.skipped += [{"path": p, "reason": r} for p, r in listing.skipped]
 
     def expect(path: str) -> str:
         s = synced.get(path)
@@ -1513,7 +1505,9 @@ def pull(
             from fetchsync.errors import AbortedError
 
             raise AbortedError("pull cancelled; nothing was changed")
-    failed = _apply_pulled(conn, _set_aside_first(planned, local.items), local_workspace, report)
+    failed = _apply_pulled(
+        endpoint, _set_aside_first(planned, local.items), local_workspace, report
+    )
     now_ns = time.time_ns()
     upserts: list[tuple[str, Synced, bytes | None]] = []
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
@@ -1530,7 +1524,7 @@ def pull(
     state.commit(
         upserts=upserts,
         replace_all=True,
-        meta={"epoch": listing["epoch"], "gen": str(listing["gen"]), "algorithm": algorithm},
+        meta={"epoch": listing.epoch, "gen": str(listing.gen), "algorithm": algorithm},
     )
     report.bytes_sent = conn.bytes_out
     report.bytes_received = conn.bytes_in
@@ -1539,15 +1533,15 @@ def pull(
 
 
 def _apply_pulled(
-    conn: Connection, planned: list[Planned], local_workspace: str, report: Report
+    endpoint: Endpoint, planned: list[Planned], local_workspace: str, report: Report
 ) -> set[str]:
     """Fetch what ``planned`` needs from the robot and apply it to the local workspace,
     by the same endpoint code the robot runs; report each answer. Returns the paths
     that failed."""
-    store = Store(local_workspace, algorithm=conn.algorithm, create=True)
+    store = Store(local_workspace, algorithm=endpoint.algorithm, create=True)
     store.lock()
     try:
-        ops, blobs, tags = _fetch(conn, planned, report)
+        ops, blobs, tags = _fetch(endpoint, planned, report)
         results = store.apply(ops, b"".join(blobs))
         store.save_index()
     finally:
@@ -1604,19 +1598,19 @@ def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list
 
 
 def _fetch(
-    conn: Connection, planned: list[Planned], report: Report
+    endpoint: Endpoint, planned: list[Planned], report: Report
 ) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
     """Read what the plan needs from the robot; return local operations with their blob."""
     ops: list[M.Op] = []
     blobs: list[bytes] = []
     tags: list[Planned | None] = []
     pos = 0
-    fetched = _read_small(conn, planned, report)
+    fetched = _read_small(endpoint, planned, report)
     for p in planned:
         op = p.op
         if op.kind == M.WRITE and p.how != COPY:
             if op.size > BIG:
-                up = _fetch_big(conn, p, report)
+                up = _fetch_big(endpoint, p, report)
                 if up is None:
                     continue
                 for piece_op, piece in up[0]:
@@ -1629,8 +1623,7 @@ def _fetch(
                 got = fetched.get(op.path)
                 if got is None:
                     continue
-                ans, data = got
-                listed = M.Listed.from_wire(ans["l"])
+                listed, data = got.listed, got.data
                 # whole content: pull asks for no delta (see _set_aside_first)
                 op = op.but(
                     hash=listed.hash,
@@ -1647,66 +1640,56 @@ def _fetch(
     return ops, blobs, tags
 
 
-def _read_small(
-    conn: Connection, planned: list[Planned], report: Report
-) -> dict[str, tuple[dict[str, Any], bytes]]:
+def _read_small(endpoint: Endpoint, planned: list[Planned], report: Report) -> dict[str, Content]:
     """The robot's answers and content for the whole files of ``planned`` (those up to BIG),
     asked for in pipelined requests of about BATCH_BYTES."""
-    pending: list[tuple[int, list[Planned]]] = []
-    items: list[dict[str, Any]] = []
+    pending: list[tuple[Pending[list[Content | Failed]], list[Planned]]] = []
+    items: list[str] = []
     group: list[Planned] = []
     queued = 0
 
     def flush() -> None:
         nonlocal items, group, queued
         if items:
-            pending.append((conn.send({"op": "read", "items": items}), group))
+            pending.append((endpoint.send_read(items), group))
         items, group, queued = [], [], 0
 
     for p in planned:
         if p.op.kind != M.WRITE or p.how == COPY or p.op.size > BIG:
             continue  # a large file is fetched piece by piece (_fetch_big)
-        items.append({"p": p.op.path})
+        items.append(p.op.path)
         group.append(p)
         queued += p.op.size
         if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
             flush()
     flush()
-    fetched: dict[str, tuple[dict[str, Any], bytes]] = {}
-    for req, group in pending:
-        frame = conn.wait(req)
-        for p, ans in zip(group, frame.header.get("items", [])):
-            if ans.get("c") != M.OK:
-                report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
+    fetched: dict[str, Content] = {}
+    for answers, group in pending:
+        for p, ans in zip(group, answers.wait()):
+            if isinstance(ans, Failed):
+                report.errors.append({"path": p.op.path, "error": ans.message})
                 continue
-            off, length = ans["bl"]
-            fetched[p.op.path] = (ans, frame.blob[off : off + length])
+            fetched[p.op.path] = ans
     return fetched
 
 
 def _fetch_big(
-    conn: Connection, p: Planned, report: Report
+    endpoint: Endpoint, p: Planned, report: Report
 ) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:
     upload = os.urandom(8).hex()
     pieces: list[tuple[M.Op, bytes]] = []
     offset = 0
     listed = None
     while offset < p.op.size:
-        frame = conn.request(
-            {"op": "read", "items": [{"p": p.op.path, "off": offset, "len": PIECE}]}
-        )
-        ans = frame.header["items"][0]
-        if ans.get("c") != M.OK:
-            report.errors.append({"path": p.op.path, "error": ans.get("msg", "cannot read")})
+        [ans] = endpoint.read([(p.op.path, offset, PIECE)])
+        if isinstance(ans, Failed):
+            report.errors.append({"path": p.op.path, "error": ans.message})
             return None
-        listed = M.Listed.from_wire(ans["l"])
-        off, length = ans["bl"]
-        if length == 0:
+        listed = ans.listed
+        if not ans.data:
             break
-        pieces.append(
-            (M.Op(M.UPLOAD, "", upload=upload, size=offset), frame.blob[off : off + length])
-        )
-        offset += length
+        pieces.append((M.Op(M.UPLOAD, "", upload=upload, size=offset), ans.data))
+        offset += len(ans.data)
     if listed is None or listed.hash != p.op.hash or offset != listed.size:
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
@@ -1812,7 +1795,7 @@ QUICK_MAX = 1000  # local changes pushed path by path when the robot has not dri
 def _local_changes(
     scanned: ScanResult,
     synced: dict[str, Synced],
-    listing: dict[str, Any],
+    listing: Listing,
     epoch: str,
     gen: int,
     excluded: Callable[[str, bool], bool],
@@ -1826,14 +1809,7 @@ def _local_changes(
     changed, and so is hashed again.
     """
     entries = scanned.entries
-    if (
-        listing.get("full")
-        or listing.get("entries")
-        or listing.get("gone")
-        or listing.get("epoch") != epoch
-        or listing.get("gen") != gen
-        or scanned.skipped
-    ):
+    if listing.drifted or listing.epoch != epoch or listing.gen != gen or scanned.skipped:
         return None
     out: set[str] = set()
     for path, e in entries.items():
