@@ -4,43 +4,31 @@ Every error a user can cause or meet is a :class:`FetchsyncError`; the CLI
 turns it into a one-line message and an exit code, never a traceback.
 Third-party and OS exceptions are mapped at the boundary with ``raise ... from``.
 
-    FetchsyncError
-    ├── ConfigError            bad or missing configuration (robot, user, paths)
-    ├── UsageError             bad input on the command line
-    ├── TransportError         the link to the robot
-    │   ├── ConnectError       could not connect / authenticate
-    │   │   └── HostKeyError   unknown or changed host key
-    │   └── LinkLostError      the link died mid-session (timeout, reset)
-    ├── ProtocolError          the peer spoke something we do not understand
-    ├── RemoteError            the robot-side endpoint reported a failure
-    ├── SyncError              a push or pull could not complete
-    │   └── ConflictError      --strict and the robot holds edits we have not seen
-    └── AbortedError           the user declined a confirmation
+    FetchsyncError               (exit code 1)
+    ├── ConfigError            2 bad or missing configuration (robot, user, paths)
+    ├── UsageError             2 bad input on the command line
+    ├── TransportError         3 the link to the robot
+    │   ├── ConnectError         could not connect / authenticate
+    │   │   └── HostKeyError     unknown or changed host key
+    │   └── LinkLostError        the link died mid-session (timeout, reset)
+    ├── RemoteError            4 the robot-side endpoint reported a failure
+    ├── SyncError              5 a push or pull could not complete
+    │   ├── ConflictError      6 --strict and the robot holds edits we have not seen
+    │   ├── MassDeletionError    a push would delete most of the robot's files
+    │   └── StateError           the laptop's last-synced state cannot be opened
+    ├── ProtocolError          7 the peer spoke something we do not understand
+    │   ├── PathError            a path on the wire is not a relative path inside the root
+    │   └── DeltaError           a delta does not apply to its base
+    └── AbortedError           1 the user declined a confirmation
 
-The robot-side code (``fetchsync.protocol``) has its own small tree in
-``fetchsync.protocol.errors`` (it must run with only the standard library);
-``ProtocolError`` is shared by both.
+``FetchsyncError`` and the ``ProtocolError`` branch are defined in
+:mod:`fetchsync.protocol.errors` (standard library only: it runs on the robot too)
+and re-exported here, so the tree has one root on both ends.
 """
 
 from __future__ import annotations
 
-from fetchsync.protocol.errors import ProtocolError
-
-
-class FetchsyncError(Exception):
-    """Base of all fetchsync errors. ``exit_code`` is what the CLI exits with."""
-
-    exit_code = 1
-
-    def __init__(self, message: str, *, hint: str | None = None) -> None:
-        super().__init__(message)
-        self.message = message
-        self.hint = hint
-
-    def __str__(self) -> str:
-        if self.hint:
-            return f"{self.message} ({self.hint})"
-        return self.message
+from fetchsync.protocol.errors import DeltaError, FetchsyncError, PathError, ProtocolError
 
 
 class ConfigError(FetchsyncError):
@@ -79,6 +67,14 @@ class ConflictError(SyncError):
     exit_code = 6
 
 
+class MassDeletionError(SyncError):
+    """A push would delete most of the robot's files; nothing was sent."""
+
+
+class StateError(SyncError):
+    """The laptop's state cannot be opened (not damage: that is set aside and rebuilt)."""
+
+
 class AbortedError(FetchsyncError):
     exit_code = 1
 
@@ -88,11 +84,15 @@ __all__ = [
     "ConfigError",
     "ConflictError",
     "ConnectError",
+    "DeltaError",
     "FetchsyncError",
     "HostKeyError",
     "LinkLostError",
+    "MassDeletionError",
+    "PathError",
     "ProtocolError",
     "RemoteError",
+    "StateError",
     "SyncError",
     "TransportError",
     "UsageError",

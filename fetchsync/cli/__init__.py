@@ -22,7 +22,6 @@ from fetchsync.cli.common import resolve as _resolve
 from fetchsync.cli.common import say_where, target_options
 from fetchsync.cli.fleet import fleet_options, robots_for
 from fetchsync.errors import ConfigError, FetchsyncError
-from fetchsync.protocol.errors import ProtocolError
 
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
@@ -326,9 +325,7 @@ class _Group(click.Group):
             if hint:
                 exc.message = f"{exc.message.rstrip('.')}; {hint}"
             raise
-        except (FetchsyncError, ProtocolError) as exc:
-            # ProtocolError also comes from the robot-side tree, which cannot
-            # depend on fetchsync.errors: a malformed answer is one line too
+        except FetchsyncError as exc:  # a robot's malformed answer (ProtocolError) too
             from fetchsync.console import printable
 
             click.echo(f"fetchsync: error: {printable(exc)}", err=True)

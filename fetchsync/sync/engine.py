@@ -24,7 +24,7 @@ import zlib
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
-from fetchsync.errors import ConflictError, RemoteError, SyncError
+from fetchsync.errors import ConflictError, MassDeletionError, RemoteError, SyncError
 from fetchsync.link.client import Applied, Content, Endpoint, Failed, Listing, Opened, Pending
 from fetchsync.link.connection import LIVENESS_INTERVAL, Connection
 from fetchsync.protocol import delta as delta_mod
@@ -1739,10 +1739,6 @@ MASS_MIN = (
     20  # deleting more of the robot's files than this, and more than half, needs a confirmation
 )
 RECENT = 10.0  # seconds: deletions this close together count as one
-
-
-class MassDeletionError(SyncError):
-    """A push would delete most of the robot's files; nothing was sent."""
 
 
 def refuse_mass_deletion(

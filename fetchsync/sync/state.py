@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Iterator, NamedTuple
 
-from fetchsync.errors import SyncError
+from fetchsync.errors import StateError
 from fetchsync.protocol import messages as M
 
 if TYPE_CHECKING:
@@ -234,10 +234,6 @@ class State:
 
 
 # A NULL signature keeps the stored one only while the content hash is the same.
-class StateError(SyncError):
-    """The laptop's state cannot be opened (not damage: that is set aside and rebuilt)."""
-
-
 _UPSERT = """
 INSERT INTO entries (path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino, sig)
 VALUES (?,?,?,?,?,?,?,?,?,?)
