@@ -93,42 +93,48 @@ def plan(
     for path in sorted(set(source) | set(dest)):
         src = source.get(path)
         dst = dest.get(path)
-        if src is not None and dst is not None and _same(src, dst):
-            continue
         if src is None:
-            assert dst is not None
             # a parent that is not a directory in source takes this path with it
-            if any((a not in source) or source[a].kind != "d" for a in ancestors(path)):
-                continue
-            deletes.append(Planned(M.Op(M.DELETE, path, expect=expect(path))))
+            if all(a in source and source[a].kind == "d" for a in ancestors(path)):
+                deletes.append(Planned(M.Op(M.DELETE, path, expect=expect(path))))
+        elif dst is not None and _same(src, dst):
             continue
-        exp = expect(path)
-        if src.kind == "d":
-            if dst is not None and dst.kind == "d":
-                mkdirs.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
-            else:
-                mkdirs.append(Planned(M.Op(M.MKDIR, path, expect=exp, mode=src.mode), item=src))
-            continue
-        if src.kind == "l":
-            writes.append(Planned(M.Op(M.SYMLINK, path, expect=exp, target=src.target), item=src))
-            continue
-        if dst is not None and dst.kind == "f" and dst.hash == src.hash:
-            writes.append(Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src))
-            continue
-        base: dict[str, Any] = dict(
-            kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size
-        )
-        reuse_from = by_hash.get(src.hash) if src.size > 0 else None
-        if reuse_from is not None:
-            writes.append(
-                Planned(
-                    M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base), COPY, src
-                )
-            )
-        elif dst is not None and dst.kind == "f" and dst.size > 0 and has_signature(path, dst):
-            writes.append(Planned(M.Op(source=M.SRC_DELTA, base=dst.hash, **base), DELTA, src))
+        elif src.kind == "d":
+            mkdirs.append(_make_dir(path, src, dst, expect(path)))
         else:
-            writes.append(Planned(M.Op(source=M.SRC_DATA, **base), WHOLE, src))
+            writes.append(_write(path, src, dst, expect(path), by_hash, has_signature))
     # parents before children; content before deletes, so a renamed file's
     # old copy is still there to be reused
     return mkdirs + writes + deletes
+
+
+def _make_dir(path: str, src: M.Listed, dst: M.Listed | None, exp: str) -> Planned:
+    """A directory: made, or only its mode set where dest has one already."""
+    kind = M.CHMOD if dst is not None and dst.kind == "d" else M.MKDIR
+    return Planned(M.Op(kind, path, expect=exp, mode=src.mode), item=src)
+
+
+def _write(
+    path: str,
+    src: M.Listed,
+    dst: M.Listed | None,
+    exp: str,
+    by_hash: Mapping[str, str],
+    has_signature: Callable[[str, M.Listed], bool],
+) -> Planned:
+    """A file or link, by the cheapest way: its mode alone if dest holds the content,
+    content dest holds at another path, a delta against dest's version, or whole."""
+    if src.kind == "l":
+        return Planned(M.Op(M.SYMLINK, path, expect=exp, target=src.target), item=src)
+    if dst is not None and dst.kind == "f" and dst.hash == src.hash:
+        return Planned(M.Op(M.CHMOD, path, expect=exp, mode=src.mode), item=src)
+    base: dict[str, Any] = dict(
+        kind=M.WRITE, path=path, expect=exp, mode=src.mode, hash=src.hash, size=src.size
+    )
+    reuse_from = by_hash.get(src.hash) if src.size > 0 else None
+    if reuse_from is not None:
+        op = M.Op(source=M.SRC_COPY, base=src.hash, from_path=reuse_from, **base)
+        return Planned(op, COPY, src)
+    if dst is not None and dst.kind == "f" and dst.size > 0 and has_signature(path, dst):
+        return Planned(M.Op(source=M.SRC_DELTA, base=dst.hash, **base), DELTA, src)
+    return Planned(M.Op(source=M.SRC_DATA, **base), WHOLE, src)
