@@ -227,6 +227,51 @@ complete -o nosort -F _fetchsync_fetch_completion fetch
 """
 _ZSH_FETCH_COMPLETION = "compdef _fetchsync_completion fetch\n"
 
+# bash splits the word being completed at the characters of COMP_WORDBREAKS,
+# '@' among them, so `--robot a,@la<Tab>` reaches click's function as the
+# words `a,` `@` `la`, and click would complete `la` as a word of its own. This
+# one (defined after click's, so it is the one called) hands click the line up
+# to the cursor, whose last word is then `a,@la` whole, and gives readline back
+# each answer without what precedes the text readline replaces: the word after
+# its last break character, '@' and '$' included (its special prefixes), so
+# `@lab` for `a,@lab`. Called without COMP_LINE (by hand), it is click's.
+_BASH_WORDS_COMPLETION = r"""_fetchsync_completion() {
+    local IFS=$'\n'
+    local response completion type value pre=""
+    if [[ -z ${COMP_LINE-} ]]; then
+        response=$(env COMP_WORDS="${COMP_WORDS[*]}" COMP_CWORD=$COMP_CWORD _FETCHSYNC_COMPLETE=bash_complete $1)
+    else
+        local line="${COMP_LINE:0:$COMP_POINT}" i
+        local word="${line##*[[:space:]]}" breaks="${COMP_WORDBREAKS-}"
+        for (( i = ${#word} - 1; i >= 0; i-- )); do
+            [[ $breaks == *"${word:i:1}"* ]] && break
+        done
+        if (( i >= 0 )) && [[ ${word:i:1} == [@\$] ]]; then
+            pre="${word:0:i}"  # readline keeps its special prefixes ($ @) in the word
+        else
+            pre="${word:0:i+1}"
+        fi
+        response=$(env COMP_WORDS="$line''" COMP_CWORD=-1 _FETCHSYNC_COMPLETE=bash_complete $1)
+    fi
+    for completion in $response; do
+        IFS=',' read type value <<< "$completion"
+        if [[ $type == 'dir' ]]; then
+            COMPREPLY=()
+            compopt -o dirnames
+        elif [[ $type == 'file' ]]; then
+            COMPREPLY=()
+            compopt -o default
+        elif [[ $type == 'plain' ]]; then
+            if [[ -n $pre && $value == "$pre"* ]]; then
+                value="${value:${#pre}}"
+            fi
+            COMPREPLY+=("$value")
+        fi
+    done
+    return 0
+}
+"""
+
 # click's scripts use `complete -o nosort` and `compopt` (bash 4.4), and
 # `compdef`, which exists only after compinit: elsewhere, skip quietly rather
 # than print an error at every shell start-up.
@@ -277,6 +322,8 @@ def completion(
     # version on every shell start-up; the guard checks the running shell.
     script = comp.source_template % comp.source_vars()
     opening, closing = _BASH_GUARD if shell == "bash" else _ZSH_GUARD
+    if shell == "bash" and prog_name == PROG_NAME:
+        script = script.rstrip("\n") + "\n" + _BASH_WORDS_COMPLETION
     if fetch and prog_name == PROG_NAME:
         script = (
             script.rstrip("\n")
@@ -321,7 +368,31 @@ def complete_robot(
 def robot_names(
     incomplete: str, *, home: Path | None = None, global_known_hosts: str = GLOBAL_KNOWN_HOSTS
 ) -> list[str]:
-    """The names :func:`complete_robot` offers for ``incomplete``, in order, once each."""
+    """The names :func:`complete_robot` offers for ``incomplete``, in order, once each: for
+    the last word of a list (``a,fe``), with the words before it kept; ``@`` and a group
+    of robots.toml's (``@lab``) for a word that starts with ``@``."""
+    head, comma, word = incomplete.rpartition(",")
+    before = head + comma
+    if word.startswith("@"):
+        return [before + "@" + g for g in _group_names(home) if g.startswith(word[1:])]
+    return [before + name for name in _host_names(word, home, global_known_hosts)]
+
+
+def _group_names(home: Path | None) -> list[str]:
+    """The groups of robots.toml (none when it cannot be read: completion prints no errors)."""
+    from fetchsync.errors import ConfigError
+    from fetchsync.robots import groups
+
+    environ = os.environ if home is None else {**os.environ, "HOME": str(home)}
+    if home is not None:
+        environ.pop("XDG_CONFIG_HOME", None)
+    try:
+        return list(groups(environ=environ))
+    except ConfigError:
+        return []
+
+
+def _host_names(incomplete: str, home: Path | None, global_known_hosts: str) -> list[str]:
     base = home if home is not None else Path(os.path.expanduser("~"))
     ssh_dir = base / ".ssh"
     found = list(ssh_config_hosts(ssh_dir / "config"))
