@@ -511,30 +511,31 @@ class Store:
             end = pos + _LEN.size + n
             if end > len(buf):
                 break  # torn by a crash mid-append
-            try:
-                rec = marshal.loads(buf[pos + _LEN.size : end])
-                if not (isinstance(rec, dict) and rec.get("serial") == self._serial):
-                    break
-                epoch, gen, trash = rec["epoch"], rec["gen"], rec["trash"]
-                changes = [(self.synced, rec["s"]), (self.cache, rec["c"])]
-                if not (
-                    isinstance(epoch, str)
-                    and isinstance(gen, int)
-                    and isinstance(trash, list)
-                    and all(isinstance(c, dict) for _t, c in changes)
-                ):
-                    break
-            except (ValueError, EOFError, TypeError, KeyError):
+            rec = self._journal_record(buf[pos + _LEN.size : end])
+            if rec is None:
                 break
-            for table, change in changes:
+            for table, change in ((self.synced, rec["s"]), (self.cache, rec["c"])):
                 for path, value in change.items():
                     if value is None:
                         table.pop(path, None)
                     else:
                         table[path] = value
-            self.epoch, self.gen, self.trash_log = epoch, gen, trash
+            self.epoch, self.gen, self.trash_log = rec["epoch"], rec["gen"], rec["trash"]
             pos = end
         return pos if pos == len(buf) else -1
+
+    def _journal_record(self, raw: bytes) -> "Optional[Dict[str, Any]]":
+        """One journal record of this snapshot's series, checked; None if it is not one."""
+        try:
+            rec = marshal.loads(raw)
+        except (ValueError, EOFError, TypeError):
+            return None
+        if not (isinstance(rec, dict) and rec.get("serial") == self._serial):
+            return None
+        types = (("epoch", str), ("gen", int), ("trash", list), ("s", dict), ("c", dict))
+        if not all(isinstance(rec.get(key), kind) for key, kind in types):
+            return None
+        return rec
 
     def discard_uploads(self) -> None:
         """Remove the upload parts this session started and never used (its client left)."""
@@ -841,25 +842,30 @@ class Store:
         synced = self.synced
         changed = []
         for path, e in entries.items():
-            rec = synced.get(path)
-            if e.kind == FILE:
-                try:
-                    digest = self.hash_file(path, e)
-                except (OSError, PathError):
-                    continue  # vanished or unreadable while we looked
-                if rec is not None and rec[0] == FILE and rec[2] == digest and rec[1] == e.mode:
-                    continue
-                changed.append(M.Listed(path, FILE, e.mode, e.size, hash=digest))
-            elif e.kind == LINK:
-                if rec is not None and rec[0] == LINK and rec[2] == e.target:
-                    continue
-                changed.append(M.Listed(path, LINK, target=e.target))
-            else:
-                if rec is not None and rec[0] == DIR and rec[1] == e.mode:
-                    continue
-                changed.append(M.Listed(path, DIR, e.mode))
+            item = self._drifted(path, e, synced.get(path))
+            if item is not None:
+                changed.append(item)
         gone = [p for p in synced if p not in entries]
         return changed, gone
+
+    def _drifted(self, path: str, e: "Entry", rec: "Optional[List[Any]]") -> "Optional[M.Listed]":
+        """The entry at ``path`` if it differs from its synced record ``rec``, else None (and
+        None for a file that vanished or cannot be read while looked at)."""
+        if e.kind == FILE:
+            try:
+                digest = self.hash_file(path, e)
+            except (OSError, PathError):
+                return None
+            if rec is not None and rec[0] == FILE and rec[2] == digest and rec[1] == e.mode:
+                return None
+            return M.Listed(path, FILE, e.mode, e.size, hash=digest)
+        if e.kind == LINK:
+            if rec is not None and rec[0] == LINK and rec[2] == e.target:
+                return None
+            return M.Listed(path, LINK, target=e.target)
+        if rec is not None and rec[0] == DIR and rec[1] == e.mode:
+            return None
+        return M.Listed(path, DIR, e.mode)
 
     @staticmethod
     def _matches(item: "M.Listed", rec: "List[Any]") -> bool:
@@ -1461,19 +1467,7 @@ class _Batch:
             if op.source == M.SRC_DATA:
                 out.write(data)
             elif op.source == M.SRC_DELTA:
-                # imported when first needed: ~4 ms of every endpoint start, on the critical
-                # path of an initial push, which sends no delta
-                from fetchsync.protocol import delta as delta_mod
-
-                d = delta_mod.decode_delta(bytes(self._view(op)), max_size=op.size)
-                base = os.open(name, O_FILE, dir_fd=dir_fd)
-                try:
-                    if not stat_mod.S_ISREG(os.fstat(base).st_mode):
-                        raise DeltaError("the file here is not the delta's base")
-                    with io.FileIO(base, "rb", closefd=False) as fh:
-                        delta_mod.patch_to_file(fh, d, out, bufsize=PIECE)  # type: ignore[arg-type]
-                finally:
-                    os.close(base)
+                self._patch(op, dir_fd, name, out)
             else:  # copy
                 try:
                     src, _st = s._open_file(op.from_path)
@@ -1492,6 +1486,22 @@ class _Batch:
             os.unlink(tmp, dir_fd=dir_fd)
             raise
         os.close(fd)
+
+    def _patch(self, op: "M.Op", dir_fd: int, name: str, out: "_Out") -> None:
+        """Write the file at ``name`` with the op's delta applied to ``out``."""
+        # imported when first needed: ~4 ms of every endpoint start, on the critical
+        # path of an initial push, which sends no delta
+        from fetchsync.protocol import delta as delta_mod
+
+        d = delta_mod.decode_delta(bytes(self._view(op)), max_size=op.size)
+        base = os.open(name, O_FILE, dir_fd=dir_fd)
+        try:
+            if not stat_mod.S_ISREG(os.fstat(base).st_mode):
+                raise DeltaError("the file here is not the delta's base")
+            with io.FileIO(base, "rb", closefd=False) as fh:
+                delta_mod.patch_to_file(fh, d, out, bufsize=PIECE)  # type: ignore[arg-type]
+        finally:
+            os.close(base)
 
     def _from_upload(self, op: "M.Op", dir_fd: int, tmp: str, mode: int) -> None:
         """The upload part, verified, becomes the temporary."""
@@ -1552,19 +1562,7 @@ class _Batch:
         s = self.s
         with s._root().parent(op.path) as (dir_fd, name):
             before = lstat_at(name, dir_fd)
-            cur = s._at(op.path, dir_fd, name)
-            preserved, aside = "", ""
-            if cur is not None and cur.kind == DIR and op.expect == M.IS_DIR:
-                # a directory becomes a file or link: the old tree goes to the trash
-                preserved = self._dir_aside(op, dir_fd, name)
-                aside = "trash"
-            elif cur is not None and cur.kind == DIR:
-                self._conflict(op, cur)  # refused, or made here since the sender looked: kept whole
-                preserved = s._set_aside(dir_fd, name, op.path, "conflicts")
-                s._forget_below(op.path)
-                aside = "conflicts"
-            elif cur is not None and not _same(op, cur) and self._conflict(op, cur):
-                preserved = s._keep_copy(dir_fd, name, op.path, "conflicts")
+            preserved, aside = self._make_room(op, dir_fd, name)
             self.exchanged = False
             try:
                 if aside or not self._swap_in(op, dir_fd, name, tmp, before, preserved):
@@ -1583,6 +1581,23 @@ class _Batch:
             item = s._written_at(op.path, dir_fd, name, op.hash if op.kind == M.WRITE else "")
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
+
+    def _make_room(self, op: "M.Op", dir_fd: int, name: str) -> "Tuple[str, str]":
+        """Keep what stands at op.path before it is replaced, as it needs: (where it was kept,
+        and which area it was moved to, "" if it stays in place until the rename)."""
+        s = self.s
+        cur = s._at(op.path, dir_fd, name)
+        if cur is not None and cur.kind == DIR and op.expect == M.IS_DIR:
+            # a directory becomes a file or link: the old tree goes to the trash
+            return self._dir_aside(op, dir_fd, name), "trash"
+        if cur is not None and cur.kind == DIR:
+            self._conflict(op, cur)  # refused, or made here since the sender looked: kept whole
+            preserved = s._set_aside(dir_fd, name, op.path, "conflicts")
+            s._forget_below(op.path)
+            return preserved, "conflicts"
+        if cur is not None and not _same(op, cur) and self._conflict(op, cur):
+            return s._keep_copy(dir_fd, name, op.path, "conflicts"), ""
+        return "", ""
 
     def _swap_in(
         self,
