@@ -163,6 +163,7 @@ class Agent:
         self._state: Any = None
         self._lock_fd = -1
         self._last_activity = time.monotonic()  # the last change or request of the user's
+        self._link_lock = threading.Lock()  # the monitor closes only the connection it probed
         self.builder: Any = None
         if build is not None:
             from fetchsync.agent.builder import Builder
@@ -347,12 +348,15 @@ class Agent:
                     work.first = min((x for x in (work.first, held.first) if x), default=0)
             try:
                 self._ensure_connected()
+                syncer = self._syncer  # the monitor may close the link any time
+                if syncer is None:
+                    raise TransportError("the link to the robot was closed")
                 self._set_state("syncing")
                 t0 = time.monotonic()
-                if work.full or self._syncer is None:
-                    report = self._syncer.push()
+                if work.full:
+                    report = syncer.push()
                 else:
-                    report = self._syncer.push_paths(work.paths, work.dirs)
+                    report = syncer.push_paths(work.paths, work.dirs)
                 self._settled(work, report, time.monotonic() - t0)
                 failures = 0
             except (TransportError, ProtocolError, EOFError, OSError) as exc:
@@ -440,8 +444,7 @@ class Agent:
             self._state = open_state(self.target)
             if self._state.note:
                 self.say(f"note: {self._state.note}")
-        self._transport, self._conn = transport, conn
-        self._syncer = Syncer(
+        syncer = Syncer(
             conn,
             self._state,
             local_root=self.src,
@@ -449,14 +452,20 @@ class Agent:
             rules=self.rules,
             policy=self.policy,
         )
+        with self._link_lock:
+            self._transport, self._conn, self._syncer = transport, conn, syncer
         if self.offline_since is not None:
             self.say(f"back online after {time.monotonic() - self._offline_mono:.1f}s")
         with self.cond:
             self.offline_since = None
 
-    def _disconnect(self) -> None:
-        conn, transport = self._conn, self._transport
-        self._conn = self._transport = self._syncer = None
+    def _disconnect(self, *, only: Any = None) -> bool:
+        """Close the connection (``only``: if it still is that transport); whether it did."""
+        with self._link_lock:
+            if only is not None and self._transport is not only:
+                return False
+            conn, transport = self._conn, self._transport
+            self._conn = self._transport = self._syncer = None
         if conn is not None:
             try:
                 conn.channel.close()
@@ -467,6 +476,7 @@ class Agent:
                 transport.close()
             except Exception:  # the link is already gone
                 pass
+        return True
 
     def _monitor(self) -> None:
         """Notice a dead link within seconds, idle or mid-push.
@@ -534,9 +544,10 @@ class Agent:
                 else:
                     next_probe = now + self._retry_delay(0)
                 probe = None
-        if self.stop_event.is_set() or transport is not self._transport:
+        # only that connection: the sync loop may have replaced it meanwhile
+        if self.stop_event.is_set() or not self._disconnect(only=transport):
             return
-        self._went_offline(None, exc)
+        self._mark_offline(exc)
         self.request(full=True, activity=False)
 
     def _reachable(self) -> bool:
