@@ -295,49 +295,67 @@ def scan_touched(
     ancestors, the predicate saying which paths that scope covers and, when no
     directory is involved, the set of those paths (so callers need not test
     every path of the state against the predicate)."""
-    from fetchsync.protocol.paths import ancestors, is_within
+    from fetchsync.protocol.paths import is_within
 
-    items: dict[str, M.Listed] = {}
-    stats: dict[str, Entry] = {}
-    skipped: list[tuple[str, str]] = []
+    tree = LocalTree({}, {}, [])
     singles = set(paths) | set(dirs)
     for p in list(singles):
         singles.update(ancestors(p))
     for path in sorted(singles):
-        try:
-            e = stat_path(os.path.join(root, path))
-        except OSError as exc:  # a directory above it lost its x bit, say
-            skipped.append((path, f"cannot read: {exc.strerror or exc}"))
-            continue
-        if e is None or rules.ignored_any(path, e.kind == "d"):
-            continue
-        _add_entry(root, path, e, synced, algorithm, items, stats, skipped)
+        _add_touched(root, path, rules, synced, algorithm, tree)
     # every touched directory bounds the scope, even one deleted since: its
     # synced entries below must be in the plan's view
     tops = sorted(d for d in dirs if not any(is_within(d, o) and d != o for o in dirs))
     for top in tops:
-        e = stats.get(top)
-        if e is None or e.kind != "d":
-            continue
-        try:
-            result = scan(root, rules, is_temp=is_temp, start=top, on_dir=_searchable)
-        except OSError as exc:
-            skipped.append((top, f"cannot list: {exc.strerror or exc}"))
-            continue
-        skipped.extend(result.skipped)
-        for path, entry in result.entries.items():
-            if path in stats and stats[path] == entry:
-                continue  # a touched path already added (and hashed) above
-            _add_entry(root, path, entry, synced, algorithm, items, stats, skipped)
+        _add_below(root, top, rules, synced, algorithm, tree)
+    if not tops:
+        return tree, singles.__contains__, singles
 
-    scope: Callable[[str], bool]
-    if tops:
+    def scope(path: str) -> bool:
+        return path in singles or any(is_within(path, d) for d in tops)
 
-        def scope(path: str) -> bool:
-            return path in singles or any(is_within(path, d) for d in tops)
-    else:
-        scope = singles.__contains__
-    return LocalTree(items, stats, skipped), scope, (None if tops else singles)
+    return tree, scope, None
+
+
+def _add_touched(
+    root: str,
+    path: str,
+    rules: IgnoreRules,
+    synced: dict[str, Synced],
+    algorithm: str,
+    tree: LocalTree,
+) -> None:
+    """Add the entry at ``path`` to ``tree``, if there is one the rules keep."""
+    try:
+        e = stat_path(os.path.join(root, path))
+    except OSError as exc:  # a directory above it lost its x bit, say
+        tree.skipped.append((path, f"cannot read: {exc.strerror or exc}"))
+        return
+    if e is not None and not rules.ignored_any(path, e.kind == "d"):
+        _add_entry(root, path, e, synced, algorithm, tree.items, tree.stats, tree.skipped)
+
+
+def _add_below(
+    root: str,
+    top: str,
+    rules: IgnoreRules,
+    synced: dict[str, Synced],
+    algorithm: str,
+    tree: LocalTree,
+) -> None:
+    """Add what lies below ``top`` to ``tree``, if ``tree`` holds it as a directory."""
+    e = tree.stats.get(top)
+    if e is None or e.kind != "d":
+        return
+    try:
+        result = scan(root, rules, is_temp=is_temp, start=top, on_dir=_searchable)
+    except OSError as exc:
+        tree.skipped.append((top, f"cannot list: {exc.strerror or exc}"))
+        return
+    tree.skipped.extend(result.skipped)
+    for path, entry in result.entries.items():
+        if tree.stats.get(path) != entry:  # else a touched path already added (and hashed)
+            _add_entry(root, path, entry, synced, algorithm, tree.items, tree.stats, tree.skipped)
 
 
 def _add_entry(
@@ -1304,7 +1322,7 @@ class Round:
         """Take one answer into the round's view of the robot and the state's rows.
         Returns True if the robot now holds content this laptop never saw there (another
         round must replace it, keeping the robot's version aside)."""
-        report, remote = self.report, self.remote
+        report = self.report
         if tag is None:  # an upload piece
             if not res.ok:
                 report.errors.append({"path": "(upload)", "error": res.message})
@@ -1316,23 +1334,31 @@ class Round:
             # of the next round keeps it again
             self.kept.add(path)
             report.conflicts.append({"path": path, "kept": res.preserved})
-        if res.code == M.BASE_MISMATCH:
-            self.whole_only.add(path)
-            remote.pop(path, None)  # unknown: the next round sends it whole
-            return False
         if not res.ok:
-            if res.code == M.CONFLICT:
-                report.conflicts.append({"path": path, "kept": "", "refused": res.message})
-            else:
-                report.errors.append({"path": path, "error": res.message or res.code})
+            self._failed(path, res)
             return False
         report.count(p)
         if p.op.kind == M.DELETE:
             self._forget_below(path, including=True)
             return False
         written = _as_sent(res.written, p.item) if res.written else p.item
-        if written is None:
-            return False
+        return written is not None and self._written(p, sig, written)
+
+    def _failed(self, path: str, res: M.Result) -> None:
+        """An operation that did not apply: sent whole next round (its delta's base was not
+        there), or reported (a refused conflict, a failure)."""
+        if res.code == M.BASE_MISMATCH:
+            self.whole_only.add(path)
+            self.remote.pop(path, None)  # unknown: the next round sends it whole
+        elif res.code == M.CONFLICT:
+            self.report.conflicts.append({"path": path, "kept": "", "refused": res.message})
+        else:
+            self.report.errors.append({"path": path, "error": res.message or res.code})
+
+    def _written(self, p: Planned, sig: bytes | None, written: M.Listed) -> bool:
+        """What an operation left on the robot, into the round's view and the state's rows.
+        Returns True if that is content this laptop never saw there."""
+        path, remote = p.op.path, self.remote
         if p.item is not None and not _same_content(written, p.item):
             # the operation went through over content someone else put there (a chmod
             # of a file edited on the robot): what the robot holds is not a version
@@ -1494,15 +1520,9 @@ def pull(
     local = scan_local(local_root, rules, synced, algorithm)
     _report_skipped(local, report)
     report.skipped += [{"path": p, "reason": r} for p, r in listing.skipped]
-
-    def expect(path: str) -> str:
-        s = synced.get(path)
-        return s.expectation() if s is not None else M.ABSENT
-
     # a local path we could not read is left as it is, not replaced
     guarded = local.guarded()
-    # whole files, no deltas: a delta is applied to the local file, which goes to the trash
-    planned = reconcile(remote, local.items, expect, guarded=guarded, pulling=True)
+    planned = _plan_pull(remote, local, synced, guarded)
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
@@ -1512,27 +1532,12 @@ def pull(
         report.seconds = time.monotonic() - t0
         return report
     if planned and confirm is not None:
-        preview = Report("pull")
-        for p in planned:
-            preview.count(p)
-        if not confirm(preview):
-            from fetchsync.errors import AbortedError
-
-            raise AbortedError("pull cancelled; nothing was changed")
+        _confirm_pull(planned, confirm)
     failed = _apply_pulled(
         endpoint, _set_aside_first(planned, local.items), local_workspace, report
     )
-    now_ns = time.time_ns()
-    upserts: list[tuple[str, Synced, bytes | None]] = []
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
-    for path, item in final.items.items():
-        r = remote.get(path)
-        if r is not None and r == item and path not in failed:
-            upserts.append((path, _synced_from(item, final.stats.get(path), now_ns), None))
-    for path, s in synced.items():
-        if guarded(path) and path not in final.items:
-            # untouched: what was last synced there still holds
-            upserts.append((path, s, None))
+    upserts = _pulled_rows(final, remote, synced, guarded, failed)
     # the robot's index is left as it was: the next push finds the paths pulled as
     # changes there, identical to the laptop's, and adopts them then
     state.commit(
@@ -1544,6 +1549,55 @@ def pull(
     report.bytes_received = conn.bytes_in
     report.seconds = time.monotonic() - t0
     return report
+
+
+def _plan_pull(
+    remote: dict[str, M.Listed],
+    local: LocalTree,
+    synced: dict[str, Synced],
+    guarded: Callable[[str], bool],
+) -> list[Planned]:
+    """The operations that make the laptop hold the robot's tree: whole files, no deltas
+    (a delta would apply to the local file, which goes to the trash)."""
+
+    def expect(path: str) -> str:
+        s = synced.get(path)
+        return s.expectation() if s is not None else M.ABSENT
+
+    return reconcile(remote, local.items, expect, guarded=guarded, pulling=True)
+
+
+def _confirm_pull(planned: list[Planned], confirm: Callable[[Report], bool]) -> None:
+    """Ask ``confirm`` with a preview of ``planned``; AbortedError if it declines."""
+    preview = Report("pull")
+    for p in planned:
+        preview.count(p)
+    if not confirm(preview):
+        from fetchsync.errors import AbortedError
+
+        raise AbortedError("pull cancelled; nothing was changed")
+
+
+def _pulled_rows(
+    final: LocalTree,
+    remote: dict[str, M.Listed],
+    synced: dict[str, Synced],
+    guarded: Callable[[str], bool],
+    failed: set[str],
+) -> list[tuple[str, Synced, bytes | None]]:
+    """The state's rows after a pull: what the laptop now holds as the robot does, and
+    the last-synced rows of what it could not read (left untouched)."""
+    now_ns = time.time_ns()
+    upserts: list[tuple[str, Synced, bytes | None]] = []
+    for path, item in final.items.items():
+        r = remote.get(path)
+        if r is not None and r == item and path not in failed:
+            upserts.append((path, _synced_from(item, final.stats.get(path), now_ns), None))
+    for path, s in synced.items():
+        if guarded(path) and path not in final.items:
+            # untouched: what was last synced there still holds
+            upserts.append((path, s, None))
+    return upserts
 
 
 def _apply_pulled(
@@ -1823,22 +1877,7 @@ def _local_changes(
         return None
     out: set[str] = set()
     for path, e in entries.items():
-        s = synced.get(path)
-        if (
-            s is None
-            or s.kind != e.kind
-            or s.mode != e.mode
-            or (
-                (
-                    s.size != e.size
-                    or s.mtime_ns != e.mtime_ns
-                    or s.ctime_ns != e.ctime_ns
-                    or s.ino != e.ino
-                )
-                if e.kind == "f"
-                else (e.kind == "l" and s.target != e.target)
-            )
-        ):
+        if not _unchanged(synced.get(path), e):
             out.add(path)
             if len(out) > QUICK_MAX:
                 return None
@@ -1850,6 +1889,16 @@ def _local_changes(
         if len(out) > QUICK_MAX:
             return None
     return out
+
+
+def _unchanged(s: Synced | None, e: Entry) -> bool:
+    """Whether a scanned entry is as the state recorded it when it synced it: a file's
+    stat (size, times, inode), a link's target, a directory's mode."""
+    if s is None or s.kind != e.kind or s.mode != e.mode:
+        return False
+    if e.kind == "f":
+        return (s.size, s.mtime_ns, s.ctime_ns, s.ino) == (e.size, e.mtime_ns, e.ctime_ns, e.ino)
+    return e.kind != "l" or s.target == e.target
 
 
 def _same_tree(local: dict[str, M.Listed], remote: dict[str, M.Listed]) -> bool:
