@@ -461,11 +461,37 @@ def read_stable(full: str, *, tries: int = READ_TRIES) -> tuple[bytes, Entry]:
             entry = entry_from_stat(after)
             assert entry is not None
             return data, entry
-    raise OSError(
+    raise _kept_changing(full, tries)
+
+
+def _kept_changing(full: str, tries: int) -> OSError:
+    return OSError(
         errno.EBUSY,
         f"it kept changing while it was read ({tries} tries); the robot keeps its previous version",
         full,
     )
+
+
+@dataclass
+class _Part:
+    """An upload part on the robot: its id, and how far its content may reach there."""
+
+    upload: str = ""
+    extent: int = 0
+
+
+def _unread(exc: OSError, path: str, local: LocalTree, report: Report) -> bool:
+    """Report a file that could not be read to be sent. Returns True if it vanished: it is
+    then dropped from ``local`` (a mirror of the laptop as it is now: the robot loses it
+    too, into its trash, as the next push would do anyway)."""
+    if _gone(exc):
+        local.items.pop(path, None)
+        local.stats.pop(path, None)
+        report.skipped.append({"path": path, "reason": VANISHED})
+        return True
+    what = "" if exc.errno == errno.EBUSY else "cannot read: "
+    report.errors.append({"path": path, "error": what + (exc.strerror or str(exc))})
+    return False
 
 
 def _synced_from(item: M.Listed, entry: Entry | None, now_ns: int) -> Synced:
@@ -776,21 +802,8 @@ class Syncer:
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         self._synced = self._signed = None  # reread: another process may have pushed since
         synced = self._load_synced()
-        fresh = bool(synced) and self.state.epoch != ""
-        exists = self._open_readonly() if dry_run else True
-        open_req = self._send_open() if self.opened is None and not dry_run else None
         epoch, gen = self.state.epoch, self.state.gen
-        # ask for the robot's changes now, so its scan overlaps with ours
-        list_req = (
-            self.endpoint.send_listing(since=(epoch, gen) if fresh else None) if exists else None
-        )
-        if scanned is None:
-            scanned = scan_tree(self.local_root, self.rules)
-        if open_req is not None:
-            self.opened = open_req.wait()
-        listing = (
-            list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
-        )  # a dry run's robot that holds nothing
+        scanned, listing = self._open_and_list(synced, scanned, dry_run=dry_run)
         differing = (
             None
             if dry_run
@@ -798,44 +811,78 @@ class Syncer:
                 scanned, synced, listing, epoch, gen, LocalRules(self.local_root, self.rules)
             )
         )
-        if differing is not None:
-            # the robot holds what we last synced: only the paths that changed here
-            # since need a plan, as the watch agent pushes them
-            self._opened_at(epoch, gen)
-            if differing:
-                done = self.push_paths(
-                    differing, progress=progress, confirm_deletions=confirm_deletions
-                )
-                done.bytes_sent, done.bytes_received = (
-                    self.conn.bytes_out - b_out,
-                    self.conn.bytes_in - b_in,
-                )
-                done.seconds = time.monotonic() - t0
-                return done
-        else:
-            remote = self._apply_listing(listing, synced)
-            local = scan_local(
-                self.local_root, self.rules, synced, self.algorithm, lazy=True, scanned=scanned
-            )
-            epoch, gen = listing.epoch, listing.gen
-            local.hash_where_needed(self.local_root, remote, self.algorithm)
-            _report_skipped(local, report)
-            self._converge(
-                local,
-                remote,
+        if differing is None:
+            self._push_listed(
+                scanned,
                 synced,
-                epoch,
-                gen,
+                listing,
                 report,
                 dry_run=dry_run,
                 progress=progress,
                 confirm_deletions=confirm_deletions,
-                listed=remote if listing.full else [e.path for e in listing.entries],
             )
+        else:
+            # the robot holds what we last synced: only the paths that changed here
+            # since need a plan, as the watch agent pushes them
+            self._opened_at(epoch, gen)
+            if differing:
+                report = self.push_paths(
+                    differing, progress=progress, confirm_deletions=confirm_deletions
+                )
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
         return report
+
+    def _open_and_list(
+        self, synced: dict[str, Synced], scanned: ScanResult | None, *, dry_run: bool
+    ) -> tuple[ScanResult, Listing]:
+        """Open the workspace (unless open) and ask for the robot's changes since the state's
+        generation (its whole tree if the state is empty), then scan the local tree (unless
+        ``scanned``) while the robot answers. A dry run's missing workspace lists empty."""
+        fresh = bool(synced) and self.state.epoch != ""
+        exists = self._open_readonly() if dry_run else True
+        open_req = self._send_open() if self.opened is None and not dry_run else None
+        since = (self.state.epoch, self.state.gen) if fresh else None
+        list_req = self.endpoint.send_listing(since=since) if exists else None
+        if scanned is None:
+            scanned = scan_tree(self.local_root, self.rules)
+        if open_req is not None:
+            self.opened = open_req.wait()
+        listing = list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
+        return scanned, listing
+
+    def _push_listed(
+        self,
+        scanned: ScanResult,
+        synced: dict[str, Synced],
+        listing: Listing,
+        report: Report,
+        *,
+        dry_run: bool,
+        progress: Progress | None,
+        confirm_deletions: bool,
+    ) -> None:
+        """Push against the robot's tree as ``listing`` says it is (it drifted since the
+        state's generation, or the state is empty): the whole local tree is planned."""
+        remote = self._apply_listing(listing, synced)
+        local = scan_local(
+            self.local_root, self.rules, synced, self.algorithm, lazy=True, scanned=scanned
+        )
+        local.hash_where_needed(self.local_root, remote, self.algorithm)
+        _report_skipped(local, report)
+        self._converge(
+            local,
+            remote,
+            synced,
+            listing.epoch,
+            listing.gen,
+            report,
+            dry_run=dry_run,
+            progress=progress,
+            confirm_deletions=confirm_deletions,
+            listed=remote if listing.full else [e.path for e in listing.entries],
+        )
 
     def push_paths(
         self,
@@ -1008,17 +1055,7 @@ class Syncer:
         That happens when the state has no signature for them: a first push
         onto a tree someone else put there, or after a base mismatch.
         """
-        wanted = [
-            p
-            for p in planned
-            if p.op.kind == M.WRITE
-            and p.how == WHOLE
-            and p.op.size >= ROBOT_SIG_MIN
-            and p.op.path not in whole_only
-            and (r := remote.get(p.op.path)) is not None
-            and r.kind == "f"
-            and r.size >= ROBOT_SIG_MIN
-        ]
+        wanted = [p for p in planned if _robot_could_sign(p, remote, whole_only)]
         if not wanted:
             return planned
         answers = self.endpoint.sigs([p.op.path for p in wanted])
@@ -1058,16 +1095,22 @@ class Syncer:
                 return False
             data, entry = read_stable(full)
         except OSError as exc:
-            if _gone(exc):
-                # a mirror of the laptop as it is now: the robot loses it too (into
-                # its trash), as the next push would do anyway
-                local.items.pop(op.path, None)
-                local.stats.pop(op.path, None)
-                report.skipped.append({"path": op.path, "reason": VANISHED})
-                return True
-            what = "" if exc.errno == errno.EBUSY else "cannot read: "
-            report.errors.append({"path": op.path, "error": what + (exc.strerror or str(exc))})
-            return False
+            return _unread(exc, op.path, local, report)
+        self._send_content(batcher, p, data, entry, local, robot_sigs)
+        return False
+
+    def _send_content(
+        self,
+        batcher: _Batcher,
+        p: Planned,
+        data: bytes,
+        entry: Entry,
+        local: LocalTree,
+        robot_sigs: dict[str, bytes],
+    ) -> None:
+        """Add a file's write with the content just read: as a delta where planned and
+        smaller, else whole (also if it changed since the scan: sent as it is now)."""
+        op = p.op
         digest = hashing.digest(self.algorithm, data).hex()
         sig = (
             delta_mod.signature(data, algorithm=self.algorithm).to_bytes()
@@ -1089,11 +1132,10 @@ class Syncer:
                 if len(d) < len(data):
                     batcher.total -= op.size - len(d)  # the progress counts what travels
                     batcher.add(op, d, tag=(p, sig))
-                    return False
+                    return
             op = op.but(source=M.SRC_DATA, base="")
             p = Planned(op, WHOLE, p.item)
         batcher.add(op, data, tag=(p, sig))
-        return False
 
     def _send_big(
         self, batcher: _Batcher, p: Planned, full: str, report: Report, local: LocalTree
@@ -1108,7 +1150,7 @@ class Syncer:
         changing or vanished is reused by a later upload of this session (see
         ``_spare_uploads``). Raises OSError as :func:`read_stable`.
         """
-        upload, uploaded = "", 0  # the upload part, and how far it may reach on the robot
+        part = _Part()
         done = False
         try:
             for attempt in range(READ_TRIES):
@@ -1120,46 +1162,28 @@ class Syncer:
                     before = os.fstat(fd)
                     if not stat_mod.S_ISREG(before.st_mode):
                         raise _not_regular(full)
-                    if not upload or before.st_size < uploaded:
+                    if not part.upload or before.st_size < part.extent:
                         # a longer part's tail would stay past the end: use another one
-                        self._spare(upload, uploaded)
-                        upload, uploaded = self._take_upload(before.st_size)
-                    h = hashing.new(self.algorithm)
-                    offset = 0
-                    while offset < before.st_size:
-                        piece = os.read(fd, min(PIECE, before.st_size - offset))
-                        if not piece:
-                            break
-                        if read_hook is not None:
-                            read_hook(full, "read")
-                        if not _same_file(before, os.fstat(fd)):
-                            break  # changed under us: stop sending this attempt now
-                        h.update(piece)
-                        batcher.add(M.Op(M.UPLOAD, "", upload=upload, size=offset), piece, tag=None)
-                        offset += len(piece)
-                        uploaded = max(uploaded, offset)
+                        self._spare(part.upload, part.extent)
+                        part = _Part(*self._take_upload(before.st_size))
+                    h, offset = self._send_pieces(batcher, fd, full, before, part)
                     after = os.fstat(fd)
                 finally:
                     os.close(fd)
-                if (
+                done = (
                     offset == after.st_size
                     and _same_file(before, after)
                     and _still_there(full, after)
-                ):
-                    done = True
+                )
+                if done:
                     break
         finally:
             if not done:
-                self._spare(upload, uploaded)
+                self._spare(part.upload, part.extent)
         if not done:
-            raise OSError(
-                errno.EBUSY,
-                f"it kept changing while it was read ({READ_TRIES} tries); "
-                "the robot keeps its previous version",
-                full,
-            )
+            raise _kept_changing(full, READ_TRIES)
         op = p.op.but(
-            source=M.SRC_UPLOAD, upload=upload, base="", hash=h.digest().hex(), size=offset
+            source=M.SRC_UPLOAD, upload=part.upload, base="", hash=h.digest().hex(), size=offset
         )
         entry = entry_from_stat(after)
         item = M.Listed(op.path, "f", p.op.mode, offset, hash=op.hash)
@@ -1167,6 +1191,27 @@ class Syncer:
         if entry is not None:
             local.stats[op.path] = entry
         batcher.add(op, tag=(Planned(op, WHOLE, item), None))
+
+    def _send_pieces(
+        self, batcher: _Batcher, fd: int, full: str, before: os.stat_result, part: _Part
+    ) -> tuple[hashing.Hasher, int]:
+        """Send the open file ``fd`` into ``part`` piece by piece, stopping early if it
+        changes; its hash object and how far it was sent."""
+        h = hashing.new(self.algorithm)
+        offset = 0
+        while offset < before.st_size:
+            piece = os.read(fd, min(PIECE, before.st_size - offset))
+            if not piece:
+                break
+            if read_hook is not None:
+                read_hook(full, "read")
+            if not _same_file(before, os.fstat(fd)):
+                break  # changed under us: stop sending this attempt now
+            h.update(piece)
+            batcher.add(M.Op(M.UPLOAD, "", upload=part.upload, size=offset), piece, tag=None)
+            offset += len(piece)
+            part.extent = max(part.extent, offset)
+        return h, offset
 
     def _take_upload(self, size: int) -> tuple[str, int]:
         """An upload id for ``size`` bytes: an abandoned part no longer than that, else a new one."""
@@ -1835,13 +1880,7 @@ def refuse_mass_deletion(
     )
     if doomed + recent <= MASS_MIN:
         return doomed
-    total = (
-        max(
-            sum(1 for r in remote.values() if r.kind != "d"),
-            sum(1 for s in synced.values() if s.kind != "d"),
-        )
-        + recent
-    )
+    total = max(_files(remote.values()), _files(synced.values())) + recent
     if (doomed + recent) * 2 > total:
         so_far = f" ({recent} of them deleted in the last {RECENT:.0f} s)" if recent else ""
         raise MassDeletionError(
@@ -1851,6 +1890,22 @@ def refuse_mass_deletion(
             "(deleted files go to the robot's .fetchsync/trash/)",
         )
     return doomed
+
+
+def _files(entries: Iterable[M.Listed | Synced]) -> int:
+    """How many of ``entries`` are files or links."""
+    return sum(1 for e in entries if e.kind != "d")
+
+
+def _robot_could_sign(p: Planned, remote: dict[str, M.Listed], whole_only: set[str]) -> bool:
+    """Whether ``p`` writes a large file whole that the robot holds a large version of,
+    which a delta against could replace (unless its base mismatched already)."""
+    if p.op.kind != M.WRITE or p.how != WHOLE or p.op.size < ROBOT_SIG_MIN:
+        return False
+    r = remote.get(p.op.path)
+    return (
+        p.op.path not in whole_only and r is not None and r.kind == "f" and r.size >= ROBOT_SIG_MIN
+    )
 
 
 QUICK_MAX = 1000  # local changes pushed path by path when the robot has not drifted
