@@ -180,8 +180,8 @@ def choose_tool(
         return Choice(CATKIN_MAKE, f"never built, and {catkin_pkg} is a catkin package")
     kinds = {d.split(":", 1)[0] for d in distros}
     if kinds == {ROS2}:
-        names = ", ".join(sorted(d.split(":", 1)[1] for d in distros))
-        return Choice(COLCON, f"no packages yet, and the robot has ROS 2 only ({names})")
+        ros2 = ", ".join(sorted(d.split(":", 1)[1] for d in distros))
+        return Choice(COLCON, f"no packages yet, and the robot has ROS 2 only ({ros2})")
     return Choice(CATKIN_MAKE, "nothing tells: catkin_make, as fetch_tools")
 
 

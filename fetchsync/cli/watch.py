@@ -237,13 +237,17 @@ def _fleet_watch(
     for name in names:
         target = resolve(name, user, workspace, remote_workspace)
         prefix = f"[{printable(name)}] "
+
+        def on_event(line: str, prefix: str = prefix) -> None:
+            say(prefix + line)
+
         agents.append(
             Agent(
                 target,
                 rules=build_rules(excludes),
                 policy="refuse" if strict else "preserve",
                 accept_fingerprint=accept_host_key,
-                on_event=lambda line, prefix=prefix: say(prefix + line),
+                on_event=on_event,
                 build=build_options,
                 own_watcher=False,
                 asking=asking,

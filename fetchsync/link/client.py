@@ -362,9 +362,11 @@ class Endpoint:
     def send_listing(self, *, since: tuple[str, int] | None = None) -> Pending[Listing]:
         """The robot's tree; with ``since`` (epoch, generation), only what changed there
         since, if its index can say (else the whole tree: ``Listing.full``)."""
-        request = ListRequest(op="list", mode="full")
-        if since is not None:
-            request.update(mode="drift", epoch=since[0], gen=since[1])
+        request = (
+            ListRequest(op="list", mode="full")
+            if since is None
+            else ListRequest(op="list", mode="drift", epoch=since[0], gen=since[1])
+        )
         return self._send(request, Listing.from_frame)
 
     def listing(self, *, since: tuple[str, int] | None = None) -> Listing:

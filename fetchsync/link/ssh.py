@@ -605,7 +605,7 @@ class _Opener:
             )
 
 
-class _Transport(paramiko.Transport):
+class _Transport(paramiko.Transport):  # type: ignore[misc]  # paramiko ships no types
     """paramiko's Transport, keeping what the peer offered in its KEXINIT for error messages."""
 
     peer_offer: dict[str, list[str]] | None = None
@@ -613,7 +613,7 @@ class _Transport(paramiko.Transport):
     """How we logged in: ``publickey``, ``password`` or ``none``."""
 
     def _really_parse_kex_init(self, m: Any, ignore_first_byte: bool = False) -> Any:
-        parsed = super()._really_parse_kex_init(m, ignore_first_byte)  # type: ignore[misc]
+        parsed = super()._really_parse_kex_init(m, ignore_first_byte)
         if not ignore_first_byte:  # the peer's message; True re-reads our own
             self.peer_offer = parsed
         return parsed
@@ -704,7 +704,7 @@ def _tune_tcp(sock: socket.socket, keepalive: float) -> socket.socket:
     return sock
 
 
-class _ProxyCommand(paramiko.ProxyCommand):
+class _ProxyCommand(paramiko.ProxyCommand):  # type: ignore[misc]  # paramiko ships no types
     """paramiko's ProxyCommand, run by ``/bin/sh`` as ssh does, with EOF and stderr kept.
 
     paramiko splits the command itself (no pipes or redirections) and never
@@ -1255,7 +1255,7 @@ def _host_port(host: str, port: int) -> str:
 
 
 def _key_label(key: paramiko.PKey) -> str:
-    name = key.get_name()
+    name: str = key.get_name()
     if name.startswith("ecdsa-"):
         return "ECDSA"
     return name.removeprefix("ssh-").split("-")[0].upper()

@@ -9,6 +9,7 @@ and the quickstart can use the robot-side endpoint without an SSH server.
 
 from __future__ import annotations
 
+import io
 import os
 import select
 import shlex
@@ -17,7 +18,7 @@ import subprocess
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, cast
 
 from fetchsync.config import LOCAL_ROBOT
 from fetchsync.errors import ConnectError, LinkLostError
@@ -112,7 +113,7 @@ class _ProcessChannel:
     def recv(self, n: int) -> bytes:
         assert self._proc.stdout is not None
         try:
-            return self._proc.stdout.read1(n)  # type: ignore[attr-defined]
+            return cast(io.BufferedReader, self._proc.stdout).read1(n)
         except (ValueError, OSError) as exc:
             raise LinkLostError("the local robot's endpoint went away") from exc
 
@@ -128,7 +129,7 @@ class _ProcessChannel:
     def recv_stderr(self, n: int) -> bytes:
         assert self._proc.stderr is not None
         try:
-            return self._proc.stderr.read1(n)  # type: ignore[attr-defined]
+            return cast(io.BufferedReader, self._proc.stderr).read1(n)
         except (ValueError, OSError):
             return b""
 

@@ -6,9 +6,11 @@ messages: an ``__init__`` taking the fields in order (defaults, ``default_factor
 ``__repr__``, ``__eq__``, ``__hash__`` when frozen, and ``fields()``.
 """
 
-try:
+import sys
+
+if sys.version_info >= (3, 7):
     from dataclasses import dataclass, field, fields  # novermin
-except ImportError:  # Python 3.6
+else:  # Python 3.6
     from typing import Any, Optional, Tuple
 
     _MISSING = object()
@@ -64,7 +66,7 @@ except ImportError:  # Python 3.6
             if unknown:
                 raise TypeError("%s has no field %s" % (cls.__name__, ", ".join(sorted(unknown))))
 
-        def _values(self: "Any") -> "tuple":
+        def _values(self: "Any") -> "Tuple[Any, ...]":
             return tuple(getattr(self, n) for n in names)
 
         def __eq__(self: "Any", other: "Any") -> "Any":

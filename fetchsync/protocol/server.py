@@ -344,6 +344,8 @@ class Server:
         with ``at`` and ``p``, a piece of one (``off``, ``len``) as the blob."""
         store = self._store()
         where = h.get("where")
+        if not isinstance(where, str):
+            raise ProtocolError("unknown kept place %r" % (where,))
         if "p" not in h:
             entries, more = store.kept(where)
             return {"entries": entries, "more": more}, b""

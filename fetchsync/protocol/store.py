@@ -49,7 +49,7 @@ import os
 import stat as stat_mod
 import struct
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, BinaryIO, Dict, List, Optional, Set, Tuple, cast
 
 from fetchsync.protocol import hashing, paths, wire
 from fetchsync.protocol import messages as M
@@ -107,8 +107,8 @@ def _temp_name(final_name: str) -> str:
     counter), and within NAME_MAX bytes however many bytes the name's characters take."""
     tail = "%s%s%06x" % (TEMP_MARK, _TEMP_SALT, next(_TEMP_IDS) & 0xFFFFFF)
     room = min(100, NAME_MAX - 1 - len(tail))
-    head = os.fsencode(final_name)[:room]
-    head = os.fsdecode(head.decode("utf-8", "ignore").encode("utf-8")) if head else ""
+    raw = os.fsencode(final_name)[:room]
+    head = os.fsdecode(raw.decode("utf-8", "ignore").encode("utf-8")) if raw else ""
     name = "." + head + tail
     while len(os.fsencode(name)) > NAME_MAX:  # pragma: no cover - surrogate escapes only
         head = head[:-1]
@@ -238,7 +238,8 @@ class _Out:
             # up to the next HOLE boundary of the file, so holes are aligned
             step = min(n - pos, HOLE - (self.size + pos) % HOLE)
             piece = view[pos : pos + step]
-            if self.sparse and step == HOLE and piece == _ZEROS:
+            # a memoryview equals the bytes it holds (mypy's strict equality cannot tell)
+            if self.sparse and step == HOLE and piece == _ZEROS:  # type: ignore[comparison-overlap]
                 os.lseek(self.fd, step, os.SEEK_CUR)
                 self.pending_hole = True
             else:
@@ -276,7 +277,7 @@ class _Tee:
         self.hasher = hashing.new(algorithm)
 
     def read(self, n: int = -1) -> bytes:
-        data = self.fh.read(n)
+        data = self.fh.read(n)  # type: bytes
         self.hasher.update(data)
         return data
 
@@ -303,7 +304,7 @@ class Store:
         self._lock_fd = -1
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
-        self._uploads = set()  # type: set
+        self._uploads = set()  # type: Set[str]
         self._open()
         self._load_index()
 
@@ -413,7 +414,7 @@ class Store:
         try:
             if not stat_mod.S_ISREG(os.fstat(fd).st_mode):
                 raise OSError(errno.EINVAL, "not a regular file")
-            parts = []
+            parts = []  # type: List[bytes]
             while True:
                 block = os.read(fd, PIECE)
                 if not block:
@@ -451,8 +452,8 @@ class Store:
 
     def _load_index(self) -> None:
         self._loaded_stamp = self._index_stamp()
-        self._touched_synced = set()  # type: set  # paths changed since the last save
-        self._touched_cache = set()  # type: set
+        self._touched_synced = set()  # type: Set[str]  # paths changed since the last save
+        self._touched_cache = set()  # type: Set[str]
         data = None  # type: Any
         try:
             raw = self._read_meta(INDEX)
@@ -623,7 +624,7 @@ class Store:
         self._set_row(self.synced, self._touched_synced, path, value)
 
     def _set_row(
-        self, table: "Dict[str, Any]", touched: "set", path: str, value: "Optional[List[Any]]"
+        self, table: "Dict[str, Any]", touched: "Set[str]", path: str, value: "Optional[List[Any]]"
     ) -> None:
         """Set or drop (None) ``path``'s row in one of the index's tables, for the journal."""
         if value is None:
@@ -715,7 +716,8 @@ class Store:
             and cached[3] == st.st_ino
             and not self._racy(st.st_mtime_ns)
         ):
-            return cached[4]
+            known = cached[4]  # type: str
+            return known
         os.lseek(fd, 0, os.SEEK_SET)
         digest = hashing.file_digest(self.algorithm, fd, PIECE).hex()
         self._set_cache(path, [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, digest])
@@ -731,7 +733,8 @@ class Store:
             and c[3] == entry.ino
             and not self._racy(entry.mtime_ns)
         ):
-            return c[4]
+            known = c[4]  # type: str
+            return known
         return None
 
     def _hash_at(self, path: str, dir_fd: int, name: str) -> str:
@@ -869,7 +872,7 @@ class Store:
 
     @staticmethod
     def _matches(item: "M.Listed", rec: "List[Any]") -> bool:
-        kind, mode, extra = rec
+        kind, mode, extra = rec  # type: str, int, str
         if item.kind != kind:
             return False
         if kind == FILE:
@@ -937,8 +940,8 @@ class Store:
         with io.FileIO(fd, "rb", closefd=True) as fh:
             tee = _Tee(fh, self.algorithm)
             sig = delta_mod.signature_file_bytes(
-                tee,
-                algorithm=self.algorithm,  # type: ignore[arg-type]
+                cast("BinaryIO", tee),  # it reads, the one method signing uses
+                algorithm=self.algorithm,
                 bufsize=PIECE,
             )
             return sig, tee.hasher.digest().hex()
@@ -967,7 +970,7 @@ class Store:
                     item,
                     M.SRC_DELTA,
                     delta_mod.encode_delta(delta_mod.delta_file(fh, base_sig, bufsize=PIECE)),
-                )  # type: ignore[arg-type]
+                )
             want = max(0, st.st_size - offset) if length < 0 else length
             if offset < 0 or want > MAX_READ:
                 raise ProtocolError(

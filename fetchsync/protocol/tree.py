@@ -10,8 +10,12 @@ import errno
 import os
 import stat as stat_mod
 import sys
+from functools import partial
 from stat import S_ISDIR, S_ISLNK, S_ISREG
-from typing import Any, Callable, Dict, List, NamedTuple, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tuple
+
+if TYPE_CHECKING:
+    from fetchsync.protocol.ignore import IgnoreRules
 
 FILE = "f"
 DIR = "d"
@@ -76,7 +80,7 @@ class ScanResult(NamedTuple):
 
 def scan(
     root: str,
-    rules=None,
+    rules: "Optional[IgnoreRules]" = None,
     *,
     is_temp: "Optional[Callable[[str], bool]]" = None,
     start: str = "",
@@ -141,12 +145,17 @@ def scan(
         if rules_out is not None:
             rules_out[rel] = dir_rules
         for de, path in _kept(items, rel, dir_rules, is_temp):
-            if _record(de, path, lambda de=de: os.readlink(de.path), entries, skipped):
+            if _record(de, path, partial(os.readlink, de.path), entries, skipped):
                 stack.append((path, dir_rules))
     return ScanResult(entries, skipped)
 
 
-def _kept(items: "List[Any]", rel: str, dir_rules, is_temp: "Optional[Callable[[str], bool]]"):  # type: ignore[no-untyped-def]
+def _kept(
+    items: "List[Any]",
+    rel: str,
+    dir_rules: "Optional[IgnoreRules]",
+    is_temp: "Optional[Callable[[str], bool]]",
+) -> "Iterator[Tuple[Any, str]]":
     """The directory entries of ``items`` (a listing of wire path ``rel``) that neither
     ``is_temp`` nor the rules exclude, with their wire paths."""
     for de in items:
@@ -232,11 +241,11 @@ def scandir_fd(fd: int) -> "Any":
 def _list_dir(
     fd: int,
     rel: str,
-    dir_rules,
-    is_temp: "Optional[Callable[[str], bool]]",  # type: ignore[no-untyped-def]
+    dir_rules: "Optional[IgnoreRules]",
+    is_temp: "Optional[Callable[[str], bool]]",
     entries: "Dict[str, Entry]",
     skipped: "List[Tuple[str, str]]",
-):
+) -> "Tuple[List[str], Optional[IgnoreRules]]":
     """Record the entries of the directory at ``fd`` (wire path ``rel``); the names of its
     subdirectories and the rules in force below it."""
     with scandir_fd(fd) as it:
@@ -250,13 +259,17 @@ def _list_dir(
                 break
     subdirs = []
     for de, path in _kept(items, rel, dir_rules, is_temp):
-        if _record(de, path, lambda de=de: os.readlink(de.name, dir_fd=fd), entries, skipped):
+        if _record(de, path, partial(os.readlink, de.name, dir_fd=fd), entries, skipped):
             subdirs.append(de.name)
     return subdirs, dir_rules
 
 
 def scan_fd(
-    root_fd: int, rules=None, *, is_temp: "Optional[Callable[[str], bool]]" = None, prefix: str = ""
+    root_fd: int,
+    rules: "Optional[IgnoreRules]" = None,
+    *,
+    is_temp: "Optional[Callable[[str], bool]]" = None,
+    prefix: str = "",
 ) -> "ScanResult":
     """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
     parent's descriptor without following symlinks (a directory swapped for a symlink
