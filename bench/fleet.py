@@ -34,6 +34,7 @@ import contextlib
 import json
 import os
 import platform
+import resource
 import shutil
 import signal
 import statistics
@@ -151,30 +152,58 @@ class Fleet:
         argv = [sys.executable, "-m", "fetchsync", "push", "--json", "--robot", ",".join(robots)]
         if len(robots) > 1:
             argv += ["-j", str(jobs)]
+        cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
-        proc = subprocess.run(
-            argv, env=self.env(), capture_output=True, text=True, stdin=subprocess.DEVNULL
-        )
-        seconds = time.perf_counter() - t0
+        with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+            proc = subprocess.Popen(
+                argv, env=self.env(), stdout=out, stderr=err, stdin=subprocess.DEVNULL
+            )
+            peak_fds = peak_threads = 0
+            while proc.poll() is None:  # the laptop's descriptors and threads, at their peak
+                fds, threads = _usage(proc.pid)
+                peak_fds, peak_threads = max(peak_fds, fds), max(peak_threads, threads)
+                time.sleep(0.05)
+            seconds = time.perf_counter() - t0
+            out.seek(0)
+            err.seek(0)
+            stdout, stderr = out.read().decode(), err.read().decode()
+        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
         wire = {}
         for n in robots:
             after = counters[n].settle(quiet=0.2, timeout=15)
             wire[n] = after.up + after.down - before[n].up - before[n].down
         reports: list[dict[str, Any]] = []
-        for line in reversed(proc.stdout.splitlines()):
+        for line in reversed(stdout.splitlines()):
             if line.startswith(("[", "{")):
                 data = json.loads(line)
                 reports = data if isinstance(data, list) else [data]
                 break
-        table = [ln for ln in proc.stderr.splitlines() if not ln.startswith("[")]
+        table = [ln for ln in stderr.splitlines() if not ln.startswith("[")]
         return {
             "seconds": seconds,
             "exit": proc.returncode,
             "bytes": wire,
             "reports": reports,
             "table": table,
-            "stderr": proc.stderr[-4000:],
+            "stderr": stderr[-4000:],
+            "cpu": cpu,
+            "fds": peak_fds,
+            "threads": peak_threads,
         }
+
+
+def _usage(pid: int) -> tuple[int, int]:
+    """Open descriptors and threads of process ``pid`` (0, 0 once it is gone)."""
+    try:
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0, 0
+    threads = next(
+        (int(ln.split()[1]) for ln in status.splitlines() if ln.startswith("Threads:")), 0
+    )
+    return fds, threads
 
 
 def _check(result: dict[str, Any], what: str) -> None:
@@ -192,12 +221,19 @@ def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dic
             with open(edit, "a") as fh:  # one line more, on every robot
                 fh.write(f"// {label} {time.monotonic_ns()}\n")
         if label == "single":
-            times, wire = {}, {}
+            times, wire, cpu, fds, threads = {}, {}, {}, {}, {}
             for n in fleet.names:
                 r = fleet.push([n], jobs=1)
                 _check(r, f"{name}: push to {n}")
-                times[n], wire[n] = r["seconds"], r["bytes"][n]
-            out["single"] = {"seconds": times, "bytes": wire}
+                times[n], wire[n], cpu[n] = r["seconds"], r["bytes"][n], r["cpu"]
+                fds[n], threads[n] = r["fds"], r["threads"]
+            out["single"] = {
+                "seconds": times,
+                "bytes": wire,
+                "cpu": cpu,
+                "fds": max(fds.values()),
+                "threads": max(threads.values()),
+            }
             slowest = max(times, key=lambda k: times[k])
             log(
                 f"{name:8} single: slowest {slowest} {times[slowest]:.2f}s, median "
@@ -206,7 +242,7 @@ def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dic
         else:
             r = fleet.push(fleet.names, jobs=jobs)
             _check(r, f"{name}: fleet push")
-            out["fleet"] = {"seconds": r["seconds"], "bytes": r["bytes"], "table": r["table"]}
+            out["fleet"] = {k: r[k] for k in ("seconds", "bytes", "table", "cpu", "fds", "threads")}
             log(f"{name:8} fleet:  {r['seconds']:.2f}s for {len(fleet.names)} robots")
     single = out["single"]
     out["ratio"] = out["fleet"]["seconds"] / max(single["seconds"].values())
@@ -271,6 +307,22 @@ def report(data: dict[str, Any]) -> str:
             f"{statistics.median(times):.2f} s | {sum(times):.1f} s | {s['fleet']['seconds']:.2f} s "
             f"| {s['ratio']:.2f}x | {'<= ' + str(TARGET) + 'x ' if shaped else ''}{verdict} | "
             f"{min(br):.2f}-{max(br):.2f} |"
+        )
+    lines += [
+        "",
+        "The laptop's side (user+sys CPU of the push process and the children it waited for; "
+        "its descriptors and threads at their peak):",
+        "",
+        "| scenario | link | CPU, single push (median) | CPU, fleet push | fds single / fleet "
+        "| threads single / fleet |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for s in data["scenarios"]:
+        single, fl = s["single"], s["fleet"]
+        lines.append(
+            f"| {s['scenario']} | {s['link']} | {statistics.median(single['cpu'].values()):.2f} s | "
+            f"{fl['cpu']:.2f} s | {single['fds']} / {fl['fds']} | "
+            f"{single['threads']} / {fl['threads']} |"
         )
     d = data.get("two_down")
     if d:
