@@ -85,7 +85,7 @@ def stop_masters(path: Path) -> None:
         os.kill(pid, signal.SIGTERM)
 
 
-def wait_for(cond, timeout: float = 20.0) -> bool:
+def wait_for(cond, timeout: float = 60.0) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if cond():
@@ -94,6 +94,7 @@ def wait_for(cond, timeout: float = 20.0) -> bool:
     return False
 
 
+@pytest.mark.slow
 @needs_root
 @pytest.mark.ssh
 @pytest.mark.parametrize("squat", ["their-directory", "symlink"])

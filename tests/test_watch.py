@@ -16,7 +16,7 @@ import pytest
 from helpers import fetchsync, make_workspace, tree_of
 
 
-def wait_for(cond, timeout=15.0, what="condition"):
+def wait_for(cond, timeout=60.0, what="condition"):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if cond():
@@ -187,6 +187,7 @@ def test_flush_without_an_agent_pushes(local_env):
     assert same(src, robot)
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_link_loss_is_survived(proxied_home, fault_proxy, remote_dir, tmp_path, runtime):
     e = dict(os.environ)
