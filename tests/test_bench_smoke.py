@@ -173,6 +173,7 @@ def _have_commit(rev: str) -> bool:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     """``bench/run.py --quick`` (a smaller tree, one round) runs to the end, every tree
@@ -224,6 +225,7 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
         assert set(raw["ab"][f"fetchsync@{old}"]) == scenarios
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
     """``bench/watch.py --quick``: fetchsync watch and lsyncd each mirror every save and the burst."""
@@ -236,6 +238,7 @@ def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert not any(raw["verification"].values())
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_bench_history_quick_replays_real_commits_and_verifies(tmp_path: Path) -> None:
     """``bench/history.py --quick``: rclcpp's bundle checked out, pushed by both tools, two

@@ -51,6 +51,7 @@ def _bash(script: str, env: dict[str, str], **kwargs) -> subprocess.CompletedPro
     )
 
 
+@pytest.mark.slow
 def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_path):
     lines = quickstart()
     assert lines[-1].startswith("fetchsync watch --build")

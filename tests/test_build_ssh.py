@@ -61,6 +61,7 @@ def _cache_value(build_dir: Path, name: str) -> str:
     raise AssertionError(f"{name} not in the CMake cache")
 
 
+@pytest.mark.slow
 def test_push_build_runs_catkin_make_on_the_robot(env, remote_dir, tmp_path):
     catkin_workspace(tmp_path / "ws")
     proc = fetchsync("push", SYSTEM_PYTHON, env=env)
@@ -77,6 +78,7 @@ def test_push_build_runs_catkin_make_on_the_robot(env, remote_dir, tmp_path):
     assert _cache_value(remote_dir / "build", "CMAKE_BUILD_TYPE") == "Release"
 
 
+@pytest.mark.slow
 def test_each_build_option_is_one_build_in_order(env, remote_dir, tmp_path):
     catkin_workspace(tmp_path / "ws")
     proc = fetchsync(

@@ -91,6 +91,7 @@ def _hello(tool: Tool, remote_dir: Path, env: dict[str, str]) -> str:
     return proc.stdout.decode().strip()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tool", TOOLS, ids=[t.name for t in TOOLS])
 def test_build_run_fail_and_watch_with_the_real_tool(tool, ssh_home, remote_dir, tmp_path):
     if shutil.which(tool.program) is None:

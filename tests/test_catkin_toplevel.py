@@ -100,6 +100,7 @@ catkin_package()
 """
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 @pytest.mark.skipif(shutil.which("catkin_make") is None, reason="catkin not installed")
 def test_push_build_twice_with_the_robots_catkin_make_meets_no_conflict(

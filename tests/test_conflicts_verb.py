@@ -30,6 +30,7 @@ def _make_conflict(env: dict, remote_dir: Path) -> Path:
     return local
 
 
+@pytest.mark.slow
 def test_list_diff_restore_a_robot_conflict(env, remote_dir):
     local = _make_conflict(env, remote_dir)
     ws = Path(env["FETCHSYNC_WORKSPACE"])

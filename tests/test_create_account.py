@@ -425,6 +425,7 @@ def test_system_accounts_are_refused(sshd, ssh_home) -> None:
     assert "system account" in proc.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 @needs_root
 def test_create_through_sudo(sshd, ssh_home, accounts, tmp_path) -> None:
@@ -652,6 +653,7 @@ def test_user_defaults_to_fetch_user_then_user(sshd, ssh_home, accounts) -> None
     assert report["user"] == other and report["created"]
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 @needs_root
 def test_workspace_is_pushs_and_a_rerun_fixes_a_wrong_one(sshd, ssh_home, accounts) -> None:

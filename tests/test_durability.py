@@ -498,6 +498,7 @@ def test_many_batches_keep_every_rule(env, tmp_path, slowsyncfs):
     assert tree_of(local_src(env)) == tree_of(robot_src(env))
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_push_over_ssh_replies_after_the_last_sync(ssh_home, remote_dir, tmp_path):
     """The same order when sshd starts the endpoint, as on a real robot."""

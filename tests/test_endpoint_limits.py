@@ -101,6 +101,7 @@ def test_sparse_files_stay_sparse(store):
     assert up.read_bytes() == end_zero and _allocated(up) <= 1 * MiB
 
 
+@pytest.mark.slow
 def test_a_one_line_edit_of_a_large_file_keeps_the_endpoint_small(tmp_path):
     """Signature, read and delta apply go through the file in pieces: the endpoint's
     peak memory stays far below the file's size (the old one read it whole, twice)."""

@@ -183,6 +183,7 @@ def _typed(
     )
 
 
+@pytest.mark.slow
 def test_fetch_tools_readme_workflow_runs_as_typed(ssh_home, tmp_path, robot_user, shell) -> None:
     env = _laptop(ssh_home, tmp_path, robot_user)
     cwd = ssh_home.home

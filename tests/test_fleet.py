@@ -115,6 +115,7 @@ def test_a_group_from_robots_toml_and_in_the_variable(fleet_env, tmp_path):
     assert "unknown group @nope" in line and "@lab, @mixed" in line
 
 
+@pytest.mark.slow
 def test_a_fleet_run_prefixes_each_robots_output_and_fails_if_one_fails(fleet_env):
     proc = fetchsync(
         "run",
@@ -250,6 +251,7 @@ def test_at_a_terminal_a_host_key_is_asked_once_for_robots_sharing_it(
         assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(_src(env))
 
 
+@pytest.mark.slow
 def test_run_sources_each_robots_own_remote_workspace_from_robots_toml(fleet_env, tmp_path):
     devel = tmp_path / "robot-fetch2/devel"
     devel.mkdir(parents=True)

@@ -18,6 +18,7 @@ pytestmark = [
 ]
 
 
+@pytest.mark.slow
 def test_a_fleet_build_fails_on_one_robot_and_builds_on_the_other(fleet_env, tmp_path):  # noqa: F811
     ws = Path(fleet_env["FETCHSYNC_WORKSPACE"])
     shutil.rmtree(ws)

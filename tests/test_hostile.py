@@ -215,6 +215,7 @@ frame_bytes = st.one_of(
 )
 
 
+@pytest.mark.slow
 @fuzz(2500)
 @given(data=frame_bytes)
 def test_fuzz_reader_read_frame(data, bounded_memory):
@@ -227,6 +228,7 @@ def test_fuzz_reader_read_frame(data, bounded_memory):
         pass
 
 
+@pytest.mark.slow
 @fuzz(1500)
 @given(
     ftype=st.integers(0, 255),
@@ -312,6 +314,7 @@ def test_op_from_wire_refuses_malformed_fields(wire_op, says):
         M.Op.from_wire(wire_op)
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(obj=op_like)
 def test_fuzz_op_from_wire(obj):
@@ -321,6 +324,7 @@ def test_fuzz_op_from_wire(obj):
         pass
 
 
+@pytest.mark.slow
 @fuzz(1500)
 @given(
     obj=st.lists(json_leaf, min_size=5, max_size=5)

@@ -192,6 +192,7 @@ def test_pull_leaves_unreadable_local_paths_alone(tmp_path):
     assert (local / "src/node.cpp").read_text() == "edited on the robot\n"
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_a_big_file_that_keeps_changing_keeps_the_robots_version(env, remote_dir):
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"

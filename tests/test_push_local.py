@@ -180,6 +180,7 @@ def test_interrupted_batch_leaves_no_torn_files_and_next_push_converges(env):
     assert tree_of(local_src(env)) == tree_of(robot_src)
 
 
+@pytest.mark.slow
 def test_pull_mirrors_the_robot_and_keeps_local_edits(env):
     push(env)
     robot_src = robot_ws(env) / "src"
@@ -223,6 +224,7 @@ def test_first_push_onto_an_existing_robot_tree_uses_the_robots_signatures(env):
     assert len(kept) == 1 and kept[0].read_text() == old
 
 
+@pytest.mark.slow
 def test_a_long_pipeline_does_not_deadlock_the_local_robot(env):
     # thousands of operations: the robot's answers fill a pipe buffer while
     # the laptop is still writing requests

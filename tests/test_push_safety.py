@@ -123,6 +123,7 @@ def test_pull_drops_setuid_and_setgid(env):
     assert stat.S_IMODE((src / "my_pkg/CMakeLists.txt").stat().st_mode) == 0o644
 
 
+@pytest.mark.slow
 def test_a_pattern_added_to_a_fetchsyncignore_leaves_the_robots_files_alone(env):
     """Issue 22 item 5: excluded means left alone, also when the pattern is added to an
     ignore file that was already synced: the matching robot files are neither deleted
@@ -210,6 +211,7 @@ def many_files(src: Path, n: int = 40) -> None:
         (src / f"my_pkg/many/f{i}.txt").write_text(f"file {i}\n")
 
 
+@pytest.mark.slow
 def test_deleting_most_of_the_robots_files_needs_force(env):
     """The mass-deletion guard: a push that would delete more than half of the robot's
     files (and more than a few) changes nothing without --force; fewer go as usual."""

@@ -19,6 +19,7 @@ def env(ssh_home, remote_dir, tmp_path):
     return ssh_env(ssh_home.home, remote_dir, tmp_path)
 
 
+@pytest.mark.slow
 def test_push_and_edit_and_pull_over_ssh(env, remote_dir):
     local = Path(env["FETCHSYNC_WORKSPACE"]) / "src"
     r = report(fetchsync("push", "--json", env=env))
@@ -54,6 +55,7 @@ def test_tilde_remote_workspace_is_the_robots_home(env, tmp_path):
         shutil.rmtree(Path(os.path.expanduser("~root")) / name, ignore_errors=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists(PY38), reason="Python 3.8 not installed here")
 def test_endpoint_runs_on_python_3_8(env, remote_dir):
     env = dict(env, FETCHSYNC_REMOTE_PYTHON=PY38)

@@ -113,6 +113,7 @@ def test_several_words_without_dashes_are_joined_as_ssh_does(env):
     assert fetchsync("run", "echo", "$((1 + 1))", env=env).stdout == b"2\n"
 
 
+@pytest.mark.slow
 def test_stdout_and_stderr_stay_apart_and_the_exit_code_is_the_commands(env):
     proc = fetchsync("run", "echo to-out; echo to-err >&2; exit 42", env=env, check=False)
     assert (proc.returncode, proc.stdout, proc.stderr) == (42, b"to-out\n", b"to-err\n")

@@ -16,6 +16,7 @@ import pytest
 from helpers import run_bench
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_scale_small_completes_and_verifies(tmp_path: Path) -> None:
     stdout, raw = run_bench("scale.py", "--files", "1000", "--size-mb", "6", tmp_path=tmp_path)

@@ -236,6 +236,7 @@ def run_cli(*args: str, env: dict[str, str] | None = None) -> Any:
     return result
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_default_snapshot_lists_every_system_command(snap_env, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

@@ -218,6 +218,7 @@ def _push_race(env: dict, robot_src: Path, outside: Path) -> None:
     assert snapshot(outside) == before
 
 
+@pytest.mark.slow
 def test_pushes_through_the_local_robot_never_write_outside_src_under_a_swap_race(tmp_path):
     robot_home = tmp_path / "robot-home"
     outside = robot_home / ".ssh"
@@ -237,6 +238,7 @@ def test_pushes_through_the_local_robot_never_write_outside_src_under_a_swap_rac
     _push_race(env, robot_home / "robot_ws" / "src", outside)
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_pushes_over_ssh_never_write_outside_src_under_a_swap_race(ssh_home, remote_dir, tmp_path):
     outside = tmp_path / "outside-ssh"

@@ -97,6 +97,7 @@ def short_runtime():
     shutil.rmtree(d, ignore_errors=True)
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 @pytest.mark.skipif(shutil.which("catkin_make") is None, reason="catkin not installed")
 def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(

@@ -230,6 +230,7 @@ def test_a_robot_named_explicitly_must_be_valid(ws: Path, tmp_path: Path):
 
 
 # --------------------------------------------------------------------------- the local robot
+@pytest.mark.slow
 def test_robot_column_with_the_local_robot(ws: Path, tmp_path: Path):
     robot_home = tmp_path / "robot-home"
     env = base_env(
@@ -302,6 +303,7 @@ def _closed_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 @pytest.mark.ssh
 def test_robot_column_over_ssh(ssh_env, ssh_home, ws):
     assert set(robot_column(status(ssh_env)).values()) == {"not pushed yet"}
