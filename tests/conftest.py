@@ -99,8 +99,17 @@ def remote_dir(tmp_path: Path) -> Path:
     return path
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Parallel workers (``-n 4``) are handed the tests one at a time (``--maxschedchunk 1``)
+    unless told otherwise: pytest-xdist's default hands each worker a quarter of its share
+    of the collection at once, in order, so one worker got every slow test and the suite
+    waited for it alone."""
+    if getattr(config.option, "maxschedchunk", 0) is None:
+        config.option.maxschedchunk = 1
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The tests marked ``slow`` first (in their order, then the rest in theirs): the
-    parallel workers (``-n 4``) take the long ones early and end together, instead of one
-    worker starting a 50-second test when the others are done."""
+    """The tests marked ``slow`` first (in their order, then the rest in theirs): handed out
+    one at a time, the parallel workers take the long ones early and end together, instead
+    of one worker starting a 50-second test when the others are done."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
