@@ -3,6 +3,9 @@
 - ``sshd`` (session): a running OpenSSH server on 127.0.0.1, see ``sshd.SSHD``.
 - ``ssh_home`` (function): a fresh HOME whose ``~/.ssh`` reaches the robot as
   ``robot``; ``HOME`` is set to it and ``SSH_AUTH_SOCK`` unset.
+- ``clean_process_env`` (function): none of the developer's fetchsync or ROS settings in
+  ``os.environ``; ``helpers.clean_env``, ``local_env`` and ``ssh_env`` build a CLI
+  subprocess's environment the same way.
 - ``remote_dir`` (function): an empty absolute directory to use as the remote
   workspace on the robot (the robot is this machine).
 - ``fault_proxy`` (function): a started ``faultproxy.FaultProxy`` in front of
@@ -28,6 +31,7 @@ if _TESTS_DIR not in sys.path:
     sys.path.insert(0, _TESTS_DIR)
 
 from faultproxy import FaultProxy
+from helpers import clean_env
 from sshd import SSHD, SSHDStartError, SSHHome, find_sshd, make_ssh_home, running_sshd
 
 
@@ -89,6 +93,15 @@ def _no_lingering_masters(
     monkeypatch.setenv("FETCHSYNC_PERSIST", "0")
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
     monkeypatch.setenv("XDG_CACHE_HOME", str(_laptop_cache))
+
+
+@pytest.fixture
+def clean_process_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    """This process's environment as ``helpers.clean_env()`` leaves a CLI run's (none of the
+    developer's fetchsync, fetch_tools or ROS settings), for tests that run the CLI in-process."""
+    kept = clean_env()
+    for var in [k for k in os.environ if k not in kept]:
+        monkeypatch.delenv(var)
 
 
 @pytest.fixture

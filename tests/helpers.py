@@ -101,22 +101,70 @@ def report(proc: subprocess.CompletedProcess) -> dict:
     return json.loads(proc.stdout.decode().strip().splitlines()[-1])
 
 
-def ssh_env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[str, str]:
-    """The CLI's environment for a push to the test sshd's ``robot`` alias from ``home``
-    (an ssh_home or proxied_home), with a fresh workspace under ``tmp_path``."""
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        **extra,
+# Set for every test by tests/conftest.py (fresh connections, no lingering master): kept.
+_SESSION_VARS = ("FETCHSYNC_PERSIST",)
+# Where the developer's own configuration and data would be read from instead of HOME's.
+_DEVELOPER_VARS = ("SSH_AUTH_SOCK", "XDG_CONFIG_HOME", "XDG_DATA_HOME")
+
+
+def clean_env(**values: str) -> dict[str, str]:
+    """This process's environment without the developer's own settings, plus ``values``: no
+    ``FETCH_*``, ``FETCHSYNC_*`` or ``ROS_*`` variable (a robot, a workspace, a remote Python,
+    a ROS master or distribution), no ``SSH_AUTH_SOCK`` (an agent would offer the
+    developer's keys), no ``XDG_CONFIG_HOME`` or ``XDG_DATA_HOME`` (their robots.toml, their
+    local robot), so a CLI run sees only what its test gives it."""
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k in _SESSION_VARS
+        or not (
+            k.startswith(("FETCH_", "FETCHSYNC_", "_FETCHSYNC_", "ROS_")) or k in _DEVELOPER_VARS
+        )
+    }
+    env.update(values)
+    return env
+
+
+def local_env(tmp_path: Path, *, make_ws: bool = True, **extra: str) -> dict[str, str]:
+    """The CLI's environment for a push to the built-in ``local`` robot (its home
+    ``tmp_path/robot-home``, the workspace ``~/robot_ws``) of the workspace
+    ``tmp_path/ws`` (a fresh ``make_workspace`` unless ``make_ws`` is false or it exists);
+    ``extra`` overrides any of it."""
+    env = clean_env(
+        **{
+            "FETCHSYNC_LOCAL_ROBOT_HOME": str(tmp_path / "robot-home"),
+            "XDG_STATE_HOME": str(tmp_path / "state"),
+            "FETCHSYNC_ROBOT": "local",
+            "FETCHSYNC_WORKSPACE": str(tmp_path / "ws"),
+            "FETCHSYNC_REMOTE_WORKSPACE": "~/robot_ws",
+            **extra,
+        }
     )
-    make_workspace(tmp_path / "ws")
-    return e
+    if make_ws and not Path(env["FETCHSYNC_WORKSPACE"]).exists():
+        make_workspace(Path(env["FETCHSYNC_WORKSPACE"]))
+    return env
+
+
+def ssh_env(
+    home: Path, remote_dir: Path | str, tmp_path: Path, *, make_ws: bool = True, **extra: str
+) -> dict[str, str]:
+    """The CLI's environment for a push to the test sshd's ``robot`` alias from ``home``
+    (an ssh_home or proxied_home) into ``remote_dir``, of the workspace ``tmp_path/ws`` (a
+    fresh ``make_workspace`` unless ``make_ws`` is false or it exists); ``extra`` overrides
+    any of it."""
+    env = clean_env(
+        **{
+            "HOME": str(home),
+            "FETCHSYNC_ROBOT": "robot",
+            "FETCHSYNC_WORKSPACE": str(tmp_path / "ws"),
+            "FETCHSYNC_REMOTE_WORKSPACE": str(remote_dir),
+            "XDG_STATE_HOME": str(tmp_path / "state"),
+            **extra,
+        }
+    )
+    if make_ws and not Path(env["FETCHSYNC_WORKSPACE"]).exists():
+        make_workspace(Path(env["FETCHSYNC_WORKSPACE"]))
+    return env
 
 
 def run_bench(

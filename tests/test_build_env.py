@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync
+from helpers import clean_env, fetchsync
 
 from fetchsync.chores.ros_setup import SEVERAL_EXIT, environment
 
@@ -103,12 +103,7 @@ def test_announce_names_the_file(tmp_path):
 def test_run_v_says_what_it_sourced_and_the_laptops_ros_distro_stays_here(
     ssh_home, remote_dir, tmp_path
 ):
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if k not in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER")
-    }
-    env.update(
+    env = clean_env(
         HOME=str(ssh_home.home),
         FETCHSYNC_ROBOT="robot",
         ROS_DISTRO="laptops-distro",

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import clean_env
 
 pytestmark = [
     pytest.mark.ssh,
@@ -57,25 +58,11 @@ def test_the_readme_ros2_quickstart_runs_as_written(ssh_home, remote_dir, tmp_pa
     assert lines[-1].startswith("fetchsync watch --build")
     setup, watch_line = "\n".join(lines[:-1]), lines[-1]
     exports = "\n".join(ln for ln in lines if ln.startswith("export "))
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if k
-        not in (
-            "FETCH_ROBOT",
-            "FETCH_USER",
-            "ROS_MASTER_URI",
-            "FETCHSYNC_USER",
-            "ROS_DISTRO",
-            "FETCHSYNC_WORKSPACE",
-            "FETCH_WORKSPACE",
-        )
-    }
-    env.update(
+    env = clean_env(
         HOME=str(ssh_home.home),
         FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
         XDG_STATE_HOME=str(tmp_path / "state"),
-        PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")])),
+        PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
     )
     proc = _bash(setup, env)
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync
+from helpers import fetchsync, ssh_env
 
 pytestmark = [
     pytest.mark.ssh,
@@ -117,27 +117,9 @@ def _robot_environment(remote_ws: Path, variables: dict[str, str]) -> None:
 
 
 def _env(ssh_home, local_ws: Path, remote_ws: Path, tmp_path: Path) -> dict[str, str]:
-    e = {
-        k: v
-        for k, v in os.environ.items()
-        if k
-        not in (
-            "FETCH_ROBOT",
-            "FETCH_USER",
-            "ROS_MASTER_URI",
-            "FETCHSYNC_USER",
-            "ROS_DISTRO",
-            "FETCHSYNC_SUDO_PASSWORD",
-        )
-    }
-    e.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(local_ws),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_ws),
-        XDG_STATE_HOME=str(tmp_path / "state"),
+    return ssh_env(
+        ssh_home.home, remote_ws, tmp_path, make_ws=False, FETCHSYNC_WORKSPACE=str(local_ws)
     )
-    return e
 
 
 @pytest.fixture

@@ -3,14 +3,13 @@ on the sshd robot (push) and here (pull)."""
 
 from __future__ import annotations
 
-import os
 import shutil
 import stat
 from pathlib import Path
 
 import pytest
 from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
-from helpers import fetchsync, report
+from helpers import fetchsync, report, ssh_env
 from terminal import Terminal
 
 pytestmark = [
@@ -41,17 +40,7 @@ def catkin_workspace(root: Path, *, name: str = "tiny", extra: str = "") -> Path
 
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path):
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    return e
+    return ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False)
 
 
 def _cache_value(build_dir: Path, name: str) -> str:

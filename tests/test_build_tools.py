@@ -10,7 +10,6 @@ what a change touched (colcon: and what depends on it).
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
@@ -20,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync
+from helpers import fetchsync, ssh_env
 from ros_workspaces import (
     GREETING,
     SYSTEM_PYTHON_DEFINE,
@@ -63,20 +62,6 @@ TOOLS = [
 ]
 
 
-def _env(ssh_home, remote_dir: Path, tmp_path: Path) -> dict[str, str]:
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    return e
-
-
 def _wait_for(cond, timeout: float, what: str) -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -98,7 +83,7 @@ def test_build_run_fail_and_watch_with_the_real_tool(tool, ssh_home, remote_dir,
         pytest.skip(f"{tool.program} not installed (pip install -e '.[test]')")
     if shutil.which("catkin_make") is None and tool.make is catkin_workspace:
         pytest.skip("catkin not installed (apt-get install catkin)")
-    env = _env(ssh_home, remote_dir, tmp_path)
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False)
     src = tool.make(tmp_path / "ws") / "src"
     build = f"--build={tool.args}"
 

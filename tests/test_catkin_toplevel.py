@@ -5,12 +5,11 @@ real catkin_make on the sshd robot."""
 
 from __future__ import annotations
 
-import os
 import shutil
 
 import pytest
 from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
-from helpers import fetchsync, report
+from helpers import fetchsync, report, ssh_env
 
 from fetchsync.protocol import messages as M
 from fetchsync.sync.engine import reconcile
@@ -106,16 +105,7 @@ catkin_package()
 def test_push_build_twice_with_the_robots_catkin_make_meets_no_conflict(
     ssh_home, remote_dir, tmp_path
 ):
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
-        env.pop(k, None)
-    env.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False)
     pkg = tmp_path / "ws" / "src" / "tiny"
     pkg.mkdir(parents=True)
     (pkg / "package.xml").write_text(PACKAGE_XML.format(name="tiny"))

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-from helpers import fetchsync, make_workspace, ssh_env, without_where
+from helpers import clean_env, fetchsync, make_workspace, ssh_env, without_where
 
 from fetchsync.cli import cli
 from fetchsync.config import (
@@ -29,13 +29,6 @@ from fetchsync.errors import ConfigError
 
 ARROW = "\u2192"
 HOME = "/home/alice"
-
-
-def clean_env(**values: str) -> dict[str, str]:
-    """The process environment without any of fetchsync's settings, plus ``values``."""
-    e = {k: v for k, v in os.environ.items() if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))}
-    e.update(values)
-    return e
 
 
 def invoke(args: list[str], env: dict[str, str], cwd: Path | None = None):

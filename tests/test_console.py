@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-from helpers import fetchsync, make_workspace
+from helpers import fetchsync, local_env
 
 from fetchsync.console import printable
 
@@ -19,23 +18,12 @@ def test_printable_escapes_controls_bidi_and_undecodable_bytes():
     assert printable("plain/ünïcode name.cpp") == "plain/ünïcode name.cpp"
 
 
-def local_env(tmp_path: Path) -> dict:
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER"):
-        env.pop(k, None)
-    env.update(
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/ws",
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    make_workspace(tmp_path / "ws")
-    return env
-
-
 def test_names_from_the_robot_reach_the_terminal_escaped(tmp_path):
-    env = local_env(tmp_path)
+    env = local_env(
+        tmp_path,
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
+        FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+    )
     fetchsync("push", env=env)
     robot = tmp_path / "robot/ws/src/my_pkg"
     (robot / EVIL).write_text("from the robot\n")

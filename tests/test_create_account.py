@@ -22,6 +22,7 @@ from typing import Callable, Iterator
 import paramiko
 import pytest
 from click.testing import CliRunner
+from helpers import clean_env
 
 from fetchsync.chores import account
 from fetchsync.chores.account import (
@@ -576,19 +577,7 @@ def _create_as_user(
 ) -> subprocess.CompletedProcess:
     """create-account as a fetch_tools user runs it: no --user, the environment decides.
     ``started`` is given the laptop process's pid."""
-    full_env = {
-        k: v
-        for k, v in os.environ.items()
-        if k not in _TARGET_VARS
-        and k
-        not in (
-            "SSH_AUTH_SOCK",
-            "FETCHSYNC_NEW_PASSWORD",
-            "FETCHSYNC_ADMIN_PASSWORD",
-            "FETCHSYNC_ADMIN_USER",
-        )
-    }
-    full_env.update(HOME=str(ssh_home.home), FETCHSYNC_ADMIN_USER="root", **env)
+    full_env = clean_env(HOME=str(ssh_home.home), FETCHSYNC_ADMIN_USER="root", **env)
     argv = [
         sys.executable,
         "-m",

@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, local_env, report, ssh_env, tree_of
 
 TEMP_MARK = ".fetchsync-tmp-"
 MAGIC = b"\x89FSYNC"
@@ -139,21 +139,6 @@ def nosyncfs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def slowsyncfs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A shared object whose syncfs returns 80 ms after the real one, for LD_PRELOAD."""
     return _shim(tmp_path_factory, "slowsyncfs", SLOW_SHIM_C)
-
-
-def make_env(tmp_path: Path, robot_home: Path) -> dict:
-    e = dict(os.environ)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
-        e.pop(k, None)
-    make_workspace(tmp_path / "ws")
-    return e
 
 
 def push(env: dict, *, python: str | None = None, preload: Path | None = None) -> dict:
@@ -419,7 +404,7 @@ def traced_push(
 # ---------------------------------------------------------------------- syscall order
 @pytest.fixture
 def env(tmp_path: Path) -> dict:
-    return make_env(tmp_path, tmp_path / "robot-home")
+    return local_env(tmp_path)
 
 
 def robot_src(env: dict) -> Path:
@@ -502,25 +487,9 @@ def test_many_batches_keep_every_rule(env, tmp_path, slowsyncfs):
 @pytest.mark.ssh
 def test_push_over_ssh_replies_after_the_last_sync(ssh_home, remote_dir, tmp_path):
     """The same order when sshd starts the endpoint, as on a real robot."""
-    e = dict(os.environ)
-    for k in (
-        "FETCH_ROBOT",
-        "FETCH_USER",
-        "ROS_MASTER_URI",
-        "FETCHSYNC_USER",
-        "FETCHSYNC_REMOTE_PYTHON",
-    ):
-        e.pop(k, None)
     # no connection master: each push starts its own endpoint, under strace
-    e.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_PERSIST="0",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    src = make_workspace(tmp_path / "ws") / "src"
+    e = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_PERSIST="0")
+    src = tmp_path / "ws" / "src"
     _r, v = traced_push(e, tmp_path / "trace1", workspace=remote_dir)
     assert v.violations == [] and v.temp_renames == 7
     (src / "my_pkg/package.xml").unlink()
@@ -687,7 +656,7 @@ def _edit(src: Path, n: int) -> None:
 
 
 def test_power_cut_right_after_success_keeps_every_reported_file(tmp_path, disk):
-    env = make_env(tmp_path, disk.mount / "robot")
+    env = local_env(tmp_path, FETCHSYNC_LOCAL_ROBOT_HOME=str(disk.mount / "robot"))
     src = local_src(env)
     rounds = 4 if POWERCUT else 2
     for n in range(rounds):
@@ -702,7 +671,7 @@ def test_power_cut_right_after_success_keeps_every_reported_file(tmp_path, disk)
 
 def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
     """The simulation can fail: the endpoint with syncfs made a no-op loses what it reported."""
-    env = make_env(tmp_path, disk.mount / "robot")
+    env = local_env(tmp_path, FETCHSYNC_LOCAL_ROBOT_HOME=str(disk.mount / "robot"))
     src = local_src(env)
     push(env)
     for n in range(1, 4):
@@ -726,7 +695,7 @@ def test_power_cut_without_syncfs_loses_the_push(tmp_path, disk, nosyncfs):
     ],
 )
 def test_power_cut_after_a_batch_without_writes(tmp_path, disk, change):
-    env = make_env(tmp_path, disk.mount / "robot")
+    env = local_env(tmp_path, FETCHSYNC_LOCAL_ROBOT_HOME=str(disk.mount / "robot"))
     src = local_src(env)
     push(env)
     change(src)

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from helpers import make_workspace, without_where
+from helpers import ssh_env, without_where
 from sshd import SSHD, find_sshd, make_ssh_home
 from terminal import Terminal
 
@@ -72,35 +72,9 @@ def one_line(proc: subprocess.CompletedProcess, code: int) -> str:
     return lines[0]
 
 
-def make_env(home: Path, remote_ws: str, tmp_path: Path) -> dict[str, str]:
-    e = dict(os.environ)
-    for k in (
-        "FETCH_ROBOT",
-        "FETCH_USER",
-        "ROS_MASTER_URI",
-        "FETCHSYNC_USER",
-        "FETCH_REMOTE_WORKSPACE",
-        "FETCHSYNC_REMOTE_PYTHON",
-        "SSH_AUTH_SOCK",
-    ):
-        e.pop(k, None)
-    ws = tmp_path / "ws"
-    if not ws.exists():
-        make_workspace(ws)
-    e.update(
-        HOME=str(home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(ws),
-        FETCHSYNC_REMOTE_WORKSPACE=remote_ws,
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_PERSIST="0",
-    )
-    return e
-
-
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path) -> dict[str, str]:
-    return make_env(ssh_home.home, str(remote_dir), tmp_path)
+    return ssh_env(ssh_home.home, str(remote_dir), tmp_path)
 
 
 # -- a second robot, configured to fail --------------------------------------
@@ -215,7 +189,7 @@ def test_changed_host_key(env, ssh_home, remote_dir, tmp_path) -> None:
 
 
 def test_no_acceptable_key_exchange(kex_robot, sshd, remote_dir, tmp_path) -> None:
-    env = make_env(home_for(sshd, kex_robot, tmp_path, "kex-home"), str(remote_dir), tmp_path)
+    env = ssh_env(home_for(sshd, kex_robot, tmp_path, "kex-home"), str(remote_dir), tmp_path)
     line = one_line(cli("push", env=env), CONNECT_EXIT)
     assert "no acceptable kex algorithm" in line
     assert f"it offers {KEX_PARAMIKO_LACKS};" in line  # theirs
@@ -258,7 +232,7 @@ def test_key_refused_by_a_robot_without_passwords(
         ["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(tmp_path / "k")], check=True
     )
     shutil.copyfile(tmp_path / "k", home.identity)
-    env = make_env(home.home, str(remote_dir), tmp_path)
+    env = ssh_env(home.home, str(remote_dir), tmp_path)
     # on a terminal too: no password prompt for a robot that would refuse any password
     term = Terminal(["push"], env)
     try:
@@ -304,7 +278,7 @@ def password_user(sshd: SSHD) -> Iterator[tuple[str, str]]:
 def password_env(sshd, password_user, tmp_path) -> dict[str, str]:
     home = make_ssh_home(tmp_path / "pw-home", sshd=sshd)
     home.identity.unlink()  # no key to offer: the robot wants the password
-    env = make_env(home.home, "~/ws", tmp_path)
+    env = ssh_env(home.home, "~/ws", tmp_path)
     env["FETCHSYNC_USER"] = password_user[0]
     return env
 
@@ -358,7 +332,7 @@ def test_wrong_password(password_env, password_user) -> None:
 
 def test_no_python3_on_the_robot(no_python_robot, sshd, password_user, tmp_path) -> None:
     # the throwaway account: no shell startup file of its own puts python3 back on PATH
-    env = make_env(home_for(sshd, no_python_robot, tmp_path, "nopy-home"), "~/ws", tmp_path)
+    env = ssh_env(home_for(sshd, no_python_robot, tmp_path, "nopy-home"), "~/ws", tmp_path)
     env["FETCHSYNC_USER"] = password_user[0]
     line = one_line(cli("push", env=env), CONNECT_EXIT)
     assert "python3 was not found on robot" in line and ">= 3.6" in line

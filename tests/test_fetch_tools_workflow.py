@@ -47,7 +47,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from helpers import CATKIN_PACKAGE_XML
+from helpers import CATKIN_PACKAGE_XML, clean_env
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -118,12 +118,7 @@ def _laptop(ssh_home, tmp_path: Path, user: str) -> dict[str, str]:
     wrapper.write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync "$@"\n')
     wrapper.chmod(0o755)
     password = "Pw-" + secrets.token_urlsafe(12)
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        if not k.startswith(("FETCH_", "FETCHSYNC_", "ROS_"))
-        and k not in ("SSH_AUTH_SOCK", "BASH_ENV", "ENV")
-    }
+    env = {k: v for k, v in clean_env().items() if k not in ("BASH_ENV", "ENV")}
     env.update(
         HOME=str(home),
         PATH=f"{bin_dir}:{os.environ['PATH']}",

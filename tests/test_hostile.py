@@ -15,6 +15,7 @@ import shlex
 import sys
 from pathlib import Path
 
+import helpers
 import pytest
 from helpers import fetchsync, make_workspace, tree_of, without_where
 
@@ -29,16 +30,7 @@ def robot(tmp_path: Path):
     canary = ws / "canary"
     canary.mkdir()
     (canary / "keep.txt").write_text("canary\n")
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        env.pop(k, None)
-    env.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(ws),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
+    env = helpers.local_env(tmp_path)
     fetchsync("push", env=env)  # the honest endpoint
     return env, ws, canary
 
@@ -462,19 +454,8 @@ SPARSE_SIZE = "2G" if os.environ.get("FETCHSYNC_TEST_2G_SPARSE") else "64M"
 
 @pytest.fixture
 def local_env(tmp_path: Path) -> dict:
-    ws = tmp_path / "ws"
-    (ws / "src").mkdir(parents=True)
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        env.pop(k, None)
-    env.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(ws),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    return env
+    (tmp_path / "ws" / "src").mkdir(parents=True)
+    return helpers.local_env(tmp_path)
 
 
 def _bytes_tree(root: Path) -> dict:

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import local_env
 
 from fetchsync.protocol import ignore as ignore_mod
 from fetchsync.protocol.ignore import (
@@ -624,19 +625,14 @@ def test_no_rule_re_includes_version_control_directories(where: str) -> None:
 
 
 def test_pull_never_brings_a_robots_git_directory(tmp_path: Path) -> None:
-    import os
     import subprocess
     import sys
 
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_USER", "FETCH_USER"):
-        env.pop(k, None)
-    env.update(
-        FETCHSYNC_ROBOT="local",
+    env = local_env(
+        tmp_path,
+        make_ws=False,
         FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot"),
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
         FETCHSYNC_REMOTE_WORKSPACE="~/ws",
-        XDG_STATE_HOME=str(tmp_path / "state"),
     )
     (tmp_path / "ws/src/pkg").mkdir(parents=True)
     (tmp_path / "ws/src/pkg/package.xml").write_text("<package/>\n")

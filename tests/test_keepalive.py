@@ -10,24 +10,9 @@ import sys
 from pathlib import Path
 
 from endpoint_client import ALG, Endpoint
-from helpers import fetchsync, make_workspace, tree_of
+from helpers import fetchsync, local_env, make_workspace, tree_of
 
 from fetchsync.protocol import wire
-
-
-def local_env(tmp_path: Path, **extra: str) -> dict[str, str]:
-    e = dict(os.environ)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    e.update(extra)
-    return e
 
 
 def test_a_request_slower_than_the_deadline_completes(tmp_path):

@@ -152,10 +152,8 @@ def make_workspace(root: Path) -> Path:
 
 
 @pytest.fixture(autouse=True)
-def _lint_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def _lint_env(tmp_path: Path, clean_process_env: None, monkeypatch: pytest.MonkeyPatch) -> None:
     """No workspace from the developer's environment; catkin_lint's cache in tmp."""
-    for var in ("FETCHSYNC_WORKSPACE", "FETCH_WORKSPACE", "ROS_DISTRO", "ROS_PACKAGE_PATH"):
-        monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
     monkeypatch.chdir(tmp_path)
 

@@ -171,9 +171,7 @@ def ament_cmake_package(src: Path, name: str = "cpp_talker") -> Path:
 
 
 @pytest.fixture(autouse=True)
-def _lint_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    for var in ("FETCHSYNC_WORKSPACE", "FETCH_WORKSPACE", "ROS_DISTRO", "ROS_PACKAGE_PATH"):
-        monkeypatch.delenv(var, raising=False)
+def _lint_env(tmp_path: Path, clean_process_env: None, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("ROS_HOME", str(tmp_path / "ros_home"))
     monkeypatch.chdir(tmp_path)
 

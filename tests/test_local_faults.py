@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import make_workspace, report, ssh_env, tree_of
+from helpers import local_env, make_workspace, report, ssh_env, tree_of
 
 from fetchsync.link.connection import Connection
 from fetchsync.link.transport import LocalTransport
@@ -158,17 +158,7 @@ def test_the_watch_agents_incremental_push_leaves_unreadable_paths_too(tmp_path)
     os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
 )
 def test_pull_leaves_unreadable_local_paths_alone(tmp_path):
-    make_workspace(tmp_path / "ws")
-    e = dict(
-        os.environ,
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
+    e = local_env(tmp_path)
     local, robot = tmp_path / "ws/src/my_pkg", tmp_path / "robot-home/robot_ws/src/my_pkg"
     assert report(run("push", "--json", env=e))["ok"]
     (robot / "package.xml").write_text("edited on the robot\n")
@@ -441,17 +431,7 @@ def test_a_new_file_that_vanishes_leaves_nothing(robot, monkeypatch):
     os.geteuid() == 0 and SETPRIV is None, reason="needs setpriv (util-linux) as root"
 )
 def test_an_unreadable_src_itself_is_one_line(tmp_path):
-    make_workspace(tmp_path / "ws")
-    e = dict(
-        os.environ,
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
+    e = local_env(tmp_path)
     (tmp_path / "ws/src").chmod(0)
     try:
         proc = run("push", env=e, unprivileged=True)

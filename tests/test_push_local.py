@@ -10,24 +10,12 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import check_ready, fetchsync, make_workspace, report, tree_of
+from helpers import check_ready, fetchsync, local_env, make_workspace, report, tree_of
 
 
 @pytest.fixture
-def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict:
-    robot_home = tmp_path / "robot-home"
-    e = dict(os.environ)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    make_workspace(tmp_path / "ws")
-    return e
+def env(tmp_path: Path) -> dict:
+    return local_env(tmp_path)
 
 
 def local_src(env: dict) -> Path:

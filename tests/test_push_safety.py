@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, local_env, make_workspace, report, tree_of
 
 from fetchsync.link.connection import Connection
 from fetchsync.link.transport import LocalTransport
@@ -40,18 +40,7 @@ def engine(tmp_path: Path):
 
 @pytest.fixture
 def env(tmp_path: Path) -> dict:
-    e = dict(os.environ)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    make_workspace(tmp_path / "ws")
-    return e
+    return local_env(tmp_path)
 
 
 def local_src(env: dict) -> Path:

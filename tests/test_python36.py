@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, local_env, make_workspace, report, tree_of
 
 PY36 = "/root/.pyenv/versions/3.6.15/bin/python3.6"
 
@@ -24,17 +24,12 @@ def test_push_and_pull_with_a_python_36_endpoint(tmp_path: Path) -> None:
     big = os.urandom(200_000)
     (src / "pkg/big.bin").write_bytes(big)
     (src / "pkg/link").symlink_to("big.bin")
-    env = dict(
-        os.environ,
+    env = local_env(
+        tmp_path,
         FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "rh"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
         FETCHSYNC_REMOTE_WORKSPACE="~/rws",
         FETCHSYNC_REMOTE_PYTHON=PY36,
     )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        env.pop(k, None)
     robot = tmp_path / "rh/rws/src"
     fetchsync("push", env=env)
     assert tree_of(src) == tree_of(robot)

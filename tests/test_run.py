@@ -10,41 +10,17 @@ import subprocess
 import sys
 import time
 import uuid
-from pathlib import Path
 
 import pytest
-from helpers import fetchsync
+from helpers import fetchsync, ssh_env
 from terminal import Terminal
 
 pytestmark = pytest.mark.ssh
 
 
-def _env(home: Path, remote_dir: Path, tmp_path: Path, **extra: str) -> dict[str, str]:
-    e = dict(os.environ)
-    for k in (
-        "FETCH_ROBOT",
-        "FETCH_USER",
-        "ROS_MASTER_URI",
-        "FETCHSYNC_USER",
-        "ROS_DISTRO",
-        "FETCH_WORKSPACE",
-        "FETCH_REMOTE_WORKSPACE",
-    ):
-        e.pop(k, None)
-    e.update(
-        HOME=str(home),
-        FETCHSYNC_ROBOT="robot",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    e.update(extra)
-    return e
-
-
 @pytest.fixture
 def env(ssh_home, remote_dir, tmp_path):
-    return _env(ssh_home.home, remote_dir, tmp_path)
+    return ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False)
 
 
 @pytest.fixture(autouse=True)
@@ -165,13 +141,14 @@ def test_a_lost_robot_is_exit_255_with_a_message(env, ssh_home):
 
 
 def test_the_local_robot_runs_commands_too(tmp_path):
-    env = _env(
+    env = ssh_env(
         tmp_path / "home",
         tmp_path / "unused",
         tmp_path,
         FETCHSYNC_ROBOT="local",
         FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
         FETCHSYNC_REMOTE_WORKSPACE="~/ws",
+        make_ws=False,
     )
     (tmp_path / "robot-home/ws/devel").mkdir(parents=True)
     (tmp_path / "robot-home/ws/devel/setup.bash").write_text("export FROM_WS=yes\n")
@@ -211,7 +188,7 @@ def test_a_killed_fetchsync_leaves_nothing_running(env):
 def test_a_lost_link_is_exit_255_and_leaves_nothing_running(
     proxied_home, fault_proxy, remote_dir, tmp_path
 ):
-    env = _env(proxied_home.home, remote_dir, tmp_path)
+    env = ssh_env(proxied_home.home, remote_dir, tmp_path, make_ws=False)
     marker = _marker()
     proc = _start(["--", "sleep", "300", marker], env)
     try:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from helpers import clean_env
 
 from fetchsync.cli import cli
 
@@ -65,12 +66,7 @@ def env(tmp_path: Path) -> dict[str, str]:
     wrapper = bin_dir / "fetchsync"
     wrapper.write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m fetchsync "$@"\n')
     wrapper.chmod(0o755)
-    keep = {
-        k: v
-        for k, v in os.environ.items()
-        if not k.startswith(("FETCH_", "FETCHSYNC_", "_FETCHSYNC_"))
-        and k not in ("ROS_MASTER_URI", "BASH_ENV", "ENV", "ZDOTDIR")
-    }
+    keep = {k: v for k, v in clean_env().items() if k not in ("BASH_ENV", "ENV", "ZDOTDIR")}
     keep.update(
         PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
         PYTHONPATH=str(REPO),

@@ -211,20 +211,9 @@ def test_list_needs_no_robot():
 
 
 @pytest.fixture
-def snap_env(ssh_home: SSHHome, monkeypatch: pytest.MonkeyPatch) -> SSHHome:
-    for var in (
-        "FETCH_ROBOT",
-        "FETCH_USER",
-        "FETCHSYNC_USER",
-        "ROS_MASTER_URI",
-        "ROS_DISTRO",
-        "FETCHSYNC_WORKSPACE",
-        "FETCH_WORKSPACE",
-        "FETCHSYNC_REMOTE_WORKSPACE",
-        "FETCH_REMOTE_WORKSPACE",
-        "FETCHSYNC_SUDO_PASSWORD",
-    ):
-        monkeypatch.delenv(var, raising=False)
+def snap_env(
+    ssh_home: SSHHome, clean_process_env: None, monkeypatch: pytest.MonkeyPatch
+) -> SSHHome:
     monkeypatch.setenv("FETCHSYNC_ROBOT", "robot")
     return ssh_home
 

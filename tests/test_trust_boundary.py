@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from endpoint_client import ALG, Endpoint
-from helpers import fetchsync, make_workspace, ssh_env
+from helpers import fetchsync, local_env, ssh_env
 
 from fetchsync.protocol import hashing
 from fetchsync.protocol import messages as M
@@ -224,17 +224,7 @@ def test_pushes_through_the_local_robot_never_write_outside_src_under_a_swap_rac
     outside = robot_home / ".ssh"
     outside.mkdir(parents=True)
     (outside / "authorized_keys").write_text("the real key\n")
-    env = dict(
-        os.environ,
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
-        XDG_STATE_HOME=str(tmp_path / "st"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
-        env.pop(k, None)
-    make_workspace(tmp_path / "ws")
+    env = local_env(tmp_path, XDG_STATE_HOME=str(tmp_path / "st"))
     _push_race(env, robot_home / "robot_ws" / "src", outside)
 
 
@@ -254,17 +244,7 @@ def test_a_symlinked_fetchsync_fails_a_push_with_one_line(tmp_path):
     outside.mkdir()
     (robot_home / "robot_ws" / "src").mkdir(parents=True)
     os.symlink(outside, robot_home / "robot_ws" / ".fetchsync")
-    env = dict(
-        os.environ,
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(robot_home),
-        XDG_STATE_HOME=str(tmp_path / "st"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI", "FETCHSYNC_REMOTE_PYTHON"):
-        env.pop(k, None)
-    make_workspace(tmp_path / "ws")
+    env = local_env(tmp_path, XDG_STATE_HOME=str(tmp_path / "st"))
     proc = fetchsync("push", env=env, check=False)
     assert proc.returncode != 0
     err = proc.stderr.decode()

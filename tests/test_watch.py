@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -12,8 +11,9 @@ import tempfile
 import time
 from pathlib import Path
 
+import helpers
 import pytest
-from helpers import fetchsync, make_workspace, tree_of
+from helpers import fetchsync, ssh_env, tree_of
 
 
 def wait_for(cond, timeout=60.0, what="condition"):
@@ -69,51 +69,25 @@ def runtime():
 
 @pytest.fixture
 def local_env(tmp_path: Path, runtime: Path) -> dict:
-    """The agent's environment against the local robot (other test files use it too)."""
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    make_workspace(tmp_path / "ws")
-    return e
+    """The agent's environment against the local robot."""
+    return helpers.local_env(tmp_path, XDG_RUNTIME_DIR=str(runtime))
 
 
 @pytest.fixture(params=["local", pytest.param("sshd", marks=pytest.mark.ssh)])
 def robot_env(request, tmp_path: Path, runtime: Path) -> dict:
     """The agent's environment, against the local robot and against the real sshd."""
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-    )
     if request.param == "local":
-        e.update(
-            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-            FETCHSYNC_ROBOT="local",
-            FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-        )
-    else:
-        home = request.getfixturevalue("ssh_home")
-        remote = tmp_path / "robot-home" / "robot_ws"
-        remote.parent.mkdir()
-        e.update(
-            HOME=str(home.home),
-            FETCHSYNC_ROBOT="robot",
-            FETCHSYNC_REMOTE_WORKSPACE=str(remote),
-            FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        )
-    make_workspace(tmp_path / "ws")
-    return e
+        return helpers.local_env(tmp_path, XDG_RUNTIME_DIR=str(runtime))
+    home = request.getfixturevalue("ssh_home")
+    remote = tmp_path / "robot-home" / "robot_ws"
+    remote.parent.mkdir()
+    return ssh_env(
+        home.home,
+        remote,
+        tmp_path,
+        XDG_RUNTIME_DIR=str(runtime),
+        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
+    )
 
 
 @pytest.fixture
@@ -190,18 +164,7 @@ def test_flush_without_an_agent_pushes(local_env):
 @pytest.mark.slow
 @pytest.mark.ssh
 def test_link_loss_is_survived(proxied_home, fault_proxy, remote_dir, tmp_path, runtime):
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(proxied_home.home),
-        FETCHSYNC_ROBOT="robot",
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    make_workspace(tmp_path / "ws")
+    e = ssh_env(proxied_home.home, remote_dir, tmp_path, XDG_RUNTIME_DIR=str(runtime))
     src, robot = tmp_path / "ws" / "src", remote_dir / "src"
     w = Watch(e, tmp_path / "watch.log")
     try:

@@ -3,7 +3,6 @@ a newer batch cancelling a slow build; and the package mapping and commands it u
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
@@ -14,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from helpers import CATKIN_PACKAGE_XML as PACKAGE_XML
-from helpers import fetchsync
+from helpers import fetchsync, ssh_env
 
 from fetchsync.agent.builder import package_command, packages_of
 
@@ -111,17 +110,7 @@ def test_watch_build_rebuilds_changed_packages_and_a_newer_batch_cancels(
     package(src, "alpha", f"echo built >> {logs}/alpha.log")
     package(src, "beta", f"echo built >> {logs}/beta.log")
     package(src, "slow", f"echo start >> {logs}/slow.log; sleep 5; echo end >> {logs}/slow.log")
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER", "ROS_DISTRO"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(ssh_home.home),
-        FETCHSYNC_ROBOT="robot",
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_WORKSPACE=str(ws),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
+    e = ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False, XDG_RUNTIME_DIR=str(runtime))
     fetchsync("push", env=e)  # the robot holds the sources already: starting builds nothing
     log = tmp_path / "watch.log"
     proc = subprocess.Popen(

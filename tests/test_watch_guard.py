@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, local_env, report, tree_of
 from test_watch import Watch, wait_for
 
 
@@ -16,18 +15,8 @@ from test_watch import Watch, wait_for
 def agent_env(tmp_path: Path):
     runtime = Path(tempfile.mkdtemp(prefix="fsw", dir="/tmp"))  # AF_UNIX paths are short
     runtime.chmod(0o700)
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    src = make_workspace(tmp_path / "ws") / "src"
+    e = local_env(tmp_path, XDG_RUNTIME_DIR=str(runtime))
+    src = tmp_path / "ws" / "src"
     (src / "many").mkdir()
     for i in range(40):
         (src / f"many/f{i}.txt").write_text(f"file {i}\n")

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, tree_of, without_where
+from helpers import clean_env, fetchsync, tree_of, without_where
 
 from fetchsync.chores.workspace_status import (
     DIFFERS,
@@ -30,15 +30,6 @@ GIT_ENV = {
     "GIT_CONFIG_GLOBAL": os.devnull,
     "GIT_CONFIG_NOSYSTEM": "1",
 }
-ROBOT_VARS = (
-    "FETCHSYNC_ROBOT",
-    "FETCH_ROBOT",
-    "ROS_MASTER_URI",
-    "FETCHSYNC_USER",
-    "FETCH_USER",
-    "FETCHSYNC_REMOTE_WORKSPACE",
-    "FETCH_REMOTE_WORKSPACE",
-)
 
 
 def git(cwd: Path, *args: str) -> str:
@@ -92,10 +83,8 @@ def ws(tmp_path: Path) -> Path:
 
 
 def base_env(ws: Path, tmp_path: Path, **extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ROBOT_VARS}
-    env.update(GIT_ENV, FETCHSYNC_WORKSPACE=str(ws), XDG_STATE_HOME=str(tmp_path / "state"))
-    env.update(extra)
-    return env
+    values = {**GIT_ENV, "FETCHSYNC_WORKSPACE": str(ws), "XDG_STATE_HOME": str(tmp_path / "state")}
+    return clean_env(**{**values, **extra})
 
 
 def status(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
