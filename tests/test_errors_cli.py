@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pwd
+import re
 import secrets
 import shutil
 import socket
@@ -40,11 +41,21 @@ KEX_PARAMIKO_LACKS = "sntrup761x25519-sha512@openssh.com"
 
 
 def old_python() -> str | None:
-    """A Python 3 older than 3.6 on this machine (the robot), if there is one."""
+    """A Python older than 3.6 on this machine (the robot), if there is one: a python3.5 or
+    3.4 on PATH, else one that pyenv installed (CI's pyenv has a 2.7, whose answer to the
+    endpoint's version check is the same: too old)."""
     for candidate in ("python3.5", "python3.4"):
         found = shutil.which(candidate)
         if found:
             return found
+    pyenv = shutil.which("pyenv")
+    if pyenv is None:
+        return None
+    versions = Path(pyenv).resolve().parents[1] / "versions"
+    for python in sorted(versions.glob("*/bin/python[23].[0-9]")):
+        m = re.fullmatch(r"python(\d)\.(\d+)", python.name)
+        if m and (int(m.group(1)), int(m.group(2))) < (3, 6) and os.access(python, os.X_OK):
+            return str(python)
     return None
 
 
