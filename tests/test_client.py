@@ -8,13 +8,12 @@ one line and exit 7 at the CLI, never a traceback. Tested against the real endpo
 
 from __future__ import annotations
 
-import os
 import shlex
 import sys
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, tree_of, without_where
+from helpers import fetchsync, local_env, make_workspace, tree_of, without_where
 
 from fetchsync.errors import ProtocolError, RemoteError
 from fetchsync.link import client as C
@@ -223,16 +222,7 @@ main()
 def robot(tmp_path: Path):
     """A workspace on the laptop and one on the ``local`` robot, both synced."""
     ws = make_workspace(tmp_path / "ws")
-    env = dict(os.environ)
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        env.pop(k, None)
-    env.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(ws),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
+    env = local_env(tmp_path)
     fetchsync("push", env=env)  # the honest endpoint
     return env, ws
 

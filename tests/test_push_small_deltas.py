@@ -5,29 +5,17 @@ patched blindly."""
 
 from __future__ import annotations
 
-import os
 import random
 import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, report, tree_of
+from helpers import fetchsync, local_env, report, tree_of
 
 
 @pytest.fixture
 def env(tmp_path: Path) -> dict:
-    e = dict(os.environ)
-    e.update(
-        FETCHSYNC_LOCAL_ROBOT_HOME=str(tmp_path / "robot-home"),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-        FETCHSYNC_ROBOT="local",
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE="~/robot_ws",
-    )
-    for k in ("FETCH_ROBOT", "ROS_MASTER_URI"):
-        e.pop(k, None)
-    make_workspace(tmp_path / "ws")
-    return e
+    return local_env(tmp_path)
 
 
 def source(lines: int, seed: int) -> str:

@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, make_workspace, tree_of
+from helpers import fetchsync, make_workspace, ssh_env, tree_of
 from sshd import find_sshd, make_ssh_home, running_sshd
 
 from fetchsync.link.ssh import sshd_answers
@@ -55,18 +55,7 @@ def runtime() -> Iterator[Path]:
 
 
 def agent_env(home: Path, tmp_path: Path, runtime: Path, remote_dir: Path) -> dict[str, str]:
-    e = dict(os.environ)
-    for k in ("FETCH_ROBOT", "FETCH_USER", "ROS_MASTER_URI", "FETCHSYNC_USER"):
-        e.pop(k, None)
-    e.update(
-        HOME=str(home),
-        FETCHSYNC_ROBOT="robot",
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_WORKSPACE=str(tmp_path / "ws"),
-        FETCHSYNC_REMOTE_WORKSPACE=str(remote_dir),
-        XDG_STATE_HOME=str(tmp_path / "state"),
-    )
-    return e
+    return ssh_env(home, remote_dir, tmp_path, make_ws=False, XDG_RUNTIME_DIR=str(runtime))
 
 
 @contextlib.contextmanager
