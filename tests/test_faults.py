@@ -421,7 +421,10 @@ def test_a_stalled_robot_endpoint_ends_the_call_within_the_deadline(
         fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))
         if via == "master":
             wait_for(lambda: list((runtime / "fetchsync").glob("mux-*.sock")), 20, "a master")
-        bulky_files(local_src(env), count=60)
+        # the local robot has no link to slow it: enough data that the push still runs
+        # when the test stops its endpoint on a busy machine (with 60 files it had
+        # finished before the SIGSTOP once, at load 12)
+        bulky_files(local_src(env), count=60 if via != "local" else 400)
         fault_proxy.throttle(bytes_per_second=300_000)
         proc = start(["push"], env)
         wait_for(lambda: marked(mark), 30, "the robot's endpoint")
