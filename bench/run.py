@@ -891,7 +891,14 @@ def machine_info() -> dict[str, str]:
         paramiko_version = paramiko.__version__
     except ImportError:
         paramiko_version = "?"
-    commit = first_line(["git", "-C", str(REPO), "describe", "--always", "--dirty"])
+    git = subprocess.run(
+        ["git", "-C", str(REPO), "describe", "--always", "--dirty"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    # a tree without git (a `git archive` of a commit) says so rather than git's error
+    commit = git.stdout.strip() if git.returncode == 0 else "no git: commit not known"
     return {
         "load": load_average(),
         "nproc": str(len(os.sched_getaffinity(0))),
