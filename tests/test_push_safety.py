@@ -12,6 +12,8 @@ import shutil
 import stat
 import subprocess
 import sys
+import time
+import types
 from pathlib import Path
 
 import pytest
@@ -359,7 +361,41 @@ def test_deletions_in_quick_succession_count_as_one(engine):
     assert s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15)}).deleted == 15
     for i in range(15, 40):
         (src / f"my_pkg/many/f{i}.txt").unlink()
-    with pytest.raises(sync.MassDeletionError, match="15 of them deleted in the last"):
+    with pytest.raises(
+        sync.MassDeletionError, match="15 of them deleted by the pushes just before"
+    ):
+        s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15, 40)})
+    assert len(list((ws / "src/my_pkg/many").iterdir())) == 25
+
+
+def test_deletions_add_up_however_long_each_push_took(engine, monkeypatch):
+    """A slow link or a busy machine spreads an rm -rf over batches whose pushes take
+    longer than the guard's window: the chain is measured from the end of the last
+    deleting push, so they still add up (the engine's clock is made to run 15 s during
+    the first push, and 2 s between the two)."""
+    s, src, ws = engine
+    many_files(src)
+    assert s.push().errors == []
+    clock = [1000.0]
+    fake = types.SimpleNamespace(
+        **{n: getattr(time, n) for n in dir(time) if not n.startswith("_")}
+    )
+    fake.monotonic = lambda: clock[0]
+    monkeypatch.setattr(sync, "time", fake)
+    real_run = sync.Round.run
+
+    def slow_run(self, *args, **kwargs):
+        clock[0] += 15.0  # the push takes 15 s after its deletions were counted
+        return real_run(self, *args, **kwargs)
+
+    monkeypatch.setattr(sync.Round, "run", slow_run)
+    for i in range(15):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    assert s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15)}).deleted == 15
+    clock[0] += 2.0
+    for i in range(15, 40):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    with pytest.raises(sync.MassDeletionError, match="15 of them deleted by the pushes just"):
         s.push_paths({f"my_pkg/many/f{i}.txt" for i in range(15, 40)})
     assert len(list((ws / "src/my_pkg/many").iterdir())) == 25
 

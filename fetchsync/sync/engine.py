@@ -738,7 +738,9 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
-        self._deleted: list[tuple[float, int]] = []  # (when, files): see _check_deletions
+        self._deleted = 0  # files deleted by the chain of pushes just before: see _check_deletions
+        self._deleted_at = 0.0  # when the last push of that chain ended
+        self._deleting = 0  # files the push under way deletes
 
     @property
     def conn(self) -> Connection:
@@ -961,6 +963,26 @@ class Syncer:
         if self._signed is None:
             self._signed = self.state.signed_paths()
         rnd = Round(self, local, remote, synced, epoch, gen, report, scope=scope, listed=listed)
+        self._deleting = 0
+        try:
+            return self._rounds(
+                rnd, synced, dry_run, progress, scope, scope_paths, confirm_deletions
+            )
+        finally:
+            if self._deleting:  # a chain of deletions goes on from the end of this push
+                self._deleted_at = time.monotonic()
+
+    def _rounds(
+        self,
+        rnd: Round,
+        synced: dict[str, Synced],
+        dry_run: bool,
+        progress: Progress | None,
+        scope: Callable[[str], bool] | None,
+        scope_paths: set[str] | None,
+        confirm_deletions: bool,
+    ) -> bool:
+        """:meth:`_converge`'s rounds: plan, check the deletions, send, settle, commit."""
         for n in range(MAX_ROUNDS):
             planned = rnd.plan()
             if n == 0 and not dry_run:
@@ -980,7 +1002,7 @@ class Syncer:
                 continue
             if not again:
                 break
-        if not dry_run and report.rounds:  # no round: the first plan was empty already
+        if not dry_run and rnd.report.rounds:  # no round: the first plan was empty already
             rnd.check_converged()
         rnd.take_identical(adopt=not dry_run)
         rnd.forget_gone(scope_paths)
@@ -995,20 +1017,22 @@ class Syncer:
         synced: dict[str, Synced],
         *,
         confirmed: bool,
-    ) -> None:
+    ) -> int:
         """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files this
-        Syncer deleted in the last RECENT seconds too: the watch agent sees an
-        ``rm -rf`` as several batches, each of which may be small."""
-        now = time.monotonic()
-        self._deleted = [(t, n) for t, n in self._deleted if now - t < RECENT]
+        Syncer deleted in the chain of pushes just before too: the watch agent sees an
+        ``rm -rf`` as several batches, each of which may be small. A push joins the chain
+        when it starts within RECENT seconds of the end of the chain's last push, however
+        long that push took (a slow link, a busy machine). Returns the files this push
+        deletes."""
+        if time.monotonic() - self._deleted_at >= RECENT:
+            self._deleted = 0
         if confirmed:
-            self._deleted = []
-            return
-        doomed = refuse_mass_deletion(
-            planned, remote, synced, recent=sum(n for _t, n in self._deleted)
-        )
-        if doomed:
-            self._deleted.append((now, doomed))
+            self._deleted = 0
+            return 0
+        doomed = refuse_mass_deletion(planned, remote, synced, recent=self._deleted)
+        self._deleted += doomed
+        self._deleting = doomed
+        return doomed
 
     def _commit(
         self,
@@ -1851,7 +1875,7 @@ def _conflicts_ahead(
 MASS_MIN = (
     20  # deleting more of the robot's files than this, and more than half, needs a confirmation
 )
-RECENT = 10.0  # seconds: deletions this close together count as one
+RECENT = 10.0  # seconds between one deleting push's end and the next's start: one deletion
 
 
 def refuse_mass_deletion(
@@ -1882,7 +1906,7 @@ def refuse_mass_deletion(
         return doomed
     total = max(_files(remote.values()), _files(synced.values())) + recent
     if (doomed + recent) * 2 > total:
-        so_far = f" ({recent} of them deleted in the last {RECENT:.0f} s)" if recent else ""
+        so_far = f" ({recent} of them deleted by the pushes just before)" if recent else ""
         raise MassDeletionError(
             f"this push would delete {doomed + recent} of the robot's {total} "
             f"files{so_far}; nothing more was changed",
