@@ -12,6 +12,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import click
@@ -137,6 +138,28 @@ def _resume_agent(target: Any) -> None:
 
 # What a src/ may hold and still count as empty: catkin's, colcon's and ament's markers
 EMPTY_MARKERS = frozenset({"CATKIN_IGNORE", "COLCON_IGNORE", "AMENT_IGNORE"})
+
+
+def _pushable(src: Path, *, force: bool, whose: str) -> Path:
+    """``src``, if a push may make the robot's src/ like it: it exists (most often a
+    missing one is the wrong workspace) and holds files; with ``force``, made if need be."""
+    from fetchsync.errors import SyncError
+
+    if force:
+        src.mkdir(parents=True, exist_ok=True)
+        return src
+    if not src.is_dir():
+        raise ConfigError(
+            f"{src} does not exist; nothing to push",
+            hint="check --workspace; fetchsync config shows where it came from",
+        )
+    if not _holds_files(src):
+        raise SyncError(
+            f"{src} holds no files (only directories or ignore markers, if "
+            f"anything); pushing it would empty {whose} src/",
+            hint="pass --force if that is what you want",
+        )
+    return src
 
 
 def _holds_files(src: Any) -> bool:
@@ -401,7 +424,6 @@ def push(
     With --build or --install-deps, then builds on the robot.
     Several robots (--robot a,b or @group) are pushed in parallel; a table ends it.
     """
-    from fetchsync.errors import ConfigError, SyncError
     from fetchsync.link.session import connect
     from fetchsync.protocol.ignore import build_rules
 
@@ -426,22 +448,7 @@ def push(
             )
         )
     target = _resolve(robot, user, workspace, remote_workspace)
-    src = target.workspace / "src"
-    if not force:
-        if not src.is_dir():
-            # most often the wrong workspace: --force would empty the robot's src/
-            raise ConfigError(
-                f"{src} does not exist; nothing to push",
-                hint="check --workspace; fetchsync config shows where it came from",
-            )
-        if not _holds_files(src):
-            raise SyncError(
-                f"{src} holds no files (only directories or ignore markers, if "
-                "anything); pushing it would empty the robot's src/",
-                hint="pass --force if that is what you want",
-            )
-    else:
-        src.mkdir(parents=True, exist_ok=True)
+    src = _pushable(target.workspace / "src", force=force, whose="the robot's")
     say_where("push", target, local=src, remote=target.remote_workspace + "/src")
     rules = build_rules(excludes)
     # a running watch agent for this robot and workspace already holds the
@@ -613,28 +620,13 @@ def _fleet_push(
     from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, quiet, run_all
     from fetchsync.config import resolve_workspace
     from fetchsync.console import printable
-    from fetchsync.errors import SyncError
     from fetchsync.link.connection import Connection, remote_python
     from fetchsync.link.session import open_transport
     from fetchsync.protocol.ignore import build_rules
     from fetchsync.sync.engine import Syncer, raise_for, scan_tree
     from fetchsync.sync.state import open_state
 
-    src = resolve_workspace(workspace) / "src"
-    if not force:
-        if not src.is_dir():
-            raise ConfigError(
-                f"{src} does not exist; nothing to push",
-                hint="check --workspace; fetchsync config shows where it came from",
-            )
-        if not _holds_files(src):
-            raise SyncError(
-                f"{src} holds no files (only directories or ignore markers, if "
-                "anything); pushing it would empty the robots' src/",
-                hint="pass --force if that is what you want",
-            )
-    else:
-        src.mkdir(parents=True, exist_ok=True)
+    src = _pushable(resolve_workspace(workspace) / "src", force=force, whose="the robots'")
     rules = build_rules(tuple(excludes))
     scanned = scan_tree(str(src), rules)  # once for all robots: it is only read
     asking = question_lock()
