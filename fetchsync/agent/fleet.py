@@ -14,7 +14,6 @@ without ``--robot`` find every robot of the watch running on this workspace.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import os
 import threading
@@ -23,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from fetchsync.agent.control import ControlServer
-from fetchsync.agent.service import Agent
+from fetchsync.agent.service import Agent, take_lock
 from fetchsync.errors import UsageError
 
 STOP_JOIN = 3.0  # seconds to wait for each robot's agent to wind down (its own joins take 2)
@@ -72,18 +71,13 @@ class FleetWatch:
     def acquire(self) -> None:
         """Take the fleet's lock for ``src`` and each robot's agent lock, or none of them."""
         lock, sock = fleet_paths(self.src)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            try:
-                owner = os.read(fd, 200).decode("utf-8", "replace").strip()
-            finally:
-                os.close(fd)
-            raise UsageError(
-                f"a fleet watch of {self.src} is already running ({owner or 'pid unknown'})",
+        fd = take_lock(
+            lock,
+            lambda owner: UsageError(
+                f"a fleet watch of {self.src} is already running ({owner})",
                 hint="stop it first, or use fetchsync status / flush",
-            ) from None
+            ),
+        )
         taken: list[Agent] = []
         try:
             for agent in self.agents:
@@ -94,8 +88,6 @@ class FleetWatch:
                 agent.release()
             os.close(fd)
             raise
-        os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()}".encode())
         self._lock_fd = fd
         self.socket_path = sock
 

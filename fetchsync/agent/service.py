@@ -110,6 +110,23 @@ class Pending:
         return len(self.paths) + len(self.dirs) + (1 if self.full else 0)
 
 
+def take_lock(path: Path, busy: Callable[[str], Exception]) -> int:
+    """A descriptor holding ``path``'s exclusive lock, our pid written in it; when another
+    process holds it, ``busy(what it wrote)`` is raised (one watch per target or workspace)."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        try:
+            owner = os.read(fd, 200).decode("utf-8", "replace").strip()
+        finally:
+            os.close(fd)
+        raise busy(owner or "pid unknown") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"pid {os.getpid()}".encode())
+    return fd
+
+
 class Agent:
     def __init__(
         self,
@@ -176,22 +193,14 @@ class Agent:
     def acquire(self) -> None:
         """Take the one-agent-per-target lock, or say where the running one is."""
         lock, sock = agent_paths(self.target)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            try:
-                owner = os.read(fd, 200).decode("utf-8", "replace").strip()
-            finally:
-                os.close(fd)
-            raise UsageError(
+        self._lock_fd = take_lock(
+            lock,
+            lambda owner: UsageError(
                 f"an agent is already watching {self.src} for {self.target.robot} "
-                f"({owner or 'pid unknown'}; socket {sock})",
+                f"({owner}; socket {sock})",
                 hint="stop it first, or use fetchsync status / flush",
-            ) from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()}".encode())
-        self._lock_fd = fd
+            ),
+        )
         self.socket_path = sock
 
     def release(self) -> None:
