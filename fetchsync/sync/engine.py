@@ -522,6 +522,18 @@ SAMPLE_FROM = 64 * 1024  # smaller files are assumed compressible: testing costs
 # while for a whole tree it would take longer than the bytes it saves take on Wi-Fi.
 # bench/history.py --link wifi --baseline-rev: 15 commits of rclcpp 34.0 -> 32.7 KiB.
 SMALL_BATCH = 64 * 1024
+# Larger batches get level 6 too while the link is slower than zlib 6 can feed it, and
+# then also files a sample shows shrink by only 3% or more (meshes, recordings: rsync -z
+# compresses them too): on Wi-Fi the link, not zlib, is the bottleneck. Once the robot's
+# answers show the link taking raw bytes faster than half the rate zlib 6 runs at here,
+# ISA-L's level 1 and the 85% rule take over (a fast link, loopback). The first batch of
+# a push is 1 MiB, so a fast link pays at most ~40 ms before that is seen.
+# bench/acct.py (the bench's 300-file, 5 MiB tree, fetchsync's frames without SSH): an
+# initial push 2,861,240 -> 2,583,851 bytes (-9.7%; rsync -z sent 2.4 MiB with SSH at
+# c5f7845, fetchsync 2.7 MiB); the 2 MiB generated source alone 429 -> 332 KB.
+SLOW_WORTH = 0.97
+FAST_SHARE = 0.5  # the link is fast from this share of zlib 6's own rate up
+ZLIB6_RATE = 25e6  # raw bytes/CPU-second of zlib 6 until this push has measured its own
 
 
 class _Batcher:
@@ -564,12 +576,23 @@ class _Batcher:
         self._mark: tuple[int, int] = (-1, -1)
         self.last: Applied | None = None
         self.stale = False
+        # the link's speed, as the sender thread sees the robot's answers come back
+        self.slow = True  # until shown otherwise: the links robots live on are
+        self._inflight: list[tuple[Pending[Applied], int]] = []  # (answer, raw bytes)
+        self._first_sent = 0.0
+        self._answered_raw = 0
+        self._z6 = [0, 0.0]  # raw bytes compressed at level 6 in large batches, CPU seconds
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None) -> None:
         z = (
             bool(data)
             and self.conn.compress
-            and (len(data) < SAMPLE_FROM or wire.compressible(data))
+            and (
+                len(data) < SAMPLE_FROM
+                or wire.compressible(
+                    data, worth=SLOW_WORTH if self.slow else wire.WORTH_COMPRESSING
+                )
+            )
         )
         self.items.append((op, data, z))
         self.tags.append(tag)
@@ -646,16 +669,24 @@ class _Batcher:
         # one zlib stream over the compressible parts, made without joining them
         zparts: list[bytes] = []
         if packed:
-            deflate = zlib.compressobj(6) if zpos <= SMALL_BATCH else _deflate.compressobj(1)
+            self._measure_link()
+            level6 = zpos <= SMALL_BATCH or self.slow
+            cpu = time.thread_time()
+            deflate = zlib.compressobj(6) if level6 else _deflate.compressobj(1)
             zparts = [deflate.compress(data) for data in packed]
             zparts.append(deflate.flush())
             del packed
+            if level6 and zpos > SMALL_BATCH:
+                self._z6[0] += zpos
+                self._z6[1] += time.thread_time() - cpu
         progress, base = self.progress, self.done
 
         def sent(k: int, n: int) -> None:  # the batch's share of the total, as its frame goes out
             if progress is not None:
                 progress(base + nbytes * k // max(n, 1), self.total)
 
+        if not self._first_sent:
+            self._first_sent = time.monotonic()
         pending = self.endpoint.send_sync(
             ops,
             policy=self.policy,
@@ -666,7 +697,27 @@ class _Batcher:
             sent=sent,
         )
         self.sent.append((pending, tags))
+        self._inflight.append((pending, nbytes))
         self.done += nbytes
+
+    def _measure_link(self) -> None:
+        """Decide ``slow`` from the raw bytes the robot has answered for per second since
+        the first batch went out (its apply time included: a robot that writes slower
+        than zlib 6 compresses makes level 6 free too), against zlib 6's rate here."""
+        now = time.monotonic()
+        still = []
+        for pending, nbytes in self._inflight:
+            if pending.answered():
+                self._answered_raw += nbytes
+            else:
+                still.append((pending, nbytes))
+        self._inflight = still
+        if not self._answered_raw or now <= self._first_sent:
+            return
+        rate = self._answered_raw / (now - self._first_sent)
+        zbytes, zcpu = self._z6
+        zlib6 = zbytes / zcpu if zcpu > 0.005 else ZLIB6_RATE
+        self.slow = rate < FAST_SHARE * zlib6
 
     def _drain(self) -> None:
         if self._sender is not None:

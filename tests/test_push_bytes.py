@@ -1,0 +1,108 @@
+"""What a push puts on the wire: the compression level chosen from the link, and the
+bytes of a small edit (over the local robot: the protocol without SSH)."""
+
+from __future__ import annotations
+
+import random
+import zlib
+from pathlib import Path
+from typing import Any
+
+import pytest
+from helpers import tree_of
+
+from fetchsync.link.connection import Connection
+from fetchsync.link.transport import LocalTransport
+from fetchsync.protocol import messages as M
+from fetchsync.sync import engine as sync
+from fetchsync.sync.state import State
+
+
+def _mesh_like(n: int, seed: int) -> bytes:
+    """Binary data zlib shrinks by ~10% only (like an STL mesh): above the 85% rule."""
+    rng = random.Random(seed)
+    return b"".join(rng.randbytes(5) + b"\x00" for _ in range(n // 6))
+
+
+@pytest.fixture
+def push_env(tmp_path: Path):
+    src = tmp_path / "ws" / "src"
+    src.mkdir(parents=True)
+    conns: list[Any] = []
+
+    def syncer() -> sync.Syncer:
+        conn = Connection.open(LocalTransport(tmp_path / "robot-home"))
+        conns.append(conn)
+        return sync.Syncer(
+            conn,
+            State(tmp_path / "state.sqlite"),
+            local_root=str(src),
+            remote_workspace="~/ws",
+            rules=sync.build_rules(),
+        )
+
+    yield src, tmp_path / "robot-home" / "ws" / "src", syncer
+    for c in conns:
+        c.close()
+
+
+def test_a_slow_link_gets_level_6_and_slightly_compressible_files_compressed(push_env):
+    """Until the robot's answers show a fast link, a batch is deflated at zlib's level 6
+    and files that shrink by only ~10% (meshes, recordings) are compressed too, as rsync
+    -z does: on Wi-Fi the link, not zlib, is the bottleneck."""
+    src, robot_src, syncer = push_env
+    mesh = _mesh_like(300 * 1024, 1)
+    assert 0.85 < len(zlib.compress(mesh, 1)) / len(mesh) < 0.97
+    (src / "mesh.stl").write_bytes(mesh)
+    text = b"".join(b"int value_%d = compute(%d, %d);\n" % (i, i * 7, i % 13) for i in range(20000))
+    (src / "table.cpp").write_bytes(text)
+    report = syncer().push()
+    assert report.errors == [] and tree_of(src) == tree_of(robot_src)
+    # level 1 or a raw mesh would need more than this
+    assert report.bytes_sent < len(zlib.compress(mesh, 6)) + len(zlib.compress(text, 6)) + 4096
+    assert report.bytes_sent < len(mesh) + len(zlib.compress(text, 1))
+
+
+class _Answered:
+    def answered(self) -> bool:
+        return True
+
+
+class _FastEndpoint:
+    """An endpoint whose answers are all in at once: a link faster than zlib 6."""
+
+    class conn:  # noqa: N801 - stands for the Connection attribute
+        compress = True
+        bytes_in = bytes_out = 0
+
+    def __init__(self) -> None:
+        self.levels: list[bool] = []
+
+    def send_sync(self, ops: Any, **kw: Any) -> _Answered:
+        self.zparts = kw["blob_parts"]
+        return _Answered()
+
+
+def test_a_fast_link_is_seen_and_gets_the_fast_level(monkeypatch):
+    """Once the robot has answered for raw bytes faster than half zlib 6's own rate
+    here, large batches are deflated at level 1 and the 85% rule is back."""
+    endpoint = _FastEndpoint()
+    batcher = sync._Batcher(
+        endpoint,  # type: ignore[arg-type]
+        policy="preserve",
+        epoch="e",
+        gen=0,
+        progress=None,
+        total=0,
+    )
+    assert batcher.slow
+    monkeypatch.setattr(sync, "ZLIB6_RATE", 1.0)  # any measured rate is "fast" against it
+    data = b"".join(b"line %d of a source file\n" % i for i in range(60000))
+    op = M.Op(M.WRITE, "a", expect=M.ABSENT, hash="00", size=len(data), source=M.SRC_DATA)
+    batcher._send(0, [(op, data, True)], [None])
+    assert batcher.slow  # nothing answered before the first batch went out
+    batcher._send(1, [(op.but(path="b"), data, True)], [None])
+    assert not batcher.slow
+    fast = zlib.decompressobj().decompress(b"".join(endpoint.zparts))
+    assert fast == data
+    assert len(b"".join(endpoint.zparts)) > len(zlib.compress(data, 6))  # level 1's size
