@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 
 from fetchsync.agent.coalescer import (
+    CLOSED,
     CREATED,
     DELETED,
     MODIFIED,
@@ -114,6 +115,68 @@ def test_the_cap_bounds_the_latency_of_a_continuous_stream() -> None:
     batch = c.take(11.0)
     assert batch is not None
     assert len(batch.paths) == 8 and (batch.first_at, batch.last_at) == (10.0, 10.875)
+
+
+def test_an_existing_file_written_and_closed_is_due_at_once() -> None:
+    c = make()
+    feed(c, (10.0, f("a")), (10.0, f("a", CLOSED)))  # open(O_TRUNC), write, close
+    assert c.due(10.0) == 0.0
+    batch = c.take(10.0)
+    assert batch is not None and batch.paths == {"a"}
+
+
+def test_vims_save_by_rename_is_due_at_its_close() -> None:
+    # the file moved to its backup (ignored, never reported), written anew, closed
+    c = make()
+    feed(c, (10.0, f("a", MOVED)), (10.0, f("a", CREATED)), (10.0, f("a", CLOSED)))
+    assert c.due(10.0) == 0.0
+    assert c.take(10.0) == Batch(frozenset({"a"}), frozenset(), None, 10.0, 10.0, 3)
+
+
+def test_a_file_created_in_the_batch_waits_for_the_quiet_window_when_closed() -> None:
+    # an editor's temporary, about to be renamed over the file
+    c = make()
+    feed(c, (10.0, f("a.tmp", CREATED)), (10.0, f("a.tmp", CLOSED)))
+    assert c.due(10.0) == QUIET
+    c.add(f("a.tmp", MOVED), 10.0625)
+    c.add(f("a", CREATED), 10.0625)
+    batch = c.take(10.3125)
+    assert batch is not None and batch.paths == {"a"}
+
+
+def test_an_item_after_the_close_brings_the_quiet_window_back() -> None:
+    c = make()
+    feed(c, (10.0, f("a", CLOSED)), (10.0, f("b", DELETED)))
+    assert c.due(10.0) == QUIET
+    feed(c, (10.0, f("c", CLOSED)), (10.0, f("c")))  # written again after its close
+    assert c.due(10.0) == QUIET
+
+
+def test_a_file_deleted_then_written_waits_for_the_quiet_window() -> None:
+    # git checkout rewrites a file by unlinking and creating it: a burst, not a save
+    c = make()
+    feed(c, (10.0, f("a", DELETED)), (10.0, f("a", CREATED)), (10.0, f("a", CLOSED)))
+    assert c.due(10.0) == QUIET
+
+
+def test_a_save_right_after_the_last_batch_waits_for_the_quiet_window() -> None:
+    # a formatter rewriting file after file, a checkout cut by the cap or a stall: the
+    # first save goes at once, the stream after it coalesces
+    c = Coalescer(quiet=0.25, cap=4.0, burst=64, burst_quiet=0.5)
+    feed(c, (10.0, f("a")), (10.0, f("a", CLOSED)))
+    assert c.take(10.0) is not None
+    feed(c, (10.125, f("b")), (10.125, f("b", CLOSED)))
+    assert c.due(10.125) == 0.25
+    assert c.take(10.375) is not None
+    feed(c, (12.0, f("c", CLOSED)))  # long after: a save again
+    assert c.due(12.0) == 0.0
+
+
+def test_a_close_inside_a_burst_does_not_end_it() -> None:
+    c = Coalescer(quiet=0.25, cap=4.0, burst=4, burst_quiet=0.5)
+    feed(c, *[(10.0, f(f"p{k}")) for k in range(4)])
+    c.add(f("p0", CLOSED), 10.0)
+    assert c.due(10.0) == 0.5
 
 
 def test_a_burst_widens_the_quiet_window() -> None:

@@ -36,7 +36,7 @@ from typing import Callable, Iterator
 
 import pytest
 
-from fetchsync.agent.coalescer import Batch, Change, Coalescer, Item, Rescan
+from fetchsync.agent.coalescer import CLOSED, Batch, Change, Coalescer, Item, Rescan
 from fetchsync.agent.watcher import IgnoreFilter, Watcher, batches
 from fetchsync.protocol.ignore import IgnoreRules
 
@@ -165,6 +165,27 @@ def test_write_in_place(src: Path, feed: Feed) -> None:
     (src / "pkg" / "node.cpp").write_text("int main() { return 1; }\n")
     feed.wait_path("pkg/node.cpp", since=m)
     assert only(feed, m) == {"pkg/node.cpp"}
+
+
+def test_a_save_in_place_is_reported_closed(src: Path) -> None:
+    """The close after a write (IN_CLOSE_WRITE) reaches the coalescer as ``closed``: the
+    event that ends a save's batch without waiting for the quiet window."""
+    got: list[Item] = []
+    cond = threading.Condition()
+
+    def sink(item: Item, _at: float) -> None:
+        with cond:
+            got.append(item)
+            cond.notify_all()
+
+    w = Watcher(str(src), sink=sink)
+    w.start()
+    try:
+        (src / "pkg" / "node.cpp").write_text("int main() { return 5; }\n")
+        with cond:
+            assert cond.wait_for(lambda: Change("pkg/node.cpp", CLOSED) in got, timeout=WAIT), got
+    finally:
+        w.stop()
 
 
 def test_new_file(src: Path, feed: Feed) -> None:

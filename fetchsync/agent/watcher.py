@@ -72,6 +72,7 @@ from typing import Any, Callable, Generator
 
 from fetchsync.agent.coalescer import (
     CAP,
+    CLOSED,
     CREATED,
     DELETED,
     MAX_PATHS,
@@ -337,7 +338,7 @@ _EVENT_FILTER = (
 _KIND = {
     "created": CREATED,
     "modified": MODIFIED,
-    "closed": MODIFIED,
+    "closed": CLOSED,
     "attrib": MODIFIED,
     "deleted": DELETED,
 }
