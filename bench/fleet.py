@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -52,6 +53,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
         sys.path.insert(0, _p)
 
 from countproxy import LINKS, Counter, proxy_command, set_link_state
+from robot import RobotSide, add_robot_user_option
 from run import robot_python
 from sshd import SSHD, running_sshd
 from workspace import generate
@@ -63,8 +65,12 @@ CONNECT_TIMEOUT = 10  # the ssh config's ConnectTimeout: how long a blackholed r
 class Fleet:
     """N robots (sshd + link each), one laptop HOME whose ssh config names them r01..rNN."""
 
-    def __init__(self, *, workdir: Path, sshds: list[SSHD], link: str, ws_root: Path) -> None:
+    def __init__(
+        self, *, workdir: Path, sshds: list[SSHD], link: str, ws_root: Path, side: RobotSide
+    ) -> None:
         self.workdir = workdir
+        self.side = side
+        self.robot_dir = side.mkdir(side.root / "robots" / link)
         self.sshds = sshds
         self.link = link
         self.ws_root = ws_root
@@ -112,7 +118,7 @@ class Fleet:
         return self.workdir / "wire" / self.link / name
 
     def remote(self, name: str) -> Path:
-        return self.workdir / "robots" / name
+        return self.robot_dir / name
 
     def counters(self) -> dict[str, Counter]:
         return {n: Counter(self.wire(n)) for n in self.names}
@@ -121,7 +127,7 @@ class Fleet:
         """Empty every robot's workspace and forget every last-synced state."""
         for n in self.names:
             shutil.rmtree(self.remote(n), ignore_errors=True)
-            self.remote(n).mkdir(parents=True)
+            self.side.mkdir(self.remote(n))
         self.state += 1
 
     def env(self) -> dict[str, str]:
@@ -139,7 +145,7 @@ class Fleet:
             XDG_STATE_HOME=str(self.workdir / f"state-{self.state}"),
             XDG_CACHE_HOME=str(self.workdir / "laptop-cache"),
             XDG_RUNTIME_DIR=str(self.workdir / "run"),
-            FETCHSYNC_REMOTE_PYTHON=robot_python(self.workdir / "robot-cache"),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.robot_dir / "robot-cache"),
         )
         (self.workdir / "run").mkdir(mode=0o700, exist_ok=True)
         return env
@@ -291,7 +297,8 @@ def report(data: dict[str, Any]) -> str:
         f"Fleet push: {p['robots']} robots (one sshd and one {p['link']} link each), "
         f"-j {p['jobs']}, a workspace of {data['workspace']['files']} files, "
         f"{data['workspace']['bytes'] / 2**20:.1f} MiB; {data['machine']['cpus']} CPUs, "
-        f"load {data['machine']['load']:.1f} at the start.",
+        f"load {data['machine']['load']:.1f} at the start; the robots log in as "
+        f"{data.get('robot_user', '?')}.",
         "",
         "| scenario | link | slowest single push | median single | sum of singles | fleet push "
         "| fleet / slowest | target | bytes per robot, fleet / single (min-max) |",
@@ -349,6 +356,7 @@ def main() -> int:
     ap.add_argument("--no-loopback", action="store_true", help="skip the unshaped fleet figure")
     ap.add_argument("--no-down", action="store_true", help="skip the two-robots-down push")
     ap.add_argument("--quick", action="store_true", help="the initial push only (a smoke test)")
+    add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     args = ap.parse_args()
@@ -375,16 +383,21 @@ def main() -> int:
         "scenarios": [],
     }
     with contextlib.ExitStack() as stack:
-        sshds = [
-            stack.enter_context(running_sshd(workdir / "sshd" / f"{i:02d}"))
-            for i in range(args.robots)
-        ]
+        side = RobotSide.make(args.robot_user, workdir)
+        stack.callback(side.close)
+        log(f"robots: account {side.user}, their side in {side.root}")
+        sshds = []
+        for i in range(args.robots):
+            sshd = stack.enter_context(running_sshd(side.sshd_dir(f"sshd-{i:02d}")))
+            side.opened(sshd.workdir)
+            sshds.append(dataclasses.replace(sshd, user=side.user))
+        data["robot_user"] = side.user
         log(f"{len(sshds)} sshds up; workspace {ws.files} files, {ws.bytes / 2**20:.1f} MiB")
         links = [args.link] + ([] if args.no_loopback else ["loopback"])
         fleets = {}
         for link in links:
             fleet = fleets[link] = Fleet(
-                workdir=workdir / link, sshds=sshds, link=link, ws_root=ws.root
+                workdir=workdir / link, sshds=sshds, link=link, ws_root=ws.root, side=side
             )
             fleet.reset()
             _check(fleet.push(fleet.names[:1], jobs=1), "warm-up push")  # the endpoint cache

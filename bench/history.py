@@ -34,6 +34,7 @@ step's own ratio. ``--link`` and ``--baseline-rev`` are run.py's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import re
@@ -49,6 +50,7 @@ if str(BENCH) not in sys.path:
     sys.path.insert(0, str(BENCH))
 
 from countproxy import LINKS
+from robot import add_robot_user_option
 from run import (
     Bench,
     FetchsyncPush,
@@ -62,8 +64,8 @@ from run import (
     link_line,
     load_average,
     machine_info,
+    start_robot,
 )
-from sshd import running_sshd
 from workspace import Workspace
 
 BUNDLE = Path("/work/shared/data/rclcpp.bundle")
@@ -165,6 +167,7 @@ class History:
 
     def run(self, commits: list[str], switches: list[tuple[str, str]], noops: int) -> None:
         self.repo.checkout(commits[0])
+        self.bench.probe_robot()
         for tool in self.bench.tools:
             tool.reset()
         self.push_all("initial", 0, commits[0][:10])
@@ -305,6 +308,8 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
         "",
         link_line(bench.link),
         "",
+        bench.side.describe(bench.robot) if bench.robot else "Robot: not probed.",
+        "",
         f"Load average: {machine.get('load', '?')} at the start, {load_average()} at the end.",
         "",
     ]
@@ -353,6 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--link", choices=sorted(LINKS), default="loopback", help="as run.py's")
     ap.add_argument("--baseline-rev", metavar="REV", help="as run.py's: an A/B of two fetchsyncs")
+    add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
@@ -404,10 +410,17 @@ def main(argv: list[str] | None = None) -> int:
             settle=0.0,
             link=a.link,
         )
-        with running_sshd(workdir / "sshd") as sshd:
+        with contextlib.ExitStack() as stack:
+            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
             baseline = baseline_checkout(a.baseline_rev, workdir) if a.baseline_rev else None
             bench = Bench(
-                workdir=workdir, ws=ws, sshd=sshd, params=params, log=log, baseline=baseline
+                workdir=workdir,
+                ws=ws,
+                sshd=sshd,
+                params=params,
+                log=log,
+                baseline=baseline,
+                side=side,
             )
             hist = History(bench, repo, log)
             try:
@@ -436,6 +449,7 @@ def main(argv: list[str] | None = None) -> int:
                             if t != "fetchsync"
                         },
                         "failures": bench.failures,
+                        "robot": bench.robot,
                         "verified": hist.verified_ok(),
                     },
                     indent=1,

@@ -60,6 +60,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
         sys.path.insert(0, _p)
 
 from countproxy import LINKS, Counter, Link, proxy_command
+from robot import RobotSide, add_robot_user_option
 from sshd import SSHD, make_ssh_home, running_sshd
 from workspace import Workspace, generate
 
@@ -186,10 +187,10 @@ def wait_quiet(
 def robot_python(cache: Path) -> str:
     """The robot's Python for a fetchsync of this run, with a cache of its own there.
 
-    The robot is this machine, logged in as root, so its endpoint's cache would
-    be /root/.cache/fetchsync: shared with every test suite running here (some
-    damage it on purpose) and, in an A/B run, with the other version. ``env``
-    costs the robot one exec a connection."""
+    The robot's account is shared by every run (and, for root, with every test
+    suite running here, some of which damage its cache on purpose) and, in an A/B
+    run, by the other version: its own cache makes each run's first push ship the
+    endpoint as to a new robot. ``env`` costs the robot one exec a connection."""
     return shlex.join(["env", f"XDG_CACHE_HOME={cache}", "python3"])
 
 
@@ -218,7 +219,7 @@ class Tool:
         if self.remote.exists():
             self.bench.graveyard.mkdir(exist_ok=True)
             self.remote.rename(self.bench.graveyard / f"{self.name}-{time.monotonic_ns()}")
-        self.remote.mkdir(parents=True)
+        self.bench.side.mkdir(self.remote)  # the robot account's, as on a robot
 
     def command(self) -> tuple[list[str], dict[str, str]]:
         raise NotImplementedError
@@ -313,9 +314,7 @@ class FetchsyncPush(Tool):
             XDG_STATE_HOME=str(self.state_home),
             XDG_CACHE_HOME=str(self.bench.workdir / f"{self.name}-cache"),
             PYTHONPATH=str(self.checkout),
-            FETCHSYNC_REMOTE_PYTHON=robot_python(
-                self.bench.workdir / "robot" / f"{self.name}-cache"
-            ),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.robot_dir / f"{self.name}-cache"),
         )
         if self.runtime:
             env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / self.runtime)
@@ -447,11 +446,15 @@ class Bench:
         log: Callable[[str], None],
         baseline: tuple[str, Path] | list[tuple[str, Path]] | None = None,
         measured: tuple[str, Path] | None = None,
+        side: RobotSide | None = None,
     ) -> None:
         """``baseline``: (a short name of its revision, its source tree), or a list of
         them: other fetchsyncs pushed side by side with this one (an A/B run; several
         measure a series of commits in the same rounds). ``measured``: the same for the
-        fetchsync measured, when it is not this checkout (``--rev``)."""
+        fetchsync measured, when it is not this checkout (``--rev``). ``side``: the
+        robot's account and where its trees go (default: the current user, in
+        ``workdir``)."""
+        self.side = side or RobotSide.make(sshd.user, workdir)
         self.workdir = workdir
         self.ws = ws
         self.sshd = sshd
@@ -462,7 +465,9 @@ class Bench:
         # fetchsync's connection masters listen here: a directory of this run only
         # (short, for the unix socket path limit), so they are ours to stop
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="fsbench-run-"))
-        self.graveyard = workdir / "graveyard"  # trees replaced by a reset, deleted at the end
+        # trees replaced by a reset, deleted at the end (beside them: a rename)
+        self.graveyard = self.side.root / "graveyard"
+        self.robot_dir = self.side.mkdir(self.side.root / "robot")
         self.ssh_config = self.home.config
         self.link: Link | None = LINKS[params.link]
         proxy = proxy_command(sshd.host, sshd.port, self.counter.dir, self.link)
@@ -471,7 +476,7 @@ class Bench:
                 f"\nHost {ALIAS}\n"
                 f"    HostName {sshd.host}\n"
                 f"    Port {sshd.port}\n"
-                f"    User {sshd.user}\n"
+                f"    User {self.side.user}\n"
                 f"    IdentityFile {self.home.identity}\n"
                 f"    IdentitiesOnly yes\n"
                 f"    UserKnownHostsFile {self.home.known_hosts}\n"
@@ -480,7 +485,7 @@ class Bench:
                 f"    UpdateHostKeys no\n"
                 f"    ProxyCommand {proxy}\n"
             )
-        robot = workdir / "robot"
+        robot = self.robot_dir
         self.measured_rev = measured[0] if measured else None
         self.tools: list[Tool] = [
             FetchsyncPush(
@@ -518,6 +523,8 @@ class Bench:
         self.failures: list[dict[str, Any]] = []
         self.startup: dict[str, float] = {}  # see measure_startup
         self.allocator: dict[str, float] | None = None  # see settle_allocator
+        self.robot: dict[str, object] = {}  # see RobotSide.probe
+        self.owners: dict[str, list[str]] = {}  # who owns each tool's robot tree at the end
         self.verified: dict[str, dict[str, list[str]]] = {}
         self.repairs: dict[str, dict[str, dict[str, Any]]] = {}
 
@@ -674,9 +681,8 @@ class Bench:
 
     def run(self) -> None:
         p = self.params
-        self.allocator = settle_allocator(
-            self.workdir / "robot", self.graveyard, self.log, wait=p.settle
-        )
+        self.allocator = settle_allocator(self.robot_dir, self.graveyard, self.log, wait=p.settle)
+        self.probe_robot()
         for tool in self.tools:
             tool.reset()
 
@@ -689,6 +695,14 @@ class Bench:
         self.run_scenario("insert", p.reps_small, before=self.edits.insert_top)
         self.run_scenario("rename", p.reps_small, before=self.edits.rename)
         self.measure_startup(p.reps_small)
+        self.owners = {t.name: self.side.owners(t.remote_src) for t in self.tools}
+
+    def probe_robot(self) -> None:
+        """The robot's account, python3 and the time of ``ssh robot true`` (for the report)."""
+        ssh = ["ssh", "-F", str(self.ssh_config), "-o", "BatchMode=yes", ALIAS]
+        self.robot = self.side.probe(ssh)
+        self.counter.settle(live=0)
+        self.log("  " + self.side.describe(self.robot))
 
     def measure_startup(self, reps: int) -> None:
         """The wall time of ``fetchsync --version`` per fetchsync tool (median of ``reps``):
@@ -1076,6 +1090,8 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
         "",
         link_line(bench.link),
         "",
+        bench.side.describe(bench.robot) if bench.robot else "Robot: not probed.",
+        "",
         f"Load average: {machine.get('load', '?')} at the start, {load_average()} at the end.",
         "",
         _allocator_line(bench.allocator),
@@ -1316,6 +1332,26 @@ def baseline_checkout(rev: str, workdir: Path) -> tuple[str, Path]:
     return short, dest
 
 
+def start_robot(
+    stack: contextlib.ExitStack,
+    user: str | None,
+    workdir: Path,
+    *,
+    keep: bool = False,
+    log: Callable[[str], None],
+    name: str = "sshd",
+) -> tuple[RobotSide, SSHD]:
+    """The robot: its account (``--robot-user``; see bench/robot.py), where its side
+    lives, and the tests' sshd started for it, whose ``user`` is that account. Both
+    end with ``stack``."""
+    side = RobotSide.make(user, workdir, keep=keep)
+    stack.callback(side.close)
+    log(f"robot: account {side.user}, its side in {side.root}")
+    sshd = stack.enter_context(running_sshd(side.sshd_dir(name)))
+    side.opened(sshd.workdir)
+    return side, dataclasses.replace(sshd, user=side.user)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description="fetchsync push vs rsync over the same sshd, as ratios."
@@ -1365,6 +1401,7 @@ def main(argv: list[str] | None = None) -> int:
         help="also push with the fetchsync of git revision REV, side by side (an A/B run); "
         "repeated, oldest first: a series of commits, each against the one before it",
     )
+    add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--profile", action="store_true", help="also profile a no-op fetchsync push")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
@@ -1398,7 +1435,8 @@ def main(argv: list[str] | None = None) -> int:
             "generate_seconds": round(ws.seconds, 3),
         }
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB in {ws.seconds:.1f} s")
-        with running_sshd(workdir / "sshd") as sshd:
+        with contextlib.ExitStack() as stack:
+            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
             baseline = [baseline_checkout(rev, workdir) for rev in a.baseline_rev or []]
             measured = baseline_checkout(a.rev, workdir) if a.rev else None
             if measured:
@@ -1411,6 +1449,7 @@ def main(argv: list[str] | None = None) -> int:
                 log=log,
                 baseline=baseline,
                 measured=measured,
+                side=side,
             )
             try:
                 bench.run()
@@ -1448,6 +1487,8 @@ def main(argv: list[str] | None = None) -> int:
                         "failures": bench.failures,
                         "startup": bench.startup,
                         "allocator": bench.allocator,
+                        "robot": bench.robot,
+                        "owners": bench.owners,
                         "verified": bench.verified_ok(),
                     },
                     indent=1,

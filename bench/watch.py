@@ -69,6 +69,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
         sys.path.insert(0, _p)
 
 from countproxy import LINKS, Link, proxy_command, set_link_state
+from robot import RobotSide, add_robot_user_option
 from run import (
     _workdir,
     baseline_checkout,
@@ -79,8 +80,9 @@ from run import (
     machine_info,
     robot_python,
     snapshot,
+    start_robot,
 )
-from sshd import SSHD, make_ssh_home, running_sshd
+from sshd import SSHD, make_ssh_home
 from workspace import Workspace, generate
 
 ALIAS = "robot"
@@ -184,7 +186,7 @@ class WatchTool:
         """Start the tool; ``fresh``: into an empty remote dir (else the one the last run left)."""
         if fresh and self.remote.exists():
             shutil.rmtree(self.remote)
-        self.remote.mkdir(parents=True, exist_ok=True)
+        self.bench.side.mkdir(self.remote)  # the robot account's, as on a robot
         argv, env = self.argv_env()
         log(f"{self.name}: starting {shlex.join(argv)}")
         self._t0 = time.perf_counter()
@@ -243,7 +245,7 @@ class FetchsyncWatch(WatchTool):
             FETCHSYNC_WORKSPACE=str(self.ws.root),
             FETCHSYNC_REMOTE_WORKSPACE=str(self.remote),
             XDG_STATE_HOME=str(self.bench.workdir / f"state-{self.remote.name}"),
-            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot-cache"),
+            FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.robot_dir / "robot-cache"),
         )
         return env
 
@@ -286,7 +288,7 @@ def baseline_watch(rev: str, checkout: Path) -> type[FetchsyncWatch]:
             env.update(
                 PYTHONPATH=str(checkout),
                 XDG_RUNTIME_DIR=str(runtime),
-                FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.workdir / "robot-cache-b"),
+                FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.robot_dir / "robot-cache-b"),
             )
             return env
 
@@ -506,9 +508,13 @@ def verify(tool: WatchTool) -> list[str]:
 
 # --------------------------------------------------------------------------- the run
 class WatchBench:
-    def __init__(self, workdir: Path, sshd: SSHD, link: Link | None = None) -> None:
+    def __init__(
+        self, workdir: Path, sshd: SSHD, link: Link | None = None, side: RobotSide | None = None
+    ) -> None:
         self.workdir = workdir
         self.sshd = sshd
+        self.side = side or RobotSide.make(sshd.user, workdir)
+        self.robot_dir = self.side.mkdir(self.side.root / "robot")
         self.home = make_ssh_home(workdir / "home", sshd=sshd)
         self.link = link
         self.alias = ALIAS
@@ -521,6 +527,10 @@ class WatchBench:
                 fh.write(f"\nHost {self.alias}\n{block.rstrip()}\n    ProxyCommand {proxy}\n")
         # short, for unix socket paths: the agent's control socket and the masters
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="fswatch-"))
+
+    def ssh_argv(self) -> list[str]:
+        """The OpenSSH client to the robot as the tools reach it (through the link)."""
+        return ["ssh", "-F", str(self.home.config), "-o", "BatchMode=yes", self.alias]
 
     def base_env(self) -> dict[str, str]:
         env = {
@@ -612,6 +622,8 @@ def render(res: dict[str, Any]) -> str:
         ),
         "",
         link_line(LINKS[res.get("link", "loopback")]),
+        "",
+        RobotSide.describe_probe(res["robot"]) if res.get("robot") else "Robot: not probed.",
         "",
         f"Load average: {m.get('load', '?')} at the start, {res.get('load_end', '?')} at the end.",
         "",
@@ -796,6 +808,7 @@ def main(argv: list[str] | None = None) -> int:
         default="loopback",
         help="the link both tools reach the robot through (bench/countproxy.py; default loopback)",
     )
+    add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
@@ -854,11 +867,14 @@ def main(argv: list[str] | None = None) -> int:
             tools.insert(
                 tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}"
             )
-        with running_sshd(workdir / "sshd") as sshd:
-            bench = WatchBench(workdir, sshd, LINKS[a.link])
+        with contextlib.ExitStack() as stack:
+            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+            bench = WatchBench(workdir, sshd, LINKS[a.link], side)
+            res["robot"] = side.probe(bench.ssh_argv())
+            log(side.describe(res["robot"]))
             try:
                 for name in tools:
-                    tool = classes[name](bench, ws, workdir / "robot" / f"{name}-ws")
+                    tool = classes[name](bench, ws, bench.robot_dir / f"{name}-ws")
                     if isinstance(tool, FetchsyncWatch):
                         res["sources"][name] = check_source(
                             name, tool.env(), checkouts.get(name, REPO), workdir
@@ -910,7 +926,7 @@ def main(argv: list[str] | None = None) -> int:
                     # holds the tree (and fetchsync its state), what a working day looks like
                     for fresh, label in ((True, ""), (False, " (restart)")):
                         for name in tools:
-                            tool = classes[name](bench, iws, workdir / "robot" / f"{name}-idle")
+                            tool = classes[name](bench, iws, bench.robot_dir / f"{name}-idle")
                             tool.start(fresh=fresh)
                             try:
                                 tool.wait_live()

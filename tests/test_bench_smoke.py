@@ -25,6 +25,7 @@ BENCH = Path(__file__).resolve().parent.parent / "bench"
 sys.path.insert(0, str(BENCH))
 
 from countproxy import LINKS, Counter, link_state, parse_link, set_link_state
+from robot import ROBOT_USER, default_robot_user, ensure_account
 
 
 class _Echo:
@@ -145,6 +146,12 @@ def test_shaper_outages_hold_then_deliver_and_cuts_refuse(tmp_path: Path) -> Non
     assert link_state(wire) == "up"
 
 
+def test_an_unknown_robot_account_is_one_line_not_a_new_account() -> None:
+    """``--robot-user`` names an account that exists; only the bench's own is created."""
+    with pytest.raises(SystemExit, match="no such account"):
+        ensure_account("fsbench-no-such-user")
+
+
 def test_link_profiles_and_custom_links() -> None:
     wifi, weak = LINKS["wifi"], LINKS["weak"]
     assert wifi is not None and weak is not None and LINKS["loopback"] is None
@@ -214,6 +221,15 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
     # the no-op push's wall time is set against the interpreter's start
     assert raw["startup"]["fetchsync"] > 0 and "No-op push of fetchsync: " in stdout
+    # the robot is a robot's account (as root: the bench's own, with a stock ~/.bashrc and the
+    # system python3), and every tool's tree on the robot was written as that account
+    robot = default_robot_user()
+    assert raw["robot"]["user"] == robot
+    if os.geteuid() == 0:
+        assert robot == ROBOT_USER and raw["robot"]["python3"] != "?"
+        assert ".pyenv" not in raw["robot"]["python3"]
+    assert raw["owners"] and all(o == [robot] for o in raw["owners"].values()), raw["owners"]
+    assert f"Robot: account {robot} " in stdout
     # each fetchsync imported its own tree's modules
     repo = BENCH.parent.resolve()
     assert Path(raw["sources"]["fetchsync"]) == repo / "fetchsync"
@@ -231,6 +247,7 @@ def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
     """``bench/watch.py --quick``: fetchsync watch and lsyncd each mirror every save and the burst."""
     stdout, raw = run_bench("watch.py", "--quick", tmp_path=tmp_path, needs=("rsync", "lsyncd"))
     assert "| tool | median | p90 | min | max | lost | start-up to live |" in stdout
+    assert raw["robot"]["user"] == default_robot_user()  # logged in as the robot's account
     assert "verification: PASS" in stdout
     for tool in ("fetchsync", "lsyncd"):
         assert raw["latency"][tool] and all(x is not None for x in raw["latency"][tool])
@@ -250,6 +267,7 @@ def test_bench_history_quick_replays_real_commits_and_verifies(tmp_path: Path) -
         "history.py", "--quick", "--link", "wifi", tmp_path=tmp_path, needs=("rsync", "git")
     )
     assert "verification: PASS" in stdout and raw["verified"] is True
+    assert raw["robot"]["user"] == default_robot_user()  # logged in as the robot's account
     assert [(s["kind"], s["index"]) for s in raw["steps"]] == [
         ("initial", 0),
         ("noop", 0),

@@ -1,0 +1,192 @@
+"""The robot's account and the robot's side of a bench run: who the bench logs in as, where.
+
+A Fetch runs Ubuntu with a stock ``~/.bashrc`` (it returns at once for a
+non-interactive shell, as every ssh command's is) and the system
+``/usr/bin/python3``. This machine's root, the robot the bench used to log in
+as, runs ``pyenv init`` and ``pyenv virtualenv-init`` from its ``~/.bashrc`` at
+every ssh login (rsync's too, ~0.2-0.5 s) and finds ``python3`` as a pyenv shim
+(~0.9 s more for every start of fetchsync's endpoint): costs no robot pays, and
+that inflated both tools' small pushes. So the bench logs in as a dedicated
+account, :data:`ROBOT_USER`, that it creates when it runs as root (``useradd -m
+-s /bin/bash``: its home and ``~/.bashrc`` from ``/etc/skel``); ``--robot-user
+root`` measures the old robot. Not running as root, the robot is the current
+user, as the tests' sshd has it.
+
+The tests' sshd (``tests/sshd.py``) reads one shared ``AuthorizedKeysFile`` in
+its work directory, opened as the user logging in: that directory, and every
+directory the robot's trees are in, must be reachable by the robot account.
+A run's work directory need not be (pytest's are private), so for another
+account the robot's side lives in a directory of its own under the account's
+home (:class:`RobotSide`): the sshds' work directories (root's, world-readable
+but for the private keys) and the robot's trees and caches (owned by the
+account, as on a robot).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pwd
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+ROBOT_USER = "fsrobot"
+
+
+def default_robot_user() -> str:
+    """:data:`ROBOT_USER` when running as root (the bench creates it), else the current user."""
+    return ROBOT_USER if os.geteuid() == 0 else pwd.getpwuid(os.getuid()).pw_name
+
+
+def ensure_account(user: str) -> pwd.struct_passwd:
+    """The password entry of ``user``, created first (as root) if it does not exist.
+
+    Only :data:`ROBOT_USER` is created: another name must exist already (a typo
+    must not make an account).
+    """
+    try:
+        return pwd.getpwnam(user)
+    except KeyError:
+        pass
+    if user != ROBOT_USER:
+        raise SystemExit(f"--robot-user {user}: no such account (only {ROBOT_USER} is created)")
+    if os.geteuid() != 0:
+        raise SystemExit(f"--robot-user {user}: creating the robot's account needs root")
+    proc = subprocess.run(
+        ["useradd", "-m", "-s", "/bin/bash", user],
+        capture_output=True,
+        text=True,
+        check=False,
+        stdin=subprocess.DEVNULL,
+    )
+    if proc.returncode not in (0, 9):  # 9: made meanwhile by another run
+        raise SystemExit(f"useradd {user} failed: {proc.stderr.strip()}")
+    return pwd.getpwnam(user)
+
+
+def add_robot_user_option(ap: object) -> None:
+    """``--robot-user USER`` on a script's argparse parser."""
+    ap.add_argument(  # type: ignore[attr-defined]
+        "--robot-user",
+        default=None,
+        metavar="USER",
+        help=f"the account the bench logs in to the robot as (default {ROBOT_USER}, created "
+        "when running as root: a stock ~/.bashrc and /usr/bin/python3, like a Fetch; root: "
+        "this machine's root, whose ~/.bashrc runs pyenv's init)",
+    )
+
+
+@dataclasses.dataclass
+class RobotSide:
+    """Where the robot's half of a run lives (sshd work dirs, trees, caches) and its account.
+
+    For the current user (root's old robot, or a non-root run) that is the run's
+    work directory, as before; for another account a fresh directory under its
+    home, removed by :meth:`close` unless ``keep``.
+    """
+
+    user: str
+    root: Path
+    own: bool
+    """``root`` is a directory of this run's outside the work directory."""
+    uid: int
+    gid: int
+    keep: bool = False
+
+    @classmethod
+    def make(cls, user: str | None, workdir: Path, *, keep: bool = False) -> RobotSide:
+        user = user or default_robot_user()
+        pw = ensure_account(user)
+        if pw.pw_uid == os.geteuid():
+            return cls(user, workdir, False, pw.pw_uid, pw.pw_gid, keep)
+        root = Path(tempfile.mkdtemp(prefix="fsbench-", dir=pw.pw_dir))
+        root.chmod(0o755)
+        return cls(user, root, True, pw.pw_uid, pw.pw_gid, keep)
+
+    def sshd_dir(self, name: str = "sshd") -> Path:
+        """A work directory for a tests/sshd.py sshd whose shared authorized_keys the
+        account can read (tests/sshd.py makes it; this makes it reachable)."""
+        path = self.root / name
+        if self.own:
+            path.mkdir(parents=True, exist_ok=True)
+            path.chmod(0o755)
+        return path
+
+    def opened(self, sshd_dir: Path) -> None:
+        """After the sshd started: its directory (a fresh one it made) reachable, its
+        authorized_keys readable by the account."""
+        if self.own:
+            sshd_dir.chmod(0o755)
+            keys = sshd_dir / "authorized_keys"
+            if keys.exists():
+                keys.chmod(0o644)
+
+    def mkdir(self, path: Path) -> Path:
+        """Make ``path`` (and missing parents below :attr:`root`) owned by the account."""
+        missing = [p for p in [path, *path.parents] if not p.exists()]
+        path.mkdir(parents=True, exist_ok=True)
+        if self.own:
+            for p in missing:
+                os.chown(p, self.uid, self.gid)
+        return path
+
+    def probe(self, ssh_argv: list[str]) -> dict[str, object]:
+        """What the robot's login is like: the account, its ``python3`` and its version, and
+        the wall time of ``ssh robot true`` (median of 5; ``ssh_argv``: the OpenSSH client's
+        argv up to the host), for the report."""
+        import statistics
+        import time
+
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            subprocess.run([*ssh_argv, "true"], capture_output=True, check=False)
+            times.append(time.perf_counter() - t0)
+        out = subprocess.run(
+            [
+                *ssh_argv,
+                "id -un; command -v python3; python3 -c 'import sys; print(sys.version.split()[0])'",
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.split()
+        out += ["?"] * (3 - len(out))
+        return {
+            "user": out[0],  # who the login is, as the robot says
+            "python3": out[1],
+            "python_version": out[2],
+            "ssh_true_seconds": round(statistics.median(times), 4),
+        }
+
+    def describe(self, probe: dict[str, object]) -> str:
+        """One line for a report."""
+        return self.describe_probe(probe)
+
+    @staticmethod
+    def describe_probe(probe: dict[str, object]) -> str:
+        """One line for a report, from :meth:`probe`'s answer (also as read from JSON)."""
+        return (
+            f"Robot: account {probe['user']} on the bench's sshd, its python3 "
+            f"{probe['python3']} ({probe['python_version']}); `ssh robot true` "
+            f"{float(probe['ssh_true_seconds']):.3f} s (median of 5, through the link)."  # type: ignore[arg-type]
+        )
+
+    def owners(self, root: Path) -> list[str]:
+        """The owners of everything under ``root`` (a robot tree): the robot account's
+        name only, when every push wrote as that account."""
+        names = set()
+        for dirpath, dirnames, filenames in os.walk(root):
+            for name in [dirpath, *(os.path.join(dirpath, n) for n in dirnames + filenames)]:
+                uid = os.lstat(name).st_uid
+                try:
+                    names.add(pwd.getpwuid(uid).pw_name)
+                except KeyError:
+                    names.add(str(uid))
+        return sorted(names)
+
+    def close(self) -> None:
+        if self.own and not self.keep:
+            shutil.rmtree(self.root, ignore_errors=True)
