@@ -28,7 +28,8 @@ def test_the_fleet_bench_runs_with_three_robots(tmp_path):
     # each robot receives what a push to it alone sends (give or take the handshake's noise)
     for name, ratio in initial["bytes_ratio"].items():
         assert 0.8 < ratio < 1.25, (name, ratio)
-    assert all(b > 2**20 for b in initial["fleet"]["bytes"].values())  # the tree went over
+    # the tree went over (compressed: 3 MiB of generated sources and meshes make ~1 MiB)
+    assert all(b > data["workspace"]["bytes"] / 5 for b in initial["fleet"]["bytes"].values())
     down = data["two_down"]
     assert down["ok"] == ["r03"] and sorted(down["failed"]) == ["r01", "r02"]
     assert down["exit"] == 3, down
