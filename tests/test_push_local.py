@@ -375,20 +375,24 @@ def test_a_push_killed_before_its_state_is_written_sends_nothing_again(tmp_path,
 
 
 def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monkeypatch):
-    """A push of more than a batch keeps a delta signature of each text file it sent
-    (and none of a binary one), so the next edit goes as a delta with no question to
-    the robot."""
+    """A push of more than a batch keeps a delta signature of each larger text file it
+    sent, the content of each smaller one (and nothing of a binary one), so the next
+    edit goes as a delta with no question to the robot."""
+    import zlib
+
     from fetchsync.link.connection import Connection
     from fetchsync.link.transport import LocalTransport
     from fetchsync.protocol import delta
+    from fetchsync.protocol import messages as M
     from fetchsync.sync import engine as sync
     from fetchsync.sync.state import State
 
     src = make_workspace(tmp_path / "ws") / "src"
     texts = {}
     for i in range(24):
-        texts[f"t{i}.txt"] = b"".join(b"line %d of text file %d\n" % (n, i) for n in range(900))
-        (src / f"t{i}.txt").write_bytes(texts[f"t{i}.txt"])  # ~22 KiB each: worth signing
+        lines = 900 if i % 2 else 1800  # ~22 KiB: content kept; ~45 KiB: a signature
+        texts[f"t{i}.txt"] = b"".join(b"line %d of text file %d\n" % (n, i) for n in range(lines))
+        (src / f"t{i}.txt").write_bytes(texts[f"t{i}.txt"])
     (src / "mesh.bin").write_bytes(b"\0" + os.urandom(40 * 1024))  # binary: never signed
     monkeypatch.setattr(sync, "BATCH_BYTES", 128 * 1024)
     rules = sync.build_rules()
@@ -401,9 +405,11 @@ def test_a_large_push_keeps_signatures_so_an_edit_goes_as_a_delta(tmp_path, monk
         ).push()
         assert r.errors == []
         for name, data in texts.items():
-            assert (
-                state.signature(name) == delta.signature(data, algorithm=conn.algorithm).to_bytes()
-            )
+            kept = state.signature(name)
+            if len(data) <= M.ZDICT_BASE_MAX:  # the content itself, for dictionary writes
+                assert kept[:4] == sync.BASE_MAGIC and zlib.decompress(kept[4:]) == data
+            else:
+                assert kept == delta.signature(data, algorithm=conn.algorithm).to_bytes()
         assert state.signature("mesh.bin") is None
 
         requests: list[str] = []

@@ -37,8 +37,10 @@ def test_push_and_pull_with_a_python_36_endpoint(tmp_path: Path) -> None:
     built = [p.name for p in (tmp_path / "rh/.cache/fetchsync").iterdir()]
     assert any(name.endswith("-cpython-36") for name in built), built
     (src / "pkg/big.bin").write_bytes(b"inserted at the top\n" + big)
+    cmake = src / "my_pkg/CMakeLists.txt"  # a small text file: a dictionary write
+    cmake.write_text(cmake.read_text().replace("project(my_pkg)", "project(my_pkg) # edited"))
     out = report(fetchsync("push", "--json", env=env))
-    assert out["deltas"] == 1, out
+    assert out["deltas"] == 2, out
     assert tree_of(src) == tree_of(robot)
     (robot / "pkg/robot_edit.txt").write_text("made on the robot\n")
     fetchsync("pull", "--yes", env=env)

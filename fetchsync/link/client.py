@@ -327,6 +327,11 @@ class Endpoint:
         """The content hash both ends agreed on."""
         return self.conn.algorithm
 
+    @property
+    def zdict(self) -> bool:
+        """Whether the endpoint takes writes of source ``zdict`` (its hello says so)."""
+        return bool(self.conn.hello.get("zdict"))
+
     def _send(self, request: Any, parse: Callable[[wire.Frame], T], **kw: Any) -> Pending[T]:
         return Pending(self.conn, self.conn.send(dict(request), **kw), parse)
 

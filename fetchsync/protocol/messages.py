@@ -34,7 +34,13 @@ SRC_DATA = "data"  # the blob holds the whole content
 SRC_DELTA = "delta"  # the blob holds a delta against the current file (hash ``base``)
 SRC_COPY = "copy"  # content the receiver holds at another path (hash ``base``)
 SRC_UPLOAD = "upload"  # content sent before in UPLOAD ops with id ``upload``
-SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD)
+# the blob is a raw deflate stream of the whole content, made with the current file (hash
+# ``base``, at most ZDICT_BASE_MAX bytes) as its preset dictionary; only to an endpoint
+# whose hello offers "zdict" (an older one refuses an unknown source)
+SRC_ZDICT = "zdict"
+SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD, SRC_ZDICT)
+ZDICT_BASE_MAX = 32 * 1024  # zlib's window: a longer dictionary would not be seen whole
+ZDICT_SIZE_MAX = 1024 * 1024  # the content such a write may inflate to
 
 ABSENT = "-"
 IS_DIR = "d"
@@ -113,8 +119,10 @@ class Op:
                 paths.validate(self.from_path)
                 if not self.base:
                     raise ProtocolError("copy to %r has no source hash" % self.path)
-            if self.source == SRC_DELTA and not self.base:
+            if self.source in (SRC_DELTA, SRC_ZDICT) and not self.base:
                 raise ProtocolError("delta to %r has no base hash" % self.path)
+            if self.source == SRC_ZDICT and self.size > ZDICT_SIZE_MAX:
+                raise ProtocolError("dictionary write of %r is too large" % self.path)
             if self.source == SRC_UPLOAD and not self.upload.isalnum():
                 raise ProtocolError("bad upload id %r" % (self.upload,))
         return self

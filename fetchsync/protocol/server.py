@@ -98,6 +98,7 @@ class Server:
             "host": os.uname().nodename,  # socket.gethostname(), without importing socket
             "home": os.path.expanduser("~"),
             "progress": PROGRESS_MAX,  # T_PROGRESS frames, to a client that asks
+            "zdict": 1,  # writes of source "zdict" (messages.SRC_ZDICT)
         }
 
     def serve(self) -> None:

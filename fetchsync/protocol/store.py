@@ -49,6 +49,7 @@ import os
 import stat as stat_mod
 import struct
 import time
+import zlib
 from typing import Any, BinaryIO, Dict, List, Optional, Set, Tuple, cast
 
 from fetchsync.protocol import hashing, paths, wire
@@ -1471,6 +1472,8 @@ class _Batch:
                 out.write(data)
             elif op.source == M.SRC_DELTA:
                 self._patch(op, dir_fd, name, out)
+            elif op.source == M.SRC_ZDICT:
+                out.write(self._inflate_with_base(op, dir_fd, name))
             else:  # copy
                 try:
                     src, _st = s._open_file(op.from_path)
@@ -1505,6 +1508,30 @@ class _Batch:
                 delta_mod.patch_to_file(fh, d, out, bufsize=PIECE)  # type: ignore[arg-type]
         finally:
             os.close(base)
+
+    def _inflate_with_base(self, op: "M.Op", dir_fd: int, name: str) -> bytes:
+        """The op's content: its blob inflated with the file at ``name`` as the preset
+        dictionary. A base that is not the laptop's (its hash checked by the result's) is
+        a mismatch: the laptop sends the file whole next."""
+        base = os.open(name, O_FILE, dir_fd=dir_fd)
+        try:
+            st = os.fstat(base)
+            if not stat_mod.S_ISREG(st.st_mode) or st.st_size > M.ZDICT_BASE_MAX:
+                raise DeltaError("the file here is not the dictionary's base")
+            with io.FileIO(base, "rb", closefd=False) as fh:
+                zdict = fh.read(M.ZDICT_BASE_MAX + 1)
+        finally:
+            os.close(base)
+        if len(zdict) > M.ZDICT_BASE_MAX:
+            raise DeltaError("the file here is not the dictionary's base")
+        try:
+            d = zlib.decompressobj(-15, zdict=zdict) if zdict else zlib.decompressobj(-15)
+            data = d.decompress(bytes(self._view(op)), op.size + 1)
+            if not d.eof or d.unconsumed_tail or len(data) != op.size:
+                raise DeltaError("dictionary write is truncated or of the wrong size")
+        except zlib.error as exc:
+            raise DeltaError("dictionary write does not inflate: %s" % exc) from None
+        return data
 
     def _from_upload(self, op: "M.Op", dir_fd: int, tmp: str, mode: int) -> None:
         """The upload part, verified, becomes the temporary."""
