@@ -251,7 +251,10 @@ class Tool:
                 f"{shlex.join(argv)}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
             )
         # bytes a push causes after it returns (a connection master's handshake,
-        # its next warm endpoint, channel closes) are counted to it too
+        # its next warm endpoint, channel closes) are counted to it too: once this
+        # run's processes are idle (a master spawned as the push closes takes longer
+        # to start and connect than the counters' quiet window) and the counters quiet
+        wait_quiet(self.bench.marks())
         after = counter.settle()
         return Sample(
             self.name,
@@ -303,7 +306,9 @@ class FetchsyncPush(Tool):
         super().reset()
         self.resets += 1  # a fresh XDG_STATE_HOME: no memory of the last sync
         if self.persist:
-            self.bench.stop_masters()  # and no connection left open: a first push
+            # and no connection left open: a first push (only its own master: another
+            # fetchsync's, made by its initial push this round, must live on)
+            self.bench.stop_masters(self.runtime)
 
     def command(self) -> tuple[list[str], dict[str, str]]:
         env = self.bench.base_env()
@@ -317,7 +322,11 @@ class FetchsyncPush(Tool):
             FETCHSYNC_REMOTE_PYTHON=robot_python(self.bench.robot_dir / f"{self.name}-cache"),
         )
         if self.runtime:
-            env["XDG_RUNTIME_DIR"] = str(self.bench.runtime_dir / self.runtime)
+            # it must exist: fetchsync makes only its own fetchsync/ in it, and without a
+            # private place for the master's socket every push goes direct (no master)
+            runtime = self.bench.runtime_dir / self.runtime
+            runtime.mkdir(mode=0o700, exist_ok=True)
+            env["XDG_RUNTIME_DIR"] = str(runtime)
         if not self.persist:
             env["FETCHSYNC_PERSIST"] = "0"
         return [sys.executable, "-m", "fetchsync", "push", "--json"], env
@@ -492,6 +501,7 @@ class Bench:
                 bench=self,
                 remote=robot / "fetchsync-ws",
                 checkout=measured[1] if measured else REPO,
+                runtime="m",  # each fetchsync its own runtime dir, so its own master
             )
         ]
         if params.cold:
@@ -550,12 +560,14 @@ class Bench:
         return env
 
     # ---------------------------------------------------------------------- masters
-    def _master_pids(self) -> list[int]:
-        """Connection masters of this run: their --socket is under our runtime dir.
+    def _master_pids(self, runtime: str | None = None) -> list[int]:
+        """Connection masters of this run (of one fetchsync's ``runtime`` subdirectory):
+        their --socket is under our runtime dir.
 
         Matched by that directory and the name fetchsync, not by module path, so
         the bench still finds them in a version that moved its modules."""
-        mark = str(self.runtime_dir).encode()
+        base = self.runtime_dir / runtime if runtime else self.runtime_dir
+        mark = (str(base) + "/").encode()
         pids = []
         for proc in Path("/proc").iterdir():
             if not proc.name.isdigit():
@@ -568,21 +580,26 @@ class Bench:
                 pids.append(int(proc.name))
         return pids
 
-    def stop_masters(self) -> None:
-        """End fetchsync's connection masters of this run, as a new login session would find none.
+    def stop_masters(self, runtime: str | None = None) -> None:
+        """End fetchsync's connection masters of this run (or of one fetchsync's ``runtime``
+        subdirectory), as a new login session would find none.
 
         A master exits within a second of its socket being taken away; one that
         does not is sent SIGTERM by pid.
         """
-        for sock in self.runtime_dir.rglob("*.sock"):
+        base = self.runtime_dir / runtime if runtime else self.runtime_dir
+        for sock in base.rglob("*.sock"):
             sock.unlink(missing_ok=True)
         deadline = time.monotonic() + 5
-        while self._master_pids() and time.monotonic() < deadline:
+        while self._master_pids(runtime) and time.monotonic() < deadline:
             time.sleep(0.05)
-        for pid in self._master_pids():
+        for pid in self._master_pids(runtime):
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGTERM)
-        self.counter.settle(live=0, timeout=10)
+        if runtime is None:
+            self.counter.settle(live=0, timeout=10)
+        else:  # the other fetchsyncs' masters stay connected
+            self.counter.settle(timeout=10)
 
     def close(self) -> None:
         self.stop_masters()

@@ -233,8 +233,15 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     # each fetchsync imported its own tree's modules
     repo = BENCH.parent.resolve()
     assert Path(raw["sources"]["fetchsync"]) == repo / "fetchsync"
+    # every fetchsync keeps its own connection master: a no-op push opens no new connection
+    # (a baseline without one would be timed with a login and an endpoint start each push)
+    for tool in tools - {"rsync"}:
+        noops = [s for s in raw["samples"] if s["tool"] == tool and s["scenario"] == "noop"]
+        assert noops and all(s["connections"] == 0 for s in noops), (tool, noops)
     if old:
         tree = (tmp_path / "work" / f"baseline-{old}" / "fetchsync").resolve()
+        # its bytecode written, as an installed copy's is (not compiled at every push)
+        assert list((tree / "__pycache__").glob("*.pyc"))
         assert Path(raw["sources"][f"fetchsync@{old}"]) == tree
         assert raw["series"] == [f"fetchsync@{old}", "fetchsync"]
         assert f"A/B: fetchsync (this checkout) against fetchsync@{old}" in stdout
