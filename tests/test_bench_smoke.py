@@ -251,14 +251,25 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.ssh
 def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
-    """``bench/watch.py --quick``: fetchsync watch and lsyncd each mirror every save and the burst."""
-    stdout, raw = run_bench("watch.py", "--quick", tmp_path=tmp_path, needs=("rsync", "lsyncd"))
+    """``bench/watch.py --quick --link wifi``: fetchsync watch and lsyncd each mirror every save
+    and the burst, and recover from each outage (a blackhole, a cut, the robot's sshd
+    restarting) with the save made during it on the robot and the tree identical."""
+    stdout, raw = run_bench(
+        "watch.py", "--quick", "--link", "wifi", tmp_path=tmp_path, needs=("rsync", "lsyncd")
+    )
     assert "| tool | median | p90 | min | max | lost | start-up to live |" in stdout
     assert raw["robot"]["user"] == default_robot_user()  # logged in as the robot's account
     assert "verification: PASS" in stdout
     for tool in ("fetchsync", "lsyncd"):
         assert raw["latency"][tool] and all(x is not None for x in raw["latency"][tool])
         assert raw["burst"][tool]["missing"] == 0
+        cycles = raw["recovery"][tool]
+        assert [c["outage"] for c in cycles] == ["blackhole", "cut", "sshd-restart"]
+        for c in cycles:
+            assert c["after_up"] is not None and not c["differences"], (tool, c)
+        before, after = cycles[2]["listener"]  # the robot's sshd was another process after
+        assert before and after and before != after
+    assert "| fetchsync | sshd-restart 2 s |" in stdout
     assert not any(raw["verification"].values())
 
 
