@@ -4,6 +4,7 @@ bytes of a small edit (over the local robot: the protocol without SSH)."""
 from __future__ import annotations
 
 import random
+import threading
 import zlib
 from pathlib import Path
 from typing import Any
@@ -106,3 +107,42 @@ def test_a_fast_link_is_seen_and_gets_the_fast_level(monkeypatch):
     fast = zlib.decompressobj().decompress(b"".join(endpoint.zparts))
     assert fast == data
     assert len(b"".join(endpoint.zparts)) > len(zlib.compress(data, 6))  # level 1's size
+
+
+def test_shared_packs_make_each_key_once_and_a_failed_maker_leaves_it_to_the_next():
+    packs = sync.SharedPacks(max_bytes=10)
+    started, release = threading.Event(), threading.Event()
+    calls: list[str] = []
+
+    def failing() -> list[bytes]:
+        calls.append("failing")
+        started.set()
+        release.wait(5)
+        raise OSError("the maker's read failed")
+
+    def good() -> list[bytes]:
+        calls.append("good")
+        return [b"stream"]
+
+    errors: list[BaseException] = []
+
+    def first() -> None:
+        try:
+            packs.get(b"k", failing)
+        except OSError as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=first)
+    t.start()
+    started.wait(5)
+    got: list[list[bytes]] = []
+    waiter = threading.Thread(target=lambda: got.append(packs.get(b"k", good)))
+    waiter.start()
+    release.set()
+    t.join(5)
+    waiter.join(5)
+    assert errors and got == [[b"stream"]] and calls == ["failing", "good"]
+    assert packs.get(b"k", good) == [b"stream"] and calls == ["failing", "good"]
+    assert packs.get(b"other", lambda: [b"another stream"]) == [b"another stream"]
+    assert packs.made == 2 and packs.reused == 1
+    assert packs.get(b"k", good) == [b"stream"] and calls[-1] == "good"  # dropped: over 10 B

@@ -623,12 +623,13 @@ def _fleet_push(
     from fetchsync.link.connection import Connection, remote_python
     from fetchsync.link.session import open_transport
     from fetchsync.protocol.ignore import build_rules
-    from fetchsync.sync.engine import Syncer, raise_for, scan_tree
+    from fetchsync.sync.engine import SharedPacks, Syncer, raise_for, scan_tree
     from fetchsync.sync.state import open_state
 
     src = _pushable(resolve_workspace(workspace) / "src", force=force, whose="the robots'")
     rules = build_rules(tuple(excludes))
     scanned = scan_tree(str(src), rules)  # once for all robots: it is only read
+    packs = SharedPacks()  # each batch compressed once for the robots that send it
     asking = question_lock()
     silent = quiet()
 
@@ -657,6 +658,7 @@ def _fleet_push(
                         rules=rules,
                         policy="refuse" if strict else "preserve",
                     )
+                    syncer.packs = packs
                     report = syncer.push(dry_run=dry_run, scanned=scanned, confirm_deletions=force)
                     report.connection = _connection_kind(conn)
             finally:

@@ -1,0 +1,78 @@
+"""A fleet push compresses each batch once for the robots that send the same batch (issue
+27's "compresses once"), against the real sshd (aliases stand for robots, as in
+test_fleet)."""
+
+from __future__ import annotations
+
+import collections
+import os
+import threading
+from pathlib import Path
+
+import pytest
+from helpers import fetchsync, tree_of
+from test_fleet import fleet_env  # noqa: F401 - the fixture
+
+from fetchsync.cli import cli
+from fetchsync.sync import engine as sync
+
+pytestmark = pytest.mark.ssh
+
+
+def _files(src: Path, names: range) -> None:
+    for i in names:
+        pkg = src / f"pkg{i % 7}"
+        pkg.mkdir(parents=True, exist_ok=True)
+        (pkg / f"node{i}.cpp").write_bytes(
+            b"".join(b"int f%d_%d(int x) { return x * %d; }\n" % (i, n, n) for n in range(60 + i))
+        )
+
+
+def test_a_fleet_push_compresses_each_batch_once_and_leaves_every_robot_identical(
+    fleet_env,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+    clean_process_env,
+):
+    src = Path(fleet_env["FETCHSYNC_WORKSPACE"]) / "src"
+    _files(src, range(0, 40))
+    # fetch1 starts from a push of part of the tree: its state and its batches differ
+    fetchsync("push", "--robot", "fetch1", env=fleet_env)
+    _files(src, range(40, 120))
+    edited = src / "pkg0" / "node0.cpp"
+    edited.write_bytes(edited.read_bytes().replace(b"x * 5;", b"x * 55;"))
+
+    # batches under 64 KiB (but the first, with the workspace's 2.4 MB data.txt: a push's
+    # first batch is always level 6): level 6 whatever the link, so the same plan makes the
+    # same bytes
+    monkeypatch.setattr(sync, "BATCH_BYTES", 48 * 1024)
+    sent: collections.Counter[str] = collections.Counter()
+    made: collections.Counter[str] = collections.Counter()
+    lock = threading.Lock()
+    real_measure, real_deflate = sync._Batcher._measure_link, sync._Batcher._deflate
+
+    def measure(self):  # once per batch with data to compress
+        with lock:
+            sent[self.conn.transport.name] += 1
+        return real_measure(self)
+
+    def deflate(self, packed, *, level6):
+        with lock:
+            made[self.conn.transport.name] += 1
+        return real_deflate(self, packed, level6=level6)
+
+    monkeypatch.setattr(sync._Batcher, "_measure_link", measure)
+    monkeypatch.setattr(sync._Batcher, "_deflate", deflate)
+    for key, value in fleet_env.items():
+        monkeypatch.setenv(key, value)
+    for key in [k for k in os.environ if k not in fleet_env]:
+        monkeypatch.delenv(key)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["push", "--robot", "fetch1,fetch2,fetch3", "-j", "3"], standalone_mode=False)
+    assert exit_.value.code == 0
+    for name in ("fetch1", "fetch2", "fetch3"):
+        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(src), name
+    assert sent["fetch2"] == sent["fetch3"] >= 4
+    assert sent["fetch1"] >= 2
+    # fetch2 and fetch3 (the same state) share every batch; fetch1's are its own
+    assert sum(made.values()) == sent["fetch1"] + sent["fetch2"]
