@@ -107,6 +107,7 @@ def test_shaper_delivers_intact_and_never_faster_than_the_link(tmp_path: Path, n
         echo.close()
     totals = Counter(tmp_path / "wire").settle(live=0, timeout=5)
     assert (totals.up, totals.down) == (1 + pings + len(data), 1 + pings + len(data))
+    assert 0 < Counter(tmp_path / "wire").cpu() < 60  # the proxy's own CPU, as it stopped
     if link is not None:
         assert ping_pong >= 2 * link.delay
         assert bulk >= len(data) / link.rate + 2 * link.delay
