@@ -158,6 +158,7 @@ class Fleet:
         argv = [sys.executable, "-m", "fetchsync", "push", "--json", "--robot", ",".join(robots)]
         if len(robots) > 1:
             argv += ["-j", str(jobs)]
+        links0, robots0 = self.links_cpu(robots), self.robots_cpu(robots)
         cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
@@ -173,12 +174,15 @@ class Fleet:
             out.seek(0)
             err.seek(0)
             stdout, stderr = out.read().decode(), err.read().decode()
-        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
         wire = {}
         for n in robots:
             after = counters[n].settle(quiet=0.2, timeout=15)
             wire[n] = after.up + after.down - before[n].up - before[n].down
+        _reap_orphans()  # the links' proxies the push left to exit after it
+        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+        links = self.links_cpu(robots) - links0
+        robots_cpu = self.robots_cpu(robots, settle=True) - robots0
         reports: list[dict[str, Any]] = []
         for line in reversed(stdout.splitlines()):
             if line.startswith(("[", "{")):
@@ -193,10 +197,82 @@ class Fleet:
             "reports": reports,
             "table": table,
             "stderr": stderr[-4000:],
-            "cpu": cpu,
+            "cpu": cpu - links,  # the push process and what it ran, but the links
+            "cpu_links": links,
+            "cpu_robots": robots_cpu,
             "fds": peak_fds,
             "threads": peak_threads,
         }
+
+    def links_cpu(self, robots: list[str]) -> float:
+        """CPU seconds the stopped link proxies (countproxy.py) of ``robots`` used, in all."""
+        return sum(Counter(self.wire(n)).cpu() for n in robots)
+
+    def robots_cpu(self, robots: list[str], *, settle: bool = False) -> float:
+        """CPU seconds of the robots' sshds: each listener with the sessions it reaped (a
+        session's sshd, the endpoint it ran). ``settle``: first wait (at most 5 s) until
+        no session is left, so a push's have all been counted."""
+        listeners = [_listener(self.sshds[self.names.index(n)]) for n in robots]
+        deadline = time.monotonic() + 5
+        while settle and time.monotonic() < deadline:
+            if not any(_children(p) for p in listeners if p):
+                break
+            time.sleep(0.05)
+        return sum(_cpu_with_reaped(p) for p in listeners if p)
+
+
+def _listener(sshd: SSHD) -> int | None:
+    try:
+        return int((sshd.workdir / "sshd.pid").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        text = Path(f"/proc/{pid}/task/{pid}/children").read_text()
+    except OSError:
+        return []
+    return [int(x) for x in text.split()]
+
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_with_reaped(pid: int) -> float:
+    """utime + stime of ``pid`` and of the children it has reaped (cutime + cstime)."""
+    try:
+        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return sum(int(x) for x in f[11:15]) / CLK_TCK
+
+
+def _become_subreaper() -> None:
+    """Orphans of our children (a link proxy its push left behind) become ours, so their
+    CPU time is ours to collect (:func:`_reap_orphans`) and counted, not init's."""
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
+
+
+def _reap_orphans() -> None:
+    """Wait for the link proxies that were handed to us (by pid, each at most 2 s)."""
+    for pid in _children(os.getpid()):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"countproxy.py" in cmd:
+            deadline = time.monotonic() + 2
+            while time.monotonic() < deadline:
+                try:
+                    if os.waitpid(pid, os.WNOHANG)[0]:
+                        break
+                except ChildProcessError:  # reaped already
+                    break
+                time.sleep(0.02)
 
 
 def _usage(pid: int) -> tuple[int, int]:
@@ -217,8 +293,11 @@ def _check(result: dict[str, Any], what: str) -> None:
         raise SystemExit(f"{what} failed (exit {result['exit']}):\n{result['stderr']}")
 
 
-def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dict[str, Any]:
-    """Single pushes of every robot, then one fleet push, from the same starting point."""
+def scenario(
+    fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any, singles: int
+) -> dict[str, Any]:
+    """Single pushes of the first ``singles`` robots (every one by default), then one
+    fleet push, from the same starting point."""
     out: dict[str, Any] = {"scenario": name}
     for label in ("single", "fleet"):
         if name == "initial":
@@ -228,15 +307,19 @@ def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dic
                 fh.write(f"// {label} {time.monotonic_ns()}\n")
         if label == "single":
             times, wire, cpu, fds, threads = {}, {}, {}, {}, {}
-            for n in fleet.names:
+            links, robots = {}, {}
+            for n in fleet.names[:singles]:
                 r = fleet.push([n], jobs=1)
                 _check(r, f"{name}: push to {n}")
                 times[n], wire[n], cpu[n] = r["seconds"], r["bytes"][n], r["cpu"]
                 fds[n], threads[n] = r["fds"], r["threads"]
+                links[n], robots[n] = r["cpu_links"], r["cpu_robots"]
             out["single"] = {
                 "seconds": times,
                 "bytes": wire,
                 "cpu": cpu,
+                "cpu_links": links,
+                "cpu_robots": robots,
                 "fds": max(fds.values()),
                 "threads": max(threads.values()),
             }
@@ -248,12 +331,26 @@ def scenario(fleet: Fleet, name: str, *, jobs: int, edit: Path, log: Any) -> dic
         else:
             r = fleet.push(fleet.names, jobs=jobs)
             _check(r, f"{name}: fleet push")
-            out["fleet"] = {k: r[k] for k in ("seconds", "bytes", "table", "cpu", "fds", "threads")}
+            out["fleet"] = {
+                k: r[k]
+                for k in (
+                    "seconds",
+                    "bytes",
+                    "table",
+                    "cpu",
+                    "cpu_links",
+                    "cpu_robots",
+                    "fds",
+                    "threads",
+                )
+            }
             log(f"{name:8} fleet:  {r['seconds']:.2f}s for {len(fleet.names)} robots")
     single = out["single"]
     out["ratio"] = out["fleet"]["seconds"] / max(single["seconds"].values())
     out["bytes_ratio"] = {
-        n: out["fleet"]["bytes"][n] / single["bytes"][n] for n in fleet.names if single["bytes"][n]
+        n: out["fleet"]["bytes"][n] / single["bytes"][n]
+        for n in single["bytes"]
+        if single["bytes"][n]
     }
     return out
 
@@ -317,20 +414,52 @@ def report(data: dict[str, Any]) -> str:
         )
     lines += [
         "",
-        "The laptop's side (user+sys CPU of the push process and the children it waited for; "
-        "its descriptors and threads at their peak):",
+        (
+            "Who used the CPUs (user+sys seconds; the laptop: the push process and what it ran, "
+            "the links' proxies apart; the links: the bench's shapers, `countproxy.py`, one per "
+            "connection, their own report; the robots: each robot's sshd with the sessions and "
+            "endpoints it ran, which a lab runs on the robots, not here), and the push's wall "
+            "time times the CPUs: what this machine had. Peak descriptors and threads of the "
+            "push process:"
+        ),
         "",
-        "| scenario | link | CPU, single push (median) | CPU, fleet push | fds single / fleet "
-        "| threads single / fleet |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| scenario | link | push | wall x CPUs | laptop | links (bench) | robots | fds | threads |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
+    cpus = data["machine"]["cpus"] or 1
     for s in data["scenarios"]:
         single, fl = s["single"], s["fleet"]
-        lines.append(
-            f"| {s['scenario']} | {s['link']} | {statistics.median(single['cpu'].values()):.2f} s | "
-            f"{fl['cpu']:.2f} s | {single['fds']} / {fl['fds']} | "
-            f"{single['threads']} / {fl['threads']} |"
-        )
+        k = statistics.median_low(single["seconds"].values())
+        one = next(n for n, v in single["seconds"].items() if v == k)  # the median single push
+        for label, wall, lap, lnk, rob, fds, thr in (
+            (
+                f"single ({one}, the median)",
+                single["seconds"][one],
+                single["cpu"][one],
+                single.get("cpu_links", {}).get(one),
+                single.get("cpu_robots", {}).get(one),
+                single["fds"],
+                single["threads"],
+            ),
+            (
+                f"fleet of {len(fl['bytes'])}",
+                fl["seconds"],
+                fl["cpu"],
+                fl.get("cpu_links"),
+                fl.get("cpu_robots"),
+                fl["fds"],
+                fl["threads"],
+            ),
+        ):
+            avail = wall * cpus
+
+            def share(x: float | None, avail: float = avail) -> str:
+                return "—" if x is None else f"{x:.2f} s ({100 * x / avail:.0f}%)"
+
+            lines.append(
+                f"| {s['scenario']} | {s['link']} | {label} | {avail:.1f} s | {share(lap)} | "
+                f"{share(lnk)} | {share(rob)} | {fds} | {thr} |"
+            )
     d = data.get("two_down")
     if d:
         lines += [
@@ -356,6 +485,17 @@ def main() -> int:
     ap.add_argument("--no-loopback", action="store_true", help="skip the unshaped fleet figure")
     ap.add_argument("--no-down", action="store_true", help="skip the two-robots-down push")
     ap.add_argument("--quick", action="store_true", help="the initial push only (a smoke test)")
+    ap.add_argument(
+        "--scenarios",
+        default="initial,edit",
+        help="comma-separated, of initial and edit (default both; --quick: initial)",
+    )
+    ap.add_argument(
+        "--singles",
+        type=int,
+        help="robots pushed one at a time for the single figures (default: all; the "
+        "robots are alike, so a few give the slowest single push within noise)",
+    )
     add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
@@ -363,6 +503,11 @@ def main() -> int:
     if args.robots < 3:
         ap.error("--robots: at least 3 (two are taken down)")
     jobs = args.jobs or args.robots
+    scenarios = ["initial"] if args.quick else [x for x in args.scenarios.split(",") if x]
+    if not scenarios or set(scenarios) - {"initial", "edit"}:
+        ap.error("--scenarios: initial and/or edit")
+    singles = min(args.singles or args.robots, args.robots)
+    _become_subreaper()
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="fsbench-fleet-")).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
 
@@ -377,6 +522,8 @@ def main() -> int:
             "link": args.link,
             "files": args.files,
             "size_mb": args.size_mb,
+            "scenarios": scenarios,
+            "singles": singles,
         },
         "workspace": {"files": ws.files, "bytes": ws.bytes},
         "machine": machine(),
@@ -401,8 +548,8 @@ def main() -> int:
             )
             fleet.reset()
             _check(fleet.push(fleet.names[:1], jobs=1), "warm-up push")  # the endpoint cache
-            for name in ("initial",) if args.quick else ("initial", "edit"):
-                s = scenario(fleet, name, jobs=jobs, edit=ws.edit_target, log=log)
+            for name in scenarios:
+                s = scenario(fleet, name, jobs=jobs, edit=ws.edit_target, log=log, singles=singles)
                 s["link"] = link
                 data["scenarios"].append(s)
         if not args.no_down:  # last: it stops a robot's sshd

@@ -30,6 +30,9 @@ def test_the_fleet_bench_runs_with_three_robots(tmp_path):
         assert 0.8 < ratio < 1.25, (name, ratio)
     # the tree went over (compressed: 3 MiB of generated sources and meshes make ~1 MiB)
     assert all(b > data["workspace"]["bytes"] / 5 for b in initial["fleet"]["bytes"].values())
+    # who used the CPUs: the laptop's push, the bench's link proxies, the robots' sshds
+    for key in ("cpu", "cpu_links", "cpu_robots"):
+        assert initial["fleet"][key] > 0, (key, initial["fleet"])
     down = data["two_down"]
     assert down["ok"] == ["r03"] and sorted(down["failed"]) == ["r01", "r02"]
     assert down["exit"] == 3, down
