@@ -123,11 +123,14 @@ class Pending:
     paths: set[str] = field(default_factory=set)
     dirs: set[str] = field(default_factory=set)
     full: bool = False
+    # back from offline: what was pending goes first (push_paths, the save on the robot
+    # without a scan of the whole tree), then a full push checks everything
+    recheck: bool = False
     first: int = 0  # the first request merged in
     seq: int = 0  # the last request merged in
 
     def empty(self) -> bool:
-        return not (self.paths or self.dirs or self.full)
+        return not (self.paths or self.dirs or self.full or self.recheck)
 
     def count(self) -> int:
         return len(self.paths) + len(self.dirs) + (1 if self.full else 0)
@@ -278,6 +281,7 @@ class Agent:
         paths: set[str] | None = None,
         dirs: set[str] | None = None,
         full: bool = False,
+        recheck: bool = False,
         activity: bool = True,
     ) -> int:
         """Queue work; returns its sequence number for :meth:`wait_for`. ``activity``:
@@ -290,6 +294,7 @@ class Agent:
             self.pending.paths |= paths or set()
             self.pending.dirs |= dirs or set()
             self.pending.full |= full
+            self.pending.recheck |= recheck
             self.pending.first = self.pending.first or seq
             self.pending.seq = seq
             self.cond.notify_all()
@@ -387,10 +392,13 @@ class Agent:
                     raise TransportError("the link to the robot was closed")
                 self._set_state("syncing")
                 t0 = time.monotonic()
-                if work.full:
+                if work.full or not (work.paths or work.dirs):
                     report = syncer.push()
                 else:
                     report = syncer.push_paths(work.paths, work.dirs)
+                if work.recheck and not work.full:
+                    with self.cond:
+                        self.pending.full = True  # next: everything, once these are there
                 self._settled(work, report, time.monotonic() - t0)
                 failures = 0
             except (TransportError, ProtocolError, EOFError, OSError) as exc:
@@ -582,7 +590,7 @@ class Agent:
         if self.stop_event.is_set() or not self._disconnect(only=transport):
             return
         self._mark_offline(exc)
-        self.request(full=True, activity=False)
+        self.request(recheck=True, activity=False)
 
     def _reachable(self) -> bool:
         """Whether the robot's sshd answers a new connection (its banner, no login)."""
@@ -615,7 +623,8 @@ class Agent:
                 # keep what was not synced, and check everything once back
                 self.pending.paths |= work.paths
                 self.pending.dirs |= work.dirs
-                self.pending.full = True
+                self.pending.full |= work.full
+                self.pending.recheck = True
                 self.pending.seq = max(self.pending.seq, work.seq)
                 self.pending.first = (
                     min(x for x in (self.pending.first, work.first) if x)

@@ -1034,8 +1034,10 @@ class Syncer:
         report = Report("push")
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         synced = self._load_synced()
-        if not synced or self.state.epoch == "" or self.opened is None:
+        if not synced or self.state.epoch == "":
             return self.push(progress=progress, confirm_deletions=confirm_deletions)
+        if self.opened is None:  # a new connection (the agent back online): no listing
+            self.opened = self._send_open().wait()
         paths, dirs = set(paths), set(dirs)
         if "" in dirs:
             return self.push(progress=progress, confirm_deletions=confirm_deletions)
