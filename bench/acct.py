@@ -34,6 +34,7 @@ from fetchsync.protocol import wire  # noqa: E402
 OUT: collections.Counter[str] = collections.Counter()
 IN: collections.Counter[str] = collections.Counter()
 FRAMES: collections.Counter[str] = collections.Counter()
+SOURCES: collections.Counter[str] = collections.Counter()  # ops by source, raw blob bytes
 _ops: dict[int, str] = {}
 
 
@@ -54,6 +55,10 @@ def _install() -> None:
         op = str(frame.header.get("op", "?"))
         _ops[frame.req_id] = op
         OUT[op + " head"] += len(data[0])
+        for o in frame.header.get("ops", ()):
+            kind = "z" if o.get("z") else "raw"
+            SOURCES[f"{o.get('src', o.get('k'))}/{kind}"] += 1
+            SOURCES[f"{o.get('src', o.get('k'))}/{kind} bytes"] += (o.get("bl") or [0, 0])[1]
         OUT[op + " blob"] += sum(len(p) for p in data[1:])
         FRAMES[op + ">"] += 1
         return data
@@ -88,12 +93,15 @@ def push(label: str, rows: list[tuple[str, dict[str, int], dict[str, int]]]) -> 
     OUT.clear()
     IN.clear()
     FRAMES.clear()
+    SOURCES.clear()
     with contextlib.redirect_stdout(io.StringIO()):
         try:
             cli.main(["push", "--json"], standalone_mode=False)
         except SystemExit:
             pass
     rows.append((label, dict(OUT), dict(IN)))
+    if os.environ.get("ACCT_SOURCES"):
+        print(label, dict(SOURCES), file=sys.stderr)
 
 
 def show(rows: list[tuple[str, dict[str, int], dict[str, int]]]) -> None:
@@ -111,6 +119,7 @@ def main() -> None:
     ap.add_argument("--files", type=int, default=300)
     ap.add_argument("--size-mb", type=float, default=5)
     ap.add_argument("--history", type=int, default=0, help="rclcpp commits to replay")
+    ap.add_argument("--switches", type=int, default=0, help="release switches after them")
     ap.add_argument("--bundle", default="/work/shared/data/rclcpp.bundle")
     ap.add_argument("--json")
     args = ap.parse_args()
@@ -148,6 +157,24 @@ def main() -> None:
             for rev in revs[1:]:
                 subprocess.run(git + ["checkout", "-q", "-f", rev], check=True)
                 push("commit " + rev[:7], rows)
+            if args.switches:
+                from history import RELEASE, switch_plan
+
+                log = subprocess.run(
+                    git + ["log", "--first-parent", "--format=%H %s", "HEAD"],
+                    check=True,
+                    capture_output=True,
+                    text=True,
+                ).stdout
+                releases = []
+                for line in log.splitlines():
+                    sha, _, subject = line.partition(" ")
+                    m = RELEASE.match(subject.strip())
+                    if m:
+                        releases.append(((int(m[1]), int(m[2]), int(m[3])), sha))
+                for version, sha in switch_plan(releases, args.switches):
+                    subprocess.run(git + ["checkout", "-q", "-f", sha], check=True)
+                    push("switch " + version, rows)
         else:
             import workspace
             from run import Edits
@@ -171,6 +198,10 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
     show(rows)
     if args.history:
+        switches = [r for r in rows if r[0].startswith("switch")]
+        if switches:
+            tot = sum(sum(o.values()) + sum(i.values()) for _, o, i in switches)
+            print(f"switches: {len(switches)}, both ways in all {tot}")
         commits = [r for r in rows if r[0].startswith("commit")]
         tot = sum(sum(o.values()) + sum(i.values()) for _, o, i in commits)
         print(f"commits: {len(commits)}, both ways in all {tot}")

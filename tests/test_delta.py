@@ -912,3 +912,21 @@ def test_signature_file_bytes_is_the_signatures_wire_form():
             _d.signature_file_bytes(_io.BytesIO(data), algorithm="blake2b-128", bufsize=4096)
             == want
         )
+
+
+@pytest.mark.parametrize("alg", hashing.available())
+def test_delta_and_signature_in_one_pass_equal_the_two_made_apart(alg):
+    rng = random.Random(7)
+    text = b"".join(b"line %d: %d\n" % (i, rng.randrange(10**6)) for i in range(20000))
+    for old, new in [
+        (text, b"// a line on top\n" + text),
+        (text, text[:5000] + text[9000:]),
+        (b"", b"abc"),
+        (b"abc", b""),
+        (b"", b""),
+        (bytes(rng.randrange(256) for _ in range(30000)), text[:40000]),
+    ]:
+        sig = D.signature(old, algorithm=alg)
+        d, new_sig = D.delta_and_signature(new, sig)
+        assert new_sig.to_bytes() == D.signature(new, algorithm=alg).to_bytes()
+        assert D.patch(old, d) == new and d == D.delta(new, sig)

@@ -187,3 +187,25 @@ def test_kept_content_that_is_not_what_the_robot_holds_steps_aside(pusher):
     r = push()
     assert r.errors == [] and r.files == 2 and r.rounds == 1
     assert tree_of(src) == tree_of(robot)
+
+
+def test_a_large_text_files_delta_keeps_its_new_signature(pusher):
+    """A text file over 32 KiB goes as a chunk delta; the signature kept for its next edit
+    (taken from the delta's own pass) is the new content's."""
+    from fetchsync.protocol import delta
+
+    src, robot, push, state_file = pusher
+    big = src / "pkg" / "big.cpp"
+    big.write_bytes(b"".join(b"int g%d(int x) { return x + %d; }\n" % (i, i) for i in range(3000)))
+    push()
+    big.write_bytes(b"// a new first line\n" + big.read_bytes())
+    r = push()
+    assert r.errors == [] and r.deltas == 1 and tree_of(src) == tree_of(robot)
+    state = State(state_file)
+    try:
+        algorithm = state.get("algorithm")
+        assert state.signature("pkg/big.cpp") == (
+            delta.signature(big.read_bytes(), algorithm=algorithm).to_bytes()
+        )
+    finally:
+        state.close()

@@ -1266,7 +1266,9 @@ class Syncer:
         smaller, else whole (also if it changed since the scan: sent as it is now)."""
         op = p.op
         digest = hashing.digest(self.algorithm, data).hex()
-        sig = self._kept_of(data)
+        # a large text file's new signature comes from its delta's pass when it goes as one
+        by_delta = p.how == DELTA and len(data) > M.ZDICT_BASE_MAX and b"\0" not in data[:8192]
+        sig = None if by_delta else self._kept_of(data)
         if digest != op.hash or len(data) != op.size:
             # changed since the scan: send what is there now, whole
             op = op.but(hash=digest, size=len(data), source=M.SRC_DATA, base="")
@@ -1276,19 +1278,33 @@ class Syncer:
         if p.how == DELTA:
             stored = robot_sigs.get(op.path) or self.state.signature(op.path)
             if stored is not None and stored[:4] == BASE_MAGIC:
+                if by_delta:
+                    sig, by_delta = self._kept_of(data), False
                 sent, stored = self._from_base(batcher, p, data, stored, sig)
                 if sent:
                     return
             if stored is not None:
-                d = delta_mod.encode_delta(
-                    delta_mod.delta(data, delta_mod.Signature.from_bytes(stored))
-                )
+                base_sig = delta_mod.Signature.from_bytes(stored)
+                if (
+                    by_delta
+                    and base_sig.algorithm == self.algorithm
+                    and (base_sig.params == delta_mod.DEFAULT_PARAMS)
+                ):
+                    found, new_sig = delta_mod.delta_and_signature(data, base_sig)
+                    sig, by_delta = new_sig.to_bytes(), False
+                else:
+                    found = delta_mod.delta(data, base_sig)
+                d = delta_mod.encode_delta(found)
+                if by_delta:
+                    sig = self._kept_of(data)
                 if len(d) < len(data):
                     batcher.total -= op.size - len(d)  # the progress counts what travels
                     batcher.add(op, d, tag=(p, sig))
                     return
             op = op.but(source=M.SRC_DATA, base="")
             p = Planned(op, WHOLE, p.item)
+        if by_delta:
+            sig = self._kept_of(data)
         batcher.add(op, data, tag=(p, sig))
 
     def _kept_of(self, data: bytes) -> bytes | None:
