@@ -55,6 +55,7 @@ from run import (
     Bench,
     FetchsyncPush,
     Params,
+    ResultRow,
     _human,
     _ratio,
     _verdict,
@@ -64,6 +65,7 @@ from run import (
     link_line,
     load_average,
     machine_info,
+    results_section,
     start_robot,
 )
 from workspace import Workspace
@@ -291,6 +293,55 @@ def _tables(rows: dict[str, Any], ours: str, theirs: str) -> list[str]:
     return out
 
 
+def result_rows(hist: History) -> list[ResultRow]:
+    """bench/README.md's "Latest results" rows for this run (see run.result_rows)."""
+    rows = hist.summary("fetchsync", "rsync")
+    out: list[ResultRow] = []
+
+    def verdict(row: dict[str, Any], key: str) -> str:
+        return _verdict(row[key]) if key in row else ""
+
+    for kind, what in (("commit", "real history, per commit"), ("switch", "release switches")):
+        if kind not in rows:
+            continue
+        r = rows[kind]
+        f, t = r["fetchsync"], r["rsync"]
+        out.append(
+            ResultRow(
+                f"{what}: bytes beyond no-op",
+                f"≤ {r['bytes_target']:g}x" if "bytes_target" in r else "—",
+                f"{_human(f['bytes'])} ({_human(f['bytes_total'])} in all)",
+                f"{_human(t['bytes'])} ({_human(t['bytes_total'])})",
+                f"{_ratio(r['bytes_ratio'])} (totals {_ratio(r['bytes_total_ratio'])})",
+                verdict(r, "bytes_pass"),
+            )
+        )
+        out.append(
+            ResultRow(
+                f"{what}: time",
+                f"≤ {r['time_target']:g}x" if "time_target" in r else "—",
+                f"{f['seconds']:.3f} s",
+                f"{t['seconds']:.3f} s",
+                f"{_ratio(r['time_ratio'])} ({_ratio(r['time_step_ratio'])})",
+                verdict(r, "time_pass"),
+            )
+        )
+    if "initial" in rows:
+        r = rows["initial"]
+        f, t = r["fetchsync"], r["rsync"]
+        out.append(
+            ResultRow(
+                "rclcpp's first push, time / bytes",
+                "figure",
+                f"{f['seconds']:.3f} s / {_human(f['bytes'])}",
+                f"{t['seconds']:.3f} s / {_human(t['bytes'])}",
+                f"{_ratio(r['time_ratio'])} / {_ratio(r['bytes_ratio'])}",
+                "",
+            )
+        )
+    return out
+
+
 def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
     bench = hist.bench
     out = [
@@ -322,6 +373,8 @@ def render(hist: History, machine: dict[str, str], info: dict[str, Any]) -> str:
             )
             out += ["", f"{base.name} against rsync", ""]
             out += _tables(hist.summary(base.name, "rsync"), base.name, "rsync")
+    title = f"{bench.params.link}, history.py, {info['commits']} commits, {len(info['switches'])} switches"
+    out += ["", *results_section(title, machine.get("commit", "?"), result_rows(hist))]
     out.append("")
     if hist.verified_ok():
         out.append(
@@ -450,6 +503,7 @@ def main(argv: list[str] | None = None) -> int:
                         },
                         "failures": bench.failures,
                         "robot": bench.robot,
+                        "results_rows": [dataclasses.asdict(r) for r in result_rows(hist)],
                         "verified": hist.verified_ok(),
                     },
                     indent=1,

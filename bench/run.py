@@ -947,6 +947,7 @@ def machine_info() -> dict[str, str]:
         "ssh": first_line(["ssh", "-V"]),
         "paramiko": paramiko_version,
         "fetchsync": first_line([sys.executable, "-m", "fetchsync", "--version"]) + f" ({commit})",
+        "commit": commit.split()[0] if git.returncode == 0 else "?",
     }
 
 
@@ -1028,6 +1029,157 @@ def _tables(
                 "(see verification below)"
             ),
         ]
+    return out
+
+
+# --------------------------------------------------------------------------- results rows
+RESULTS_HEADER = (
+    "| figure | target | fetchsync ({commit}) | rsync / lsyncd | ratio | verdict |",
+    "| --- | --- | ---: | ---: | ---: | --- |",
+)
+NOOP_WAIT_SLACK = 0.05
+"""Seconds a no-op push's wall time may exceed its own work plus the interpreter's start
+and still count as "nothing waits" (issue 24): the rest is measurement noise."""
+
+
+@dataclasses.dataclass
+class ResultRow:
+    """One row of bench/README.md's "Latest results" tables."""
+
+    figure: str
+    target: str
+    ours: str
+    theirs: str
+    ratio: str
+    verdict: str
+
+    def markdown(self) -> str:
+        return (
+            f"| {self.figure} | {self.target} | {self.ours} | {self.theirs} | {self.ratio} | "
+            f"{self.verdict} |"
+        )
+
+
+def results_section(title: str, commit: str, rows: list[ResultRow]) -> list[str]:
+    """The rows to paste into bench/README.md's "Latest results", with their header."""
+    return [
+        f"Rows for bench/README.md's Latest results ({title}):",
+        "",
+        RESULTS_HEADER[0].format(commit=commit),
+        RESULTS_HEADER[1],
+        *(r.markdown() for r in rows),
+    ]
+
+
+def _ratios(row: dict[str, Any]) -> str:
+    return f"{_ratio(row['time_ratio'])} ({_ratio(row.get('round_ratio'))})"
+
+
+def result_rows(bench: Bench) -> list[ResultRow]:
+    """bench/README.md's rows for this run: each figure, its target on this link, both
+    tools' medians, the ratios (of the medians, of the rounds' own in brackets), PASS/MISS."""
+    rows = bench.summary("fetchsync", "rsync")
+    out: list[ResultRow] = []
+
+    def verdict(ok: bool | None) -> str:
+        return "" if ok is None else _verdict(ok)
+
+    def time_row(scenario: str, figure: str) -> None:
+        if scenario not in rows:
+            return
+        r = rows[scenario]
+        target = f"≤ {r['time_target']:g}x" if "time_target" in r else "—"
+        out.append(
+            ResultRow(
+                figure,
+                target,
+                f"{r['fetchsync']['seconds']:.3f} s",
+                f"{r['rsync']['seconds']:.3f} s",
+                _ratios(r),
+                verdict(r.get("time_pass")),
+            )
+        )
+
+    time_row("initial", "initial push, time" + (" (fresh robot trees)" if not bench.link else ""))
+    if "initial" in rows:
+        r = rows["initial"]
+        target = f"≤ {r['bytes_ratio_target']:g}x" if "bytes_ratio_target" in r else "—"
+        out.append(
+            ResultRow(
+                "initial push, bytes",
+                target,
+                _human(r["fetchsync"]["bytes"]),
+                _human(r["rsync"]["bytes"]),
+                _ratio(r["bytes_ratio"]),
+                verdict(r.get("bytes_ratio_pass")),
+            )
+        )
+        if bench.link is not None:  # issue 24: the first push after the master starts
+            ok = all(x is not None and x <= 1.0 for x in (r["time_ratio"], r.get("round_ratio")))
+            out.append(
+                ResultRow(
+                    "first push after the master starts (the initial push: no master)",
+                    "≤ 1.0x",
+                    f"{r['fetchsync']['seconds']:.3f} s",
+                    f"{r['rsync']['seconds']:.3f} s",
+                    _ratios(r),
+                    verdict(ok if bench.params.link == "wifi" else None),
+                )
+            )
+    time_row("edit", "one-edit push, time")
+    time_row("insert", "one line inserted in a 2 MiB file, time")
+    if "insert" in rows and "rename" in rows:
+        ri, rr = rows["insert"], rows["rename"]
+        ok = ri.get("bytes_pass", True) and rr.get("bytes_pass", True)
+        out.append(
+            ResultRow(
+                "insert / rename, bytes beyond no-op",
+                f"≤ {_human(BYTE_TARGETS['insert'])} / ≤ {_human(BYTE_TARGETS['rename'])}",
+                f"{_human(ri['fetchsync']['beyond_noop'])} / {_human(rr['fetchsync']['beyond_noop'])}",
+                f"{_human(ri['rsync']['beyond_noop'])} / {_human(rr['rsync']['beyond_noop'])}",
+                f"{_ratio(ri.get('beyond_noop_ratio'))} / {_ratio(rr.get('beyond_noop_ratio'))}",
+                _verdict(ok),
+            )
+        )
+    if "noop" in rows:
+        r = rows["noop"]
+        sel = [s for s in bench.samples if s.tool == "fetchsync" and s.scenario == "noop"]
+        start = bench.startup.get("fetchsync")
+        inner = [float(s.report["seconds"]) for s in sel if s.report]
+        wall = r["fetchsync"]["seconds"]
+        if start is not None and inner:
+            own = statistics.median(inner)
+            rest = wall - own - start
+            ours = (
+                f"{wall:.3f} s wall = {own:.3f} s own + {start:.3f} s start "
+                f"{'+' if rest >= 0 else '−'} {abs(rest):.3f} s unaccounted"
+            )
+        else:
+            rest, ours = None, f"{wall:.3f} s"
+        if "time_target" in r:  # loopback: a ratio
+            out.append(
+                ResultRow(
+                    "no-op push, time",
+                    f"≤ {r['time_target']:g}x",
+                    ours,
+                    f"{r['rsync']['seconds']:.3f} s",
+                    _ratios(r),
+                    verdict(r.get("time_pass")),
+                )
+            )
+        else:
+            out.append(
+                ResultRow(
+                    "no-op push: wall time = own work + interpreter start",
+                    f"nothing waits (≤ {NOOP_WAIT_SLACK * 1000:.0f} ms unaccounted)",
+                    ours,
+                    f"{r['rsync']['seconds']:.3f} s",
+                    _ratios(r),
+                    verdict(None if rest is None else rest <= NOOP_WAIT_SLACK)
+                    if bench.params.link == "wifi"
+                    else "",
+                )
+            )
     return out
 
 
@@ -1161,6 +1313,9 @@ def render(bench: Bench, machine: dict[str, str], ws_info: dict[str, Any]) -> st
             out += _tables(bench.summary(base.name, "rsync"), base.name, "rsync", failed)
     if len(bench.series) > 2:
         out += ["", *_series_lines(bench, failed)]
+    commit = bench.measured_rev or machine.get("commit", "?")
+    title = f"{p.link}, run.py, {ws_info['files']} files, {ws_info['bytes'] / 2**20:.0f} MiB"
+    out += ["", *results_section(title, commit, result_rows(bench))]
     out.append("")
     if bench.verified_ok():
         out.append(
@@ -1529,6 +1684,7 @@ def main(argv: list[str] | None = None) -> int:
                         "allocator": bench.allocator,
                         "robot": bench.robot,
                         "owners": bench.owners,
+                        "results_rows": [dataclasses.asdict(r) for r in result_rows(bench)],
                         "verified": bench.verified_ok(),
                     },
                     indent=1,

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import re
@@ -74,6 +75,8 @@ for _p in (str(BENCH), str(REPO / "tests")):
 from countproxy import LINKS, Link, proxy_command, set_link_state
 from robot import RobotSide, add_robot_user_option
 from run import (
+    ResultRow,
+    _verdict,
     _workdir,
     baseline_checkout,
     check_source,
@@ -81,6 +84,7 @@ from run import (
     link_line,
     load_average,
     machine_info,
+    results_section,
     robot_python,
     snapshot,
     start_robot,
@@ -703,6 +707,124 @@ def _ms(x: float | None) -> str:
     return "—" if x is None else f"{x * 1000:.0f} ms" if x >= 0.1 else f"{x * 1000:.1f} ms"
 
 
+MEMORY_TARGET = 100e6  # bytes: the agent after its first sync of 7,000 files; the robot side
+
+
+def result_rows(res: dict[str, Any]) -> list[ResultRow]:
+    """bench/README.md's "Latest results" rows for this run (see run.result_rows)."""
+    link = LINKS[res.get("link", "loopback")]
+    out: list[ResultRow] = []
+    fs = _stats([x for x in res["latency"].get("fetchsync", []) if x is not None])
+    ls = _stats([x for x in res["latency"].get("lsyncd", []) if x is not None])
+    if fs:
+        target = latency_target(link)
+        ratio = ls["median"] / fs["median"] if ls else None
+        ok = fs["median"] <= target and (link is not None or (ratio or 0) >= RATIO_TARGET)
+        out.append(
+            ResultRow(
+                "watch: save → same bytes on the robot, p50 (p90)",
+                f"≤ {target * 1000:.0f} ms"
+                + (" (one round trip + 5 ms)" if link else f" and ≥ {RATIO_TARGET:.0f}x lsyncd"),
+                f"{_ms(fs['median'])} ({_ms(fs['p90'])})",
+                f"lsyncd {_ms(ls['median'])}" if ls else "—",
+                f"{ratio:.0f}x faster" if ratio else "—",
+                _verdict(ok),
+            )
+        )
+    b, lb = res["burst"].get("fetchsync"), res["burst"].get("lsyncd")
+    if b and b.get("after_first") is not None:
+        n, kib = b["files"], b["bytes"] / 1024
+        theirs = f"lsyncd {_ms(lb['after_first'])}" if lb and lb.get("after_first") else "—"
+        vs = (
+            f"{lb['after_first'] / b['after_first']:.1f}x faster than lsyncd"
+            if lb and lb.get("after_first")
+            else ""
+        )
+        if link is not None:
+            need = b["bytes"] / link.rate
+            out.append(
+                ResultRow(
+                    f"watch: {n}-file burst ({kib:,.0f} KiB) on the robot, from the first write",
+                    f"≤ {BURST_FACTOR:g}x its bytes' time ({_ms(need)})",
+                    f"{_ms(b['after_first'])} (writing them took {_ms(b['write_seconds'])})",
+                    theirs,
+                    "; ".join(
+                        x for x in (f"{b['after_first'] / need:.1f}x its bytes' time", vs) if x
+                    ),
+                    _verdict(b["after_first"] <= BURST_FACTOR * need),
+                )
+            )
+        else:
+            out.append(
+                ResultRow(
+                    f"watch: {n}-file burst, after the last write (after the first)",
+                    "figure",
+                    f"{_ms(b['after_last'])} ({_ms(b['after_first'])})",
+                    f"lsyncd {_ms(lb['after_last'])} ({_ms(lb['after_first'])})" if lb else "—",
+                    vs,
+                    "",
+                )
+            )
+    rec, lrec = res.get("recovery", {}).get("fetchsync"), res.get("recovery", {}).get("lsyncd")
+    if rec:
+        lgroups = dict(_recovery_groups(lrec)) if lrec else {}
+        for label, sel in _recovery_groups(rec):
+            if label not in TARGETED_RECOVERY:
+                continue
+            xs = [r["after_up"] for r in sel if r["after_up"] is not None]
+            ok = sum(1 for r in sel if not r["differences"])
+            parts = [
+                f"{k} {_ms(statistics.median(v))}"
+                for k in LINK_OUTAGES
+                if label != "sshd-restart"
+                and (v := [r["after_up"] for r in sel if r["outage"] == k and r["after_up"]])
+            ]
+            lx = [r["after_up"] for r in lgroups.get(label, []) if r["after_up"] is not None]
+            med = statistics.median(xs) if xs else None
+            lmed = statistics.median(lx) if lx else None
+            what = "link back" if label != "sshd-restart" else "the robot's sshd back"
+            out.append(
+                ResultRow(
+                    f"recovery: {what} → save on the robot, tree identical, p50 of "
+                    f"{len(sel)} × ({', '.join(sorted({r['outage'] for r in sel}))})",
+                    f"≤ {RECOVERY_TARGET:g} s",
+                    f"{_ms(med)} (" + "; ".join([*parts, f"{ok}/{len(sel)} identical"]) + ")",
+                    f"lsyncd {_ms(lmed)}" if lmed is not None else "—",
+                    f"{med / lmed:.2f}x" if med and lmed else "—",
+                    _verdict(recovery_met(sel)),
+                )
+            )
+    idle = res.get("idle", {})
+    first, again = idle.get("fetchsync"), idle.get("fetchsync (restart)")
+    if first:
+        iw = res.get("idle_workspace", {})
+        lsy = idle.get("lsyncd")
+        rss = first["rss_kib"] * 1024
+        out.append(
+            ResultRow(
+                f"memory: the agent after its first sync of {iw.get('files', '?'):,} files (VmRSS)",
+                "≤ 100 MB",
+                f"{rss / 2**20:.1f} MiB = {rss / 1e6:.0f} MB"
+                + (f" ({again['rss_kib'] / 1024:.1f} MiB after a restart)" if again else ""),
+                f"lsyncd {lsy['rss_kib'] / 1024:.1f} MiB" if lsy else "—",
+                "",
+                _verdict(rss <= MEMORY_TARGET),
+            )
+        )
+        robot = first["robot_rss_kib"] * 1024
+        out.append(
+            ResultRow(
+                "memory: the robot side (session sshd + endpoint)",
+                "≤ 100 MB",
+                f"{robot / 2**20:.1f} MiB",
+                "—",
+                "",
+                _verdict(robot <= MEMORY_TARGET),
+            )
+        )
+    return out
+
+
 def render(res: dict[str, Any]) -> str:
     m, p = res["machine"], res["params"]
     out = [
@@ -865,6 +987,8 @@ def render(res: dict[str, Any]) -> str:
             + (", and after the outages" if res.get("recovery") else "")
             + " every remote tree equals the local src/: paths, kinds, modes, symlink targets, SHA-256)"
         )
+    title = f"{res.get('link', 'loopback')}, watch.py"
+    out += ["", *results_section(title, m.get("commit", "?"), result_rows(res))]
     return "\n".join(out)
 
 
@@ -1041,6 +1165,7 @@ def main(argv: list[str] | None = None) -> int:
             finally:
                 bench.close()
         res["load_end"] = load_average()
+        res["results_rows"] = [dataclasses.asdict(r) for r in result_rows(res)]
         report = render(res)
         print(report, flush=True)
         if a.json_out:

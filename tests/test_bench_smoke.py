@@ -220,6 +220,12 @@ def test_bench_quick_completes_and_verifies(tmp_path: Path) -> None:
     assert initial["round_ratio"] > 0
     # both went through the counting proxy
     assert all(s["bytes"] > 0 for s in raw["samples"] if s["scenario"] == "initial")
+    # the rows to paste into bench/README.md's Latest results, in the report and the JSON
+    assert "Rows for bench/README.md's Latest results (loopback, run.py" in stdout
+    figures = [r["figure"] for r in raw["results_rows"]]
+    assert figures[:2] == ["initial push, time (fresh robot trees)", "initial push, bytes"]
+    assert "insert / rename, bytes beyond no-op" in figures and "no-op push, time" in figures
+    assert all(r["verdict"] in ("**PASS**", "**MISS**", "") for r in raw["results_rows"])
     # the no-op push's wall time is set against the interpreter's start
     assert raw["startup"]["fetchsync"] > 0 and "No-op push of fetchsync: " in stdout
     # the robot is a robot's account (as root: the bench's own, with a stock ~/.bashrc and the
@@ -271,6 +277,10 @@ def test_bench_watch_quick_completes_and_verifies(tmp_path: Path) -> None:
         before, after = cycles[2]["listener"]  # the robot's sshd was another process after
         assert before and after and before != after
     assert "| fetchsync | sshd-restart 2 s |" in stdout
+    figures = [r["figure"] for r in raw["results_rows"]]
+    assert figures[0] == "watch: save → same bytes on the robot, p50 (p90)"
+    assert any(f.startswith("recovery: the robot's sshd back") for f in figures), figures
+    assert any(f.startswith("recovery: link back") for f in figures), figures
     assert not any(raw["verification"].values())
 
 
@@ -307,3 +317,23 @@ def test_bench_history_quick_replays_real_commits_and_verifies(tmp_path: Path) -
     assert rows["commit"]["bytes_target"] == 0.8  # issue 24's target on wifi
     assert all(s["bytes"] > 0 for s in raw["samples"])  # every push went through the shaper
     assert "| one commit | 2 |" in stdout and "| a release switch | 1 |" in stdout
+    rows = {r["figure"]: r for r in raw["results_rows"]}
+    assert rows["real history, per commit: bytes beyond no-op"]["target"] == "≤ 0.8x"
+    assert "release switches: time" in rows and "rclcpp's first push, time / bytes" in rows
+
+
+def test_one_command_per_profile_runs_the_readme_runs() -> None:
+    """``bench/profile.py PROFILE --dry-run``: the scripts and arguments of the final runs."""
+    out = subprocess.run(
+        [sys.executable, str(BENCH / "profile.py"), "wifi", "--dry-run"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.splitlines()
+    assert [line.split()[1].rsplit("/", 1)[1] for line in out] == [
+        "run.py",
+        "watch.py",
+        "history.py",
+    ]
+    assert "--link wifi --files 2000 --size-mb 40" in out[0]
+    assert "--commits 30 --switches 4" in out[2]
