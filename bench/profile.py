@@ -38,7 +38,7 @@ PROFILES: dict[str, list[tuple[str, list[str]]]] = {
         (
             "run.py",
             "--link wifi --files 2000 --size-mb 40 --reps 3 --reps-initial 3 --no-cold "
-            "--settle 20".split(),
+            "--settle 120".split(),
         ),
         ("watch.py", "--link wifi --saves 30 --idle-files 0".split()),
         ("history.py", "--link wifi --commits 30 --switches 4".split()),
@@ -47,7 +47,7 @@ PROFILES: dict[str, list[tuple[str, list[str]]]] = {
         (
             "run.py",
             "--link loopback --files 2000 --size-mb 40 --reps 3 --reps-initial 3 --no-cold "
-            "--settle 60".split(),
+            "--settle 120".split(),
         ),
         ("watch.py", "--link loopback --saves 30 --recovery 0".split()),
         ("history.py", "--link loopback --commits 20 --switches 2".split()),
