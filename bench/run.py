@@ -1110,7 +1110,7 @@ def result_rows(bench: Bench) -> list[ResultRow]:
                 target,
                 _human(r["fetchsync"]["bytes"]),
                 _human(r["rsync"]["bytes"]),
-                _ratio(r["bytes_ratio"]),
+                "—" if r["bytes_ratio"] is None else f"{r['bytes_ratio']:.3f}x",  # near 1
                 verdict(r.get("bytes_ratio_pass")),
             )
         )
