@@ -629,10 +629,12 @@ class WatchBench:
         self.restarted.append(proc)
         deadline = time.monotonic() + 10
         while True:
+            # the new listener's pid in its pid file (written once it listens), and a banner
             with contextlib.suppress(OSError):
-                with socket.create_connection((self.sshd.host, self.sshd.port), timeout=1) as c:
-                    if c.recv(8).startswith(b"SSH-"):
-                        return
+                if self._listener() == proc.pid:
+                    with socket.create_connection((self.sshd.host, self.sshd.port), 1) as c:
+                        if c.recv(8).startswith(b"SSH-"):
+                            return
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"sshd did not come back: {self.sshd.log_text()[-2000:]}")
             time.sleep(0.005)
@@ -768,9 +770,11 @@ def result_rows(res: dict[str, Any]) -> list[ResultRow]:
     rec, lrec = res.get("recovery", {}).get("fetchsync"), res.get("recovery", {}).get("lsyncd")
     if rec:
         lgroups = dict(_recovery_groups(lrec)) if lrec else {}
-        for label, sel in _recovery_groups(rec):
-            if label not in TARGETED_RECOVERY:
+        groups = dict(_recovery_groups(rec))
+        for label in TARGETED_RECOVERY:  # the link's outages, then the sshd restarts
+            if label not in groups:
                 continue
+            sel = groups[label]
             xs = [r["after_up"] for r in sel if r["after_up"] is not None]
             ok = sum(1 for r in sel if not r["differences"])
             parts = [
