@@ -166,16 +166,11 @@ class Agent:
         on_event: Callable[[str], None] | None = None,
         build: dict[str, Any] | None = None,
         own_watcher: bool = True,
-        asking: Any = None,
     ) -> None:
         """``own_watcher=False``: changes come from outside through :meth:`request` (a fleet
-        watch, :mod:`fetchsync.agent.fleet`, whose one watcher feeds every robot's agent).
-        ``asking``: a lock held around the first connection, which may ask on the terminal
-        (a host key, a password), so that a fleet's robots ask one at a time."""
+        watch, :mod:`fetchsync.agent.fleet`, whose one watcher feeds every robot's agent)."""
         self.target = target
         self.own_watcher = own_watcher
-        self.asking = asking
-        self._asked = False
         self.rules = rules
         self.policy = policy
         self.accept_fingerprint = accept_fingerprint
@@ -459,16 +454,12 @@ class Agent:
 
     def _open_link(self) -> tuple[Any, Any]:
         """A new transport and endpoint connection to the robot."""
-        from contextlib import nullcontext
-
         from fetchsync.link.connection import Connection
         from fetchsync.link.session import open_transport
 
-        first, self._asked = not self._asked, True
-        with self.asking if first and self.asking is not None else nullcontext():
-            transport = open_transport(
-                self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
-            )
+        transport = open_transport(
+            self.target, accept_fingerprint=self.accept_fingerprint, persistent=False
+        )
         try:
             return transport, Connection.open(transport)
         except BaseException:

@@ -617,7 +617,7 @@ def _fleet_push(
 
     from fetchsync.chores.build import build_on_robot
     from fetchsync.cli.common import resolve, where_line
-    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, quiet, run_all
+    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, quiet, run_all
     from fetchsync.config import resolve_workspace
     from fetchsync.console import printable
     from fetchsync.link.connection import Connection, remote_python
@@ -630,7 +630,6 @@ def _fleet_push(
     rules = build_rules(tuple(excludes))
     scanned = scan_tree(str(src), rules)  # once for all robots: it is only read
     packs = SharedPacks()  # each batch compressed once for the robots that send it
-    asking = question_lock()
     silent = quiet()
 
     def work(name: str, out: Prefixed) -> RobotResult:
@@ -644,9 +643,7 @@ def _fleet_push(
                 out.line(f"fetchsync: note: {state.note}")
             try:
                 with ExitStack() as stack:
-                    # as session.connect, but only the opening (which may ask) is one at a time
-                    with asking:
-                        transport = open_transport(target, accept_fingerprint=accept_host_key)
+                    transport = open_transport(target, accept_fingerprint=accept_host_key)
                     stack.callback(transport.close)
                     conn = Connection.open(transport, python=remote_python())
                     stack.callback(conn.close)

@@ -427,12 +427,8 @@ class _Account:
         workspace: str | None,
         say: Callable[[str], None],
         on_stderr: Callable[[bytes], None],
-        asking: Any = None,
     ) -> Any:
-        """Create or repair the account on ``robot`` through the admin login: the report.
-        ``asking``: held while the login may ask on the terminal (a host key)."""
-        from contextlib import nullcontext
-
+        """Create or repair the account on ``robot`` through the admin login: the report."""
         from fetchsync.chores.account import (
             GROUPS,
             AccountRequest,
@@ -449,13 +445,12 @@ class _Account:
             env["ROS_DISTRO"] = distro
         if workspace:
             env["FETCH_WORKSPACE"] = workspace
-        with asking if asking is not None else nullcontext():
-            transport = SSHTransport.connect(
-                robot,
-                user=self.admin,
-                accept_fingerprint=self.accept_host_key,
-                password_callback=_login_callback(self.admin_password),
-            )
+        transport = SSHTransport.connect(
+            robot,
+            user=self.admin,
+            accept_fingerprint=self.accept_host_key,
+            password_callback=_login_callback(self.admin_password),
+        )
         try:
             session = AdminSession(transport, admin=self.admin, robot=robot, python=remote_python())
             found = session.probe(self.name)
@@ -505,12 +500,11 @@ def _fleet_create(
     """create-account on each robot, in parallel once the passwords are asked (once each,
     here: the new one, and the admin's, which Enter leaves out when the admin logs in with
     a key and sudo asks none); each robot's lines prefixed; the table; the exit status."""
-    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, question_lock, run_all
+    from fetchsync.cli.fleet import Prefixed, RobotResult, finish, run_all
     from fetchsync.errors import RemoteError
 
     account.new_password.ask_first()
     account.admin_password.ask_first(optional="Enter: none, it logs in with a key")
-    asking = question_lock()
 
     def work(robot: str, out: Prefixed) -> RobotResult:
         account_ws = _account_workspace(robot, account.name, workspace, remote_workspace)
@@ -519,7 +513,6 @@ def _fleet_create(
             workspace=account_ws,
             say=out.line,
             on_stderr=lambda data: _write_all(out.err, data),
-            asking=asking,
         )
         if not as_json:
             for line in _report_lines(report, key_path=key_path, skeleton=account.skeleton):

@@ -246,17 +246,6 @@ class Prefixed:
 
 
 # --------------------------------------------------------------------------- running
-def question_lock() -> Any:
-    """What serialises opening connections, which may ask on the terminal (a host key, a
-    password): a lock at a terminal, so one robot's question is asked at a time and
-    answered before the next; nothing without one, where nothing can ask."""
-    from contextlib import nullcontext
-
-    from fetchsync.link.session import terminal_prompt
-
-    return threading.Lock() if terminal_prompt() is not None else nullcontext()
-
-
 def run_all(
     robots: Sequence[str],
     work: Callable[[str, Prefixed], RobotResult],

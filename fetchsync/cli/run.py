@@ -210,7 +210,6 @@ def _fleet_run(
         Prefixed,
         RobotResult,
         finish,
-        question_lock,
         remote_option,
         run_all,
     )
@@ -219,16 +218,11 @@ def _fleet_run(
     from fetchsync.link.connection import remote_python
     from fetchsync.link.session import open_transport
 
-    asking = question_lock()
-
     def work(name: str, out: Prefixed) -> RobotResult:
         target, remote_ws = _target(name, user, workspace, remote_option(name, remote_workspace))
         body = script(line, environment=ros_environment(remote_ws))
         try:
-            with asking:
-                transport = open_transport(
-                    target, accept_fingerprint=accept_host_key, persistent=False
-                )
+            transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
             try:
                 channel = transport.exec(wrap(body, tty=False, python=remote_python()), pty=False)
                 try:

@@ -349,7 +349,6 @@ def _fleet_snapshot(
         Prefixed,
         RobotResult,
         finish,
-        question_lock,
         run_all,
     )
     from fetchsync.errors import LinkLostError, UsageError
@@ -359,12 +358,10 @@ def _fleet_snapshot(
         raise UsageError(
             f"with several robots, --output is a directory for their archives, not {output}"
         )
-    asking = question_lock()
 
     def work(name: str, out: Prefixed) -> RobotResult:
         target, overlay = _target(name, user, workspace, remote_workspace)
-        with asking:
-            transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
+        transport = open_transport(target, accept_fingerprint=accept_host_key, persistent=False)
         try:
             snap = take_snapshot(
                 transport,

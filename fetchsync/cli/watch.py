@@ -228,11 +228,9 @@ def _fleet_watch(
     (:mod:`fetchsync.agent.fleet`); each robot's lines are prefixed ``[robot]``."""
     from fetchsync.agent.fleet import FleetWatch
     from fetchsync.agent.service import Agent
-    from fetchsync.cli.fleet import question_lock
     from fetchsync.console import printable
     from fetchsync.sync.engine import build_rules
 
-    asking = question_lock()
     agents: list[Agent] = []
     for name in names:
         target = resolve(name, user, workspace, remote_workspace)
@@ -250,7 +248,6 @@ def _fleet_watch(
                 on_event=on_event,
                 build=build_options,
                 own_watcher=False,
-                asking=asking,
             )
         )
     fleet = FleetWatch(agents, src=str(src), rules=build_rules(excludes), say=say)

@@ -817,6 +817,11 @@ class _KnownKey:
     marker: str | None
 
 
+# held from finding a host key unknown to accepting or refusing it: a fleet's robots that
+# share a host (aliases of one robot) ask about its key once, the others find it recorded
+_UNKNOWN_KEYS = threading.Lock()
+
+
 class _HostKeyCheck:
     """The known_hosts files of one host and the verdict on the key it offers."""
 
@@ -875,28 +880,34 @@ class _HostKeyCheck:
                     " and check the new fingerprint"
                 ),
             )
-        wanted = (self.accept_fingerprint or "").strip()
-        if wanted and wanted.removeprefix("SHA256:") == fingerprint.removeprefix("SHA256:"):
-            self._record(key)
-            return
-        s = self.settings
-        if not wanted and self.confirm is not None and self._confirmed(key, fingerprint):
-            self._record(key)
-            return
-        port = f"-p {s.port} " if s.port != SSH_PORT else ""
-        login = shlex.quote(f"{s.user}@{s.alias}")
-        how = (
-            f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
-            f"{shlex.quote(fingerprint)}"
-        )
-        if wanted:
-            raise HostKeyError(
-                f"the host key of {s.display} is {offered}, not the {wanted} given to accept; "
-                "refusing to connect"
+        with _UNKNOWN_KEYS:
+            # another robot of this process (a fleet's) may have accepted this host's key
+            # meanwhile: look again, so that its question is asked once
+            self._known = None
+            if any(e.marker is None and e.key.asbytes() == blob for e in self.known()):
+                return
+            wanted = (self.accept_fingerprint or "").strip()
+            if wanted and wanted.removeprefix("SHA256:") == fingerprint.removeprefix("SHA256:"):
+                self._record(key)
+                return
+            s = self.settings
+            if not wanted and self.confirm is not None and self._confirmed(key, fingerprint):
+                self._record(key)
+                return
+            port = f"-p {s.port} " if s.port != SSH_PORT else ""
+            login = shlex.quote(f"{s.user}@{s.alias}")
+            how = (
+                f"ssh {port}{login} once to accept it, or re-run with --accept-host-key "
+                f"{shlex.quote(fingerprint)}"
             )
-        raise HostKeyError(
-            f"the host key of {s.display} is not known: it offers {offered}", hint=how
-        )
+            if wanted:
+                raise HostKeyError(
+                    f"the host key of {s.display} is {offered}, not the {wanted} given to accept; "
+                    "refusing to connect"
+                )
+            raise HostKeyError(
+                f"the host key of {s.display} is not known: it offers {offered}", hint=how
+            )
 
     def _confirmed(self, key: paramiko.PKey, fingerprint: str) -> bool:
         """Ask on the terminal, as ssh does, whether to accept an unknown host key; a
