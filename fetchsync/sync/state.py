@@ -85,6 +85,33 @@ def state_path(robot_id: str, remote_workspace: str) -> Path:
     return state_dir() / f"{slug}-{key[:12]}.sqlite"
 
 
+def _private(path: Path, *, is_dir: bool) -> None:
+    """Make ``path`` (the state's directory or database) ours alone: 0700 or 0600, as
+    ssh keeps ~/.ssh. The state keeps small text files' content, which another user of
+    the laptop must not read; one that is not ours, or not what it should be (a link
+    put there), is refused."""
+    import stat
+
+    st = os.lstat(path)
+    kind_ok = stat.S_ISDIR(st.st_mode) if is_dir else stat.S_ISREG(st.st_mode)
+    if not kind_ok or st.st_uid != os.getuid():
+        raise StateError(
+            f"the state's {'directory' if is_dir else 'database'} {path} is not "
+            f"{'a directory' if is_dir else 'a file'} of yours; refusing to use it",
+            hint="remove it, or set XDG_STATE_HOME to a directory of your own",
+        )
+    if st.st_mode & 0o077:
+        os.chmod(path, 0o700 if is_dir else 0o600)
+
+
+def _create_private(path: Path) -> None:
+    """The database file, made (or kept) 0600 before SQLite opens it: its -wal and -shm
+    files take its mode. The content of small text files is kept in it (dictionary
+    writes)."""
+    os.close(os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600))
+    _private(path, is_dir=False)
+
+
 class State:
     """One target's state. A damaged database is set aside (``<name>.damaged-<time>``)
     and an empty one takes its place: the next push then lists the robot, adopts what
@@ -95,16 +122,20 @@ class State:
         self.note = ""
         try:
             path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+            _private(path.parent, is_dir=True)
+            _create_private(path)
         except OSError as exc:
-            raise StateError(
-                f"cannot make the state's directory {path.parent}: {exc.strerror or exc}"
-            ) from None
+            raise StateError(f"cannot make the state {path}: {exc.strerror or exc}") from None
         try:
             self.db = self._open()
         except sqlite3.OperationalError as exc:  # not damage: permissions, a full disk
             raise StateError(f"cannot open the state {path}: {exc}") from None
         except sqlite3.DatabaseError as exc:
             aside = self._set_aside()
+            try:
+                _create_private(path)
+            except OSError as exc2:
+                raise StateError(f"cannot make the state {path}: {exc2.strerror}") from None
             self.note = (
                 f"the state {path.name} was damaged ({exc}); set aside as {aside.name}, "
                 "rebuilt from the robot's listing"
