@@ -37,9 +37,9 @@ def thread_heaps_kib(pid: int) -> int:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's heaps, /proc")
 def test_the_first_syncs_large_buffers_are_not_kept(tmp_path: Path) -> None:
-    """A 24 MiB file and 2,000 of 5-40 KB: without the agent's fixed mmap threshold, glibc
+    """A 24 MiB file and 2,000 of 5-40 KB: without the agent's fixed mmap and trim thresholds, glibc
     raises it to the largest buffer freed and keeps the later ones' memory at the top of
-    the sync and sender threads' heaps for good (12 MiB here, 1.3 with it; 34 + 26 MiB
+    the sync and sender threads' heaps for good (12 MiB here, 2 with it; 34 + 26 MiB
     after 7,000 files / 150 MiB)."""
     runtime = Path(tempfile.mkdtemp(prefix="fsm", dir="/tmp"))  # AF_UNIX paths are short
     runtime.chmod(0o700)

@@ -61,8 +61,12 @@ def release_memory() -> None:
         trim(0)
 
 
-M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter
-MMAP_FROM = 256 * 1024  # buffers this large get mappings of their own, unmapped when freed
+M_TRIM_THRESHOLD = -1  # glibc's mallopt parameters
+M_MMAP_THRESHOLD = -3
+# Buffers from 2 MiB get mappings of their own, unmapped when freed; smaller ones (the
+# 1 MiB file reads and batches) stay in the heaps, whose free top is trimmed beyond 4 MiB.
+MMAP_FROM = 2 * 2**20
+TRIM_FROM = 4 * 2**20
 
 
 def map_large_buffers() -> None:
@@ -75,13 +79,15 @@ def map_large_buffers() -> None:
     ``malloc_trim`` does not reach (it trims only the main heap's top). After a
     first sync of 7,000 files / 150 MiB (bench/watch.py's idle case, loopback)
     the agent held 34 + 26 MiB there: 122 MiB resident for 23 MiB of live Python
-    objects; with the threshold set (which fixes both) 66 MiB, the first sync as
-    fast (11.7 vs 12.9 s, one run each at load 4). A buffer of 256 KiB or more
-    costs an mmap and its page faults, next to the file read or batch it holds.
+    objects. Fixing both thresholds keeps what a heap holds free to 4 MiB. Not lower:
+    with every buffer of 256 KiB or more mapped (66 MiB resident after those 7,000
+    files) each file's 1 MiB read buffer cost an mmap and its page faults, and a
+    500-file burst took 3.5x the CPU (131 -> 497 ms, local robot).
     """
     mallopt = _libc("mallopt")
     if mallopt is not None:
         mallopt(M_MMAP_THRESHOLD, MMAP_FROM)
+        mallopt(M_TRIM_THRESHOLD, TRIM_FROM)
 
 
 _LIBC: dict[str, Any] = {}
