@@ -715,6 +715,8 @@ MEMORY_TARGET = 100e6  # bytes: the agent after its first sync of 7,000 files; t
 def result_rows(res: dict[str, Any]) -> list[ResultRow]:
     """bench/README.md's "Latest results" rows for this run (see run.result_rows)."""
     link = LINKS[res.get("link", "loopback")]
+    # issue 24's targets are for wifi and loopback; weak (and a custom link) gets figures
+    judged = res.get("link", "loopback") in ("wifi", "loopback")
     out: list[ResultRow] = []
     fs = _stats([x for x in res["latency"].get("fetchsync", []) if x is not None])
     ls = _stats([x for x in res["latency"].get("lsyncd", []) if x is not None])
@@ -725,12 +727,16 @@ def result_rows(res: dict[str, Any]) -> list[ResultRow]:
         out.append(
             ResultRow(
                 "watch: save → same bytes on the robot, p50 (p90)",
-                f"≤ {target * 1000:.0f} ms"
-                + (" (one round trip + 5 ms)" if link else f" and ≥ {RATIO_TARGET:.0f}x lsyncd"),
+                (
+                    f"≤ {target * 1000:.0f} ms"
+                    + (" (one round trip + 5 ms)" if link else f" and ≥ {RATIO_TARGET:.0f}x lsyncd")
+                )
+                if judged
+                else "—",
                 f"{_ms(fs['median'])} ({_ms(fs['p90'])})",
                 f"lsyncd {_ms(ls['median'])}" if ls else "—",
                 f"{ratio:.0f}x faster" if ratio else "—",
-                _verdict(ok),
+                _verdict(ok) if judged else "",
             )
         )
     b, lb = res["burst"].get("fetchsync"), res["burst"].get("lsyncd")
@@ -747,13 +753,13 @@ def result_rows(res: dict[str, Any]) -> list[ResultRow]:
             out.append(
                 ResultRow(
                     f"watch: {n}-file burst ({kib:,.0f} KiB) on the robot, from the first write",
-                    f"≤ {BURST_FACTOR:g}x its bytes' time ({_ms(need)})",
+                    f"≤ {BURST_FACTOR:g}x its bytes' time ({_ms(need)})" if judged else "—",
                     f"{_ms(b['after_first'])} (writing them took {_ms(b['write_seconds'])})",
                     theirs,
                     "; ".join(
                         x for x in (f"{b['after_first'] / need:.1f}x its bytes' time", vs) if x
                     ),
-                    _verdict(b["after_first"] <= BURST_FACTOR * need),
+                    _verdict(b["after_first"] <= BURST_FACTOR * need) if judged else "",
                 )
             )
         else:
@@ -791,11 +797,11 @@ def result_rows(res: dict[str, Any]) -> list[ResultRow]:
                 ResultRow(
                     f"recovery: {what} → save on the robot, tree identical, p50 of "
                     f"{len(sel)} × ({', '.join(sorted({r['outage'] for r in sel}))})",
-                    f"≤ {RECOVERY_TARGET:g} s",
+                    f"≤ {RECOVERY_TARGET:g} s" if judged else "—",
                     f"{_ms(med)} (" + "; ".join([*parts, f"{ok}/{len(sel)} identical"]) + ")",
                     f"lsyncd {_ms(lmed)}" if lmed is not None else "—",
                     f"{med / lmed:.2f}x" if med and lmed else "—",
-                    _verdict(recovery_met(sel)),
+                    _verdict(recovery_met(sel)) if judged else "",
                 )
             )
     idle = res.get("idle", {})
