@@ -76,3 +76,31 @@ def test_a_fleet_push_compresses_each_batch_once_and_leaves_every_robot_identica
     assert sent["fetch1"] >= 2
     # fetch2 and fetch3 (the same state) share every batch; fetch1's are its own
     assert sum(made.values()) == sent["fetch1"] + sent["fetch2"]
+
+
+def test_a_fleet_pushs_kept_records_are_made_once_each_and_as_a_single_push_makes_them():
+    """What the state keeps of each content (its deflated self, or its signature) is made
+    once for a fleet's robots, and is what a single push would keep."""
+    from types import SimpleNamespace
+
+    from fetchsync.protocol import hashing
+    from fetchsync.sync.engine import SharedPacks, Syncer
+
+    algorithm = hashing.available()[0]
+    alone = SimpleNamespace(algorithm=algorithm, packs=None)
+    alone._make_kept = lambda data: Syncer._make_kept(alone, data)
+    made: list[bytes] = []
+    packs = SharedPacks()
+
+    def robot() -> SimpleNamespace:
+        r = SimpleNamespace(algorithm=algorithm, packs=packs)
+        r._make_kept = lambda data: made.append(data) or Syncer._make_kept(r, data)
+        return r
+
+    robots = [robot() for _ in range(3)]
+    contents = [b"int main() {}\n" * n for n in (1, 100, 5000)] + [b"\0binary" * 10]
+    for data in contents:
+        single = Syncer._kept_of(alone, data)
+        for r in robots:
+            assert Syncer._kept_of(r, data) == single
+    assert sorted(made) == sorted(contents[:3])  # each text content once; binary: nothing kept

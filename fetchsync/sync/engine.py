@@ -548,7 +548,8 @@ def _pack_key(packed: list[bytes], *, level6: bool) -> bytes:
 
 
 class SharedPacks:
-    """The compressed streams of a fleet push's batches, shared by its robots' Syncers:
+    """The compressed streams of a fleet push's batches, shared by its robots' Syncers
+    (and the records the state keeps of each content, :meth:`Syncer._kept_of`):
     robots in the same state send the same batches, compressed once. Keyed by exactly
     what makes the bytes (_pack_key), so a robot whose batch differs in one byte, one
     boundary or its level gets its own stream. A stream another robot is compressing is
@@ -1313,9 +1314,21 @@ class Syncer:
         delta signature, binary files (a NUL in the first 8 KiB, git's test: meshes,
         recordings, images) nothing: they are rarely edited in place, their lines (the
         chunk boundaries) are noise, and signing them was a third of an initial push's
-        CPU. If one does change, the robot signs its copy on request (a round trip)."""
+        CPU. If one does change, the robot signs its copy on request (a round trip).
+
+        In a fleet push the record is made once per content for all robots (``packs``:
+        keyed by the content's BLAKE2b and this push's algorithm, all a record depends
+        on). Issue 27: 12 robots, the bench's 300-file tree on wifi, this was ~0.1 s of
+        each robot's ~0.15 s of laptop CPU after its connection opened."""
         if not data or b"\0" in data[:8192]:
             return None
+        if self.packs is None:
+            return self._make_kept(data)
+        key = b"kept\0" + self.algorithm.encode() + b"\0" + hashlib.blake2b(data).digest()
+        parts = self.packs.get(key, lambda: [k] if (k := self._make_kept(data)) else [])
+        return parts[0] if parts else None
+
+    def _make_kept(self, data: bytes) -> bytes | None:
         if len(data) <= M.ZDICT_BASE_MAX:
             packed: bytes = _deflate.compress(data, 1)
             return BASE_MAGIC + packed
