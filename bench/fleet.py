@@ -529,6 +529,8 @@ def main() -> int:
         "machine": machine(),
         "scenarios": [],
     }
+    # a SIGTERM unwinds like Ctrl-C: the 20 sshds (in sessions of their own) are stopped
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     with contextlib.ExitStack() as stack:
         side = RobotSide.make(args.robot_user, workdir)
         stack.callback(side.close)

@@ -1511,6 +1511,10 @@ def baseline_checkout(rev: str, workdir: Path) -> tuple[str, Path]:
     return short, dest
 
 
+def _terminated(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 def start_robot(
     stack: contextlib.ExitStack,
     user: str | None,
@@ -1523,6 +1527,9 @@ def start_robot(
     """The robot: its account (``--robot-user``; see bench/robot.py), where its side
     lives, and the tests' sshd started for it, whose ``user`` is that account. Both
     end with ``stack``."""
+    # a SIGTERM (timeout(1), a kill by pid) unwinds like Ctrl-C: the sshds (started in
+    # sessions of their own) and the robot's side are stopped, not left behind
+    signal.signal(signal.SIGTERM, _terminated)
     side = RobotSide.make(user, workdir, keep=keep)
     stack.callback(side.close)
     log(f"robot: account {side.user}, its side in {side.root}")
