@@ -96,12 +96,15 @@ class RobotSide:
     keep: bool = False
 
     @classmethod
-    def make(cls, user: str | None, workdir: Path, *, keep: bool = False) -> RobotSide:
+    def make(
+        cls, user: str | None, workdir: Path, *, keep: bool = False, parent: Path | None = None
+    ) -> RobotSide:
+        """``parent``: where the account's directory goes (default its home)."""
         user = user or default_robot_user()
         pw = ensure_account(user)
         if pw.pw_uid == os.geteuid():
             return cls(user, workdir, False, pw.pw_uid, pw.pw_gid, keep)
-        root = Path(tempfile.mkdtemp(prefix="fsbench-", dir=pw.pw_dir))
+        root = Path(tempfile.mkdtemp(prefix="fsbench-", dir=parent or pw.pw_dir))
         root.chmod(0o755)
         return cls(user, root, True, pw.pw_uid, pw.pw_gid, keep)
 
