@@ -68,6 +68,10 @@ def test_the_first_syncs_large_buffers_are_not_kept(tmp_path: Path) -> None:
         time.sleep(0.5)  # the compaction after the first sync
         held = thread_heaps_kib(proc.pid)
         assert held < 8 * 1024, f"{held} KiB held in thread heaps"
+        # the local robot's endpoint, which the agent keeps running: the same thresholds
+        # (protocol/heap.py) keep what it holds small (88-95 MiB resident without, 38 with)
+        endpoint = _endpoint_of(proc.pid)
+        assert _rss_kib(endpoint) < 60 * 1024, f"the endpoint holds {_rss_kib(endpoint)} KiB"
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -76,3 +80,23 @@ def test_the_first_syncs_large_buffers_are_not_kept(tmp_path: Path) -> None:
             proc.kill()
             proc.wait()
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def _endpoint_of(pid: int) -> int:
+    """The robot endpoint's pid among ``pid``'s descendants (its Python runs the loader)."""
+    todo = [pid]
+    while todo:
+        for child in Path(f"/proc/{todo.pop()}/task").glob("*/children"):
+            for c in child.read_text().split():
+                cmdline = Path(f"/proc/{c}/cmdline").read_bytes()
+                if b"fetchsync.protocol.server" in cmdline and b"/bin/sh" not in cmdline:
+                    return int(c)
+                todo.append(int(c))
+    raise AssertionError(f"no endpoint under {pid}")
+
+
+def _rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")

@@ -33,6 +33,7 @@ from typing import Any, Callable
 from fetchsync.config import Target
 from fetchsync.errors import FetchsyncError, TransportError, UsageError
 from fetchsync.protocol.errors import ProtocolError
+from fetchsync.protocol.heap import libc, map_large_buffers
 
 log = logging.getLogger(__name__)
 
@@ -56,54 +57,9 @@ def release_memory() -> None:
     this is only a collection.
     """
     gc.collect()
-    trim = _libc("malloc_trim")
+    trim = libc("malloc_trim")
     if trim is not None:
         trim(0)
-
-
-M_TRIM_THRESHOLD = -1  # glibc's mallopt parameters
-M_MMAP_THRESHOLD = -3
-# Buffers from 2 MiB get mappings of their own, unmapped when freed; smaller ones (the
-# 1 MiB file reads and batches) stay in the heaps, whose free top is trimmed beyond 4 MiB.
-MMAP_FROM = 2 * 2**20
-TRIM_FROM = 4 * 2**20
-
-
-def map_large_buffers() -> None:
-    """Keep glibc from holding the agent's freed large buffers for good.
-
-    glibc raises its mmap threshold to the size of each large buffer freed (up
-    to 32 MiB) and its trim threshold to twice that. From then on such buffers
-    come from the heaps of the threads that use them (the sync thread, the
-    engine's sender), and what they free stays at the top of those heaps, which
-    ``malloc_trim`` does not reach (it trims only the main heap's top). After a
-    first sync of 7,000 files / 150 MiB (bench/watch.py's idle case, loopback)
-    the agent held 34 + 26 MiB there: 122 MiB resident for 23 MiB of live Python
-    objects. Fixing both thresholds keeps what a heap holds free to 4 MiB. Not lower:
-    with every buffer of 256 KiB or more mapped (66 MiB resident after those 7,000
-    files) each file's 1 MiB read buffer cost an mmap and its page faults, and a
-    500-file burst took 3.5x the CPU (131 -> 497 ms, local robot).
-    """
-    mallopt = _libc("mallopt")
-    if mallopt is not None:
-        mallopt(M_MMAP_THRESHOLD, MMAP_FROM)
-        mallopt(M_TRIM_THRESHOLD, TRIM_FROM)
-
-
-_LIBC: dict[str, Any] = {}
-
-
-def _libc(name: str) -> Any:
-    """The C library's function ``name`` if the process has glibc's, else None."""
-    if name not in _LIBC:
-        import ctypes  # here: ~4 ms of every push, which asks whether an agent runs
-
-        try:
-            # the symbols the process has loaded: glibc's, on a glibc system
-            _LIBC[name] = getattr(ctypes.CDLL(None), name, None)
-        except (OSError, AttributeError):
-            _LIBC[name] = None
-    return _LIBC[name]
 
 
 def agent_paths(target: Target) -> tuple[Path, Path]:
@@ -239,7 +195,7 @@ class Agent:
         """Watch and sync until :meth:`stop`; returns within a second or two of it."""
         from fetchsync.agent.control import ControlServer
 
-        map_large_buffers()
+        map_large_buffers()  # the first sync's freed buffers go back (protocol/heap.py)
 
         server = ControlServer(self.socket_path, self)
         server.start()

