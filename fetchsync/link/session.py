@@ -93,25 +93,17 @@ def terminal_confirm() -> Callable[[str], str | None] | None:
 
 
 _TERMINAL = threading.Lock()
-_ANSWERED: dict[str, str | None] = {}
-# a question whose answer is the same whichever robot asks: a key file's passphrase (its
-# path is in the question). A host key is asked once by ssh.py's _UNKNOWN_KEYS instead.
-_SAME_FOR_ALL = ("Enter passphrase for key ",)
 
 
 def _one_at_a_time(prompt: str, ask: Callable[[str], str | None]) -> str | None:
-    """Ask ``prompt`` on the terminal while no other thread asks, once per distinct
-    question of :data:`_SAME_FOR_ALL` (a fleet's robots sharing a key file ask for its
-    passphrase once). Only the question waits: the connections of a fleet's other robots go
-    on meanwhile, so twenty robots' handshakes at a terminal take one's time, not the sum
-    (on Wi-Fi ~0.3-0.5 s each: 6-10 s for twenty)."""
+    """Ask ``prompt`` on the terminal while no other thread asks. Only the question
+    waits: the connections of a fleet's other robots go on meanwhile, so twenty robots'
+    handshakes at a terminal take one's time, not the sum (on Wi-Fi ~0.3-0.5 s each:
+    6-10 s for twenty). A host key shared by several robots is asked once by ssh.py
+    (_UNKNOWN_KEYS). No answer is kept: a passphrase or password lives no longer than
+    its login, and a wrong one is asked for again."""
     with _TERMINAL:
-        if prompt in _ANSWERED:
-            return _ANSWERED[prompt]
-        answer = ask(prompt)
-        if prompt.startswith(_SAME_FOR_ALL):
-            _ANSWERED[prompt] = answer
-        return answer
+        return ask(prompt)
 
 
 def open_transport(
