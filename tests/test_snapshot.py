@@ -16,6 +16,7 @@ import shutil
 import subprocess
 import tarfile
 import threading
+import traceback
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -195,7 +196,7 @@ def test_archive_name():
 
 def test_list_needs_no_robot():
     result = CliRunner().invoke(cli, ["snapshot", "--list", "--only", "uname", "--json"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     assert json.loads(result.output) == [
         {
             "name": "uname",
@@ -230,7 +231,7 @@ def run_cli(*args: str, env: dict[str, str] | None = None) -> Any:
 def test_default_snapshot_lists_every_system_command(snap_env, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     result = run_cli()
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     archive = only_archive(tmp_path)
     assert re.fullmatch(r"snapshot-robot-\d{8}-\d{6}\.tar\.gz", archive.name)
     summary = result.stdout.strip().splitlines()[-1]
@@ -269,7 +270,7 @@ def test_missing_tool_and_only_and_extra(snap_env, tmp_path):
         "nope=fetchsync-no-such-tool-xyz --version",
         "--json",
     )
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     report = json.loads(result.stdout)
     manifest, files = read_archive(Path(report["archive"]))
     entries = by_name(manifest)
@@ -297,7 +298,7 @@ def test_timeout_kills_the_command_on_the_robot(snap_env, tmp_path):
         )
     )
     result = run_cli("--output", str(tmp_path), "--config", str(config))
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     manifest, files = read_archive(only_archive(tmp_path))
     entries = by_name(manifest)
     assert entries["sleeper"]["status"] == "timeout"
@@ -420,7 +421,7 @@ def test_ros2_commands_and_bag_stopped_by_sigint(robot_transport, tmp_path):
 @pytest.mark.ssh
 def test_bag_without_ros_is_skipped_and_said(snap_env, tmp_path):
     result = run_cli("--output", str(tmp_path), "--only", "uname", "--bag", "/diagnostics")
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     assert "ROS not found on the robot" in result.stderr
     manifest, _files = read_archive(only_archive(tmp_path))
     assert by_name(manifest)["rosbag"]["status"] == "skipped"
@@ -508,7 +509,7 @@ def test_sudo_password_goes_on_stdin_never_in_a_command_line(sudo_user, tmp_path
     finally:
         stop.set()
         watcher.join()
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     assert seen == []
     manifest, files = read_archive(only_archive(tmp_path))
     entries = by_name(manifest)
@@ -540,7 +541,7 @@ def test_sudo_wrong_or_no_password(sudo_user, tmp_path):
     result = run_cli("--user", name, "--sudo", "--output", str(tmp_path), "--config", config)
     assert result.exit_code == 2 and "FETCHSYNC_SUDO_PASSWORD" in result.stderr
     result = run_cli("--user", name, "--output", str(tmp_path), "--config", config)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     assert "without sudo" in result.stderr
     _manifest, files = read_archive(only_archive(tmp_path))
     assert files["root_id.txt"] != b"0\n"
@@ -574,6 +575,18 @@ def _read_zip(path: Path) -> tuple[dict[str, Any], dict[str, bytes]]:
     return json.loads(files["manifest.json"]), files
 
 
+def _why(result: Any) -> str:
+    """The command's output and, when it raised, the whole chain: click prints only
+    ``Aborted!`` for an EOFError or KeyboardInterrupt, which says nothing of where."""
+    if (
+        result.exc_info is None
+        or isinstance(result.exception, SystemExit)
+        and not (result.exception.__context__ or result.exception.__cause__)
+    ):
+        return result.output
+    return result.output + "".join(traceback.format_exception(*result.exc_info))
+
+
 FAKE_ROSBAG = (
     '[ "$1" = record ] || exit 2; out=; args="$*"; while [ $# -gt 0 ]; do '
     'case $1 in -O) out=$2; shift;; esac; shift; done; echo "$args" > "$out"\n'
@@ -589,7 +602,7 @@ def test_debug_snapshot_is_fetch_tools_collection_in_a_zip(sudo_user, tmp_path):
         ["debug-snapshot", "--user", name, "--output", str(tmp_path)],
         env={"FETCHSYNC_SUDO_PASSWORD": password},
     )
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     (archive,) = tmp_path.glob("snapshot-robot-*.zip")
     manifest, files = _read_zip(archive)
     entries = by_name(manifest)
@@ -671,7 +684,7 @@ def test_generic_profile_collects_ros2_counterparts(sudo_user, tmp_path):
     ]
     # no ~/.ros/log yet: skipped, said so
     result = run_cli("--user", name, "--output", str(tmp_path / "one.tar.gz"), *only)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     manifest, files = read_archive(tmp_path / "one.tar.gz")
     entries = by_name(manifest)
     assert manifest["ros"]["version"] == 2
@@ -691,7 +704,7 @@ def test_generic_profile_collects_ros2_counterparts(sudo_user, tmp_path):
     os.utime(old, (1.0e9, 1.0e9))
     subprocess.run(["chown", "-R", f"{name}:{name}", str(home / ".ros")], check=True)
     result = run_cli("--user", name, "--output", str(tmp_path), "--zip", *only)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 0, _why(result)
     (archive,) = tmp_path.glob("snapshot-robot-*.zip")
     manifest, files = _read_zip(archive)
     assert by_name(manifest)["ros_log"]["status"] == OK
