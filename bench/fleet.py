@@ -264,7 +264,7 @@ def _reap_orphans() -> None:
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
         except OSError:
             continue
-        if b"countproxy.py" in cmd:
+        if b"countproxy" in cmd:
             deadline = time.monotonic() + 2
             while time.monotonic() < deadline:
                 try:
