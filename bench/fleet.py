@@ -113,6 +113,7 @@ class Fleet:
             )
         )
         self.state = 0
+        self.trace: Path | None = None  # --trace: the fleet pushes run under fleettrace.py
 
     def wire(self, name: str) -> Path:
         return self.workdir / "wire" / self.link / name
@@ -158,6 +159,13 @@ class Fleet:
         argv = [sys.executable, "-m", "fetchsync", "push", "--json", "--robot", ",".join(robots)]
         if len(robots) > 1:
             argv += ["-j", str(jobs)]
+            if self.trace is not None:  # where the fleet push's time goes, per robot
+                self.trace.mkdir(parents=True, exist_ok=True)
+                out = (
+                    self.trace
+                    / f"{self.link}-{len(list(self.trace.glob(f'{self.link}-*.json')))}.json"
+                )
+                argv[1:1] = [str(BENCH / "fleettrace.py"), str(out)]
         links0, robots0 = self.links_cpu(robots), self.robots_cpu(robots)
         cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
@@ -507,6 +515,14 @@ def main() -> int:
         "the other robots' writes too, where a lab's robots each have a disk (12 robots on "
         "wifi: fleet push ~6 s on the shared disk vs ~5 s on /dev/shm, singles alike)",
     )
+    ap.add_argument(
+        "--trace",
+        type=Path,
+        metavar="DIR",
+        help="run each fleet push under bench/fleettrace.py (timing wrappers, each "
+        "function's CPU per thread, the phases per robot) and keep its LINK-N.json and "
+        "LINK-N.txt summary in DIR; the tracing costs the push some CPU",
+    )
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     args = ap.parse_args()
@@ -559,6 +575,7 @@ def main() -> int:
             fleet = fleets[link] = Fleet(
                 workdir=workdir / link, sshds=sshds, link=link, ws_root=ws.root, side=side
             )
+            fleet.trace = args.trace.resolve() if args.trace else None
             fleet.reset()
             _check(fleet.push(fleet.names[:1], jobs=1), "warm-up push")  # the endpoint cache
             for name in scenarios:

@@ -39,3 +39,36 @@ def test_the_fleet_bench_runs_with_three_robots(tmp_path):
     for name, why in down["failed"].items():  # each failed row says why, naming its robot
         assert name in why, down
     assert "| initial | wifi |" in out and "Two robots down" in out
+
+
+def test_the_fleet_bench_traces_where_a_fleet_push_goes(tmp_path):
+    """--trace: each fleet push runs under bench/fleettrace.py, which records every robot's
+    phases (connection, endpoint, rounds, commit) and the functions' CPU per thread."""
+    import json
+
+    trace = tmp_path / "trace"
+    run_bench(
+        "fleet.py",
+        "--robots",
+        "3",
+        "--files",
+        "200",
+        "--size-mb",
+        "3",
+        "--quick",
+        "--no-loopback",
+        "--no-down",
+        "--singles",
+        "1",
+        "--trace",
+        str(trace),
+        tmp_path=tmp_path,
+    )
+    [summary] = trace.glob("wifi-*.txt")
+    data = json.loads(summary.with_suffix(".json").read_text())
+    robots = {e[0] for e in data["events"] if e[2] == "robot"}
+    assert robots == {"r01", "r02", "r03"}
+    for phase in ("open_transport", "Connection.open", "Round.run", "State.commit"):
+        assert {e[0] for e in data["events"] if e[2] == phase} == robots, phase
+    text = summary.read_text()
+    assert "process CPU" in text and "Round.run" in text
