@@ -100,9 +100,9 @@ def test_a_fast_link_is_seen_and_gets_the_fast_level(monkeypatch):
     monkeypatch.setattr(sync, "ZLIB6_RATE", 1.0)  # any measured rate is "fast" against it
     data = b"".join(b"line %d of a source file\n" % i for i in range(60000))
     op = M.Op(M.WRITE, "a", expect=M.ABSENT, hash="00", size=len(data), source=M.SRC_DATA)
-    batcher._send(0, [(op, data, True)], [None])
+    batcher._send(batcher._pack(0, [(op, data, True)], [None]))
     assert batcher.slow  # nothing answered before the first batch went out
-    batcher._send(1, [(op.but(path="b"), data, True)], [None])
+    batcher._send(batcher._pack(1, [(op.but(path="b"), data, True)], [None]))
     assert not batcher.slow
     fast = zlib.decompressobj().decompress(b"".join(endpoint.zparts))
     assert fast == data

@@ -78,6 +78,7 @@ PIECE = 8 * 1024 * 1024
 BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
+WINDOW = 3  # batches between the caller and the link: compressing, ready, being sent
 RACY_NS = 2_000_000_000
 MAX_ROUNDS = 4
 READ_TRIES = 5  # reads of a file that changes while read, before giving up on it
@@ -687,13 +688,34 @@ class SharedPacks:
         return parts
 
 
+@dataclass
+class _Packed:
+    """A batch ready to go: its operations pointing into its blob, and the blob's parts
+    (the zlib stream over the compressible data, then the raw rest)."""
+
+    gen: int
+    ops: list[M.Op]
+    zparts: list[bytes]
+    zpos: int
+    raw: list[bytes]
+    nbytes: int  # the content it carries, before compression
+    tags: list[Any]
+
+
 class _Batcher:
     """Packs operations into pipelined requests; collects results in order.
 
-    The main thread reads files and adds operations; a sender thread packs
-    each batch (the compressible data as one zlib stream, the rest, such as
-    meshes and archives, raw) and sends it, while the robot applies the
-    previous one.
+    Three stages, each on a thread of its own, so the laptop's CPU and the link work
+    at once: the caller's thread reads files and adds operations; a packer thread
+    compresses each batch (the compressible data as one zlib stream, the rest, such
+    as meshes and archives, raw); a sender thread sends it, while the robot applies
+    the one before. At most WINDOW batches are between the caller and the link
+    (compressing, ready, being sent), so memory stays bounded.
+
+    On Wi-Fi most batches are deflated at level 6 (~0.5 s of CPU for 8 MiB of meshes
+    here); with packing and sending on one thread the link sat idle meanwhile: the
+    bench's initial push of 2,000 files / 40 MiB (bench/run.py --link wifi, 23.2 MiB
+    sent) left it idle ~1.3 of its 6.9 s (traced at 760409d).
     """
 
     def __init__(
@@ -720,16 +742,18 @@ class _Batcher:
         self.progress = progress
         self.total = total
         self.done = 0
-        self._queue: queue.Queue[tuple[int, list[tuple[M.Op, bytes, bool]], list[Any]] | None] = (
-            queue.Queue(maxsize=1)
-        )
-        self._sender: threading.Thread | None = None
+        Job = tuple[int, list[tuple[M.Op, bytes, bool]], list[Any]]
+        self._to_pack: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
+        self._to_send: queue.SimpleQueue[_Packed | None] = queue.SimpleQueue()
+        self._room = threading.Semaphore(WINDOW)
+        self._threads: list[threading.Thread] = []
         self._failure: BaseException | None = None
         self._mark: tuple[int, int] = (-1, -1)
         self.last: Applied | None = None
         self.stale = False
-        # the link's speed, as the sender thread sees the robot's answers come back
+        # the link's speed, as the packer thread sees the robot's answers come back
         self.slow = True  # until shown otherwise: the links robots live on are
+        self._lock = threading.Lock()  # _inflight: the sender adds, the packer takes
         self._inflight: list[tuple[Pending[Applied], int]] = []  # (answer, raw bytes)
         self._first_sent = 0.0
         self._answered_raw = 0
@@ -767,19 +791,21 @@ class _Batcher:
         # of this round may apply only if nobody else wrote in between
         gen = self.gen + self.batches
         self.batches += 1
-        if self._sender is None:
-            self._sender = threading.Thread(
-                target=self._send_loop, name="fetchsync-sender", daemon=True
-            )
-            self._sender.start()
-        if self._failure is None:
-            job = (gen, self.items, self.tags)
-            while True:
-                try:
-                    self._queue.put(job, timeout=LIVENESS_INTERVAL)
-                    break
-                except queue.Full:
-                    self._stalled()
+        if not self._threads:
+            self._threads = [
+                threading.Thread(target=loop, name=name, daemon=True)
+                for loop, name in (
+                    (self._pack_loop, "fetchsync-packer"),
+                    (self._send_loop, "fetchsync-sender"),
+                )
+            ]
+            for thread in self._threads:
+                thread.start()
+        while self._failure is None:
+            if self._room.acquire(timeout=LIVENESS_INTERVAL):
+                self._to_pack.put((gen, self.items, self.tags))
+                break
+            self._stalled()
         self.items, self.tags, self.raw_len = [], [], 0
 
     def _stalled(self) -> None:
@@ -791,20 +817,39 @@ class _Batcher:
             return
         self.conn.check_link()
 
+    def _pack_loop(self) -> None:
+        while True:
+            job = self._to_pack.get()
+            if job is None:
+                self._to_send.put(None)
+                return
+            packed = None
+            if self._failure is None:
+                try:
+                    packed = self._pack(*job)
+                except BaseException as exc:  # re-raised in answered(), on the caller's thread
+                    self._failure = exc
+            del job
+            if packed is None:
+                self._room.release()
+            else:
+                self._to_send.put(packed)
+
     def _send_loop(self) -> None:
         while True:
-            job = self._queue.get()
-            if job is None:
+            packed = self._to_send.get()
+            if packed is None:
                 return
-            if self._failure is not None:
-                continue
-            gen, items, tags = job
             try:
-                self._send(gen, items, tags)
-            except BaseException as exc:  # re-raised in results(), on the main thread
+                if self._failure is None:
+                    self._send(packed)
+            except BaseException as exc:  # re-raised in answered(), on the caller's thread
                 self._failure = exc
+            finally:
+                del packed
+                self._room.release()
 
-    def _send(self, gen: int, items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> None:
+    def _pack(self, gen: int, items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> _Packed:
         ops: list[M.Op] = []
         packed: list[bytes] = []
         raw: list[bytes] = []
@@ -833,8 +878,10 @@ class _Batcher:
                     self.packs.pack_key(packed, level6=level6),
                     lambda: self._deflate(packed, level6=level6),
                 )
-            del packed
-        progress, base = self.progress, self.done
+        return _Packed(gen, ops, zparts, zpos, raw, nbytes, tags)
+
+    def _send(self, b: _Packed) -> None:
+        progress, base, nbytes = self.progress, self.done, b.nbytes
 
         def sent(k: int, n: int) -> None:  # the batch's share of the total, as its frame goes out
             if progress is not None:
@@ -843,16 +890,17 @@ class _Batcher:
         if not self._first_sent:
             self._first_sent = time.monotonic()
         pending = self.endpoint.send_sync(
-            ops,
+            b.ops,
             policy=self.policy,
             epoch=self.epoch,
-            gen=gen,
-            zpart=(sum(len(p) for p in zparts), zpos) if zparts else None,
-            blob_parts=zparts + raw,
+            gen=b.gen,
+            zpart=(sum(len(p) for p in b.zparts), b.zpos) if b.zparts else None,
+            blob_parts=b.zparts + b.raw,
             sent=sent,
         )
-        self.sent.append((pending, tags))
-        self._inflight.append((pending, nbytes))
+        self.sent.append((pending, b.tags))
+        with self._lock:
+            self._inflight.append((pending, nbytes))
         self.done += nbytes
 
     def _deflate(self, packed: list[bytes], *, level6: bool) -> list[bytes]:
@@ -872,13 +920,14 @@ class _Batcher:
         the first batch went out (its apply time included: a robot that writes slower
         than zlib 6 compresses makes level 6 free too), against zlib 6's rate here."""
         now = time.monotonic()
-        still = []
-        for pending, nbytes in self._inflight:
-            if pending.answered():
-                self._answered_raw += nbytes
-            else:
-                still.append((pending, nbytes))
-        self._inflight = still
+        with self._lock:
+            still = []
+            for pending, nbytes in self._inflight:
+                if pending.answered():
+                    self._answered_raw += nbytes
+                else:
+                    still.append((pending, nbytes))
+            self._inflight = still
         if not self._answered_raw or now <= self._first_sent:
             return
         rate = self._answered_raw / (now - self._first_sent)
@@ -887,20 +936,25 @@ class _Batcher:
         self.slow = rate < FAST_SHARE * zlib6
 
     def _drain(self) -> None:
-        if self._sender is not None:
-            while True:
-                try:
-                    self._queue.put(None, timeout=LIVENESS_INTERVAL)
-                    break
-                except queue.Full:
-                    self._stalled()
-            while self._sender.is_alive():
-                self._sender.join(LIVENESS_INTERVAL)
-                if self._sender.is_alive() and self._failure is None:
-                    self._stalled()
-            self._sender = None
+        if self._threads:
+            self._to_pack.put(None)
+            for thread in self._threads:
+                while thread.is_alive():
+                    thread.join(LIVENESS_INTERVAL)
+                    if thread.is_alive() and self._failure is None:
+                        self._stalled()
+            self._threads = []
         if self._failure is not None:
             raise self._failure
+
+    def close(self) -> None:
+        """End the threads once they are done with what they hold, when the caller gives up
+        on the round (an exception): what is queued is dropped, not sent."""
+        if self._threads:
+            if self._failure is None:
+                self._failure = SyncError("the push was abandoned")
+            self._to_pack.put(None)
+            self._threads = []
 
     def answered(self, *, wait: bool = False) -> list[tuple[Any, M.Result]]:
         """The results of the batches answered since the last call, in order (with ``wait``,
@@ -1654,16 +1708,19 @@ class Round:
         # settled as the robot answers, so a large push never holds every
         # operation and every answer at once
         planned.reverse()
-        while planned:
-            again |= syncer._send_op(
-                batcher, planned.pop(), self.local, self.report, self.robot_sigs
-            )
-            if len(planned) % 512 == 0:
-                again |= self.settle(batcher.answered())
-        # no post-apply scan: the robot reported its changes at the start of
-        # this push, and each operation re-checks its own path there
-        batcher.flush()
-        again |= self.settle(batcher.answered(wait=True))
+        try:
+            while planned:
+                again |= syncer._send_op(
+                    batcher, planned.pop(), self.local, self.report, self.robot_sigs
+                )
+                if len(planned) % 512 == 0:
+                    again |= self.settle(batcher.answered())
+            # no post-apply scan: the robot reported its changes at the start of
+            # this push, and each operation re-checks its own path there
+            batcher.flush()
+            again |= self.settle(batcher.answered(wait=True))
+        finally:
+            batcher.close()
         self.stale = batcher.stale
         if batcher.last is not None:
             self.epoch, self.gen = batcher.last.epoch, batcher.last.gen
