@@ -146,3 +146,52 @@ def test_shared_packs_make_each_key_once_and_a_failed_maker_leaves_it_to_the_nex
     assert packs.get(b"other", lambda: [b"another stream"]) == [b"another stream"]
     assert packs.made == 2 and packs.reused == 1
     assert packs.get(b"k", good) == [b"stream"] and calls[-1] == "good"  # dropped: over 10 B
+
+
+def test_binary_data_goes_at_the_fast_level_in_the_texts_stream(monkeypatch):
+    """On a slow link a batch's text is deflated at zlib's level 6 and its binary data
+    (a NUL in its first 8 KiB: meshes, maps) at ISA-L's level 1, as small there for a
+    tenth of the CPU, in one stream the robot's zlib inflates, each operation pointing
+    at its own bytes."""
+    endpoint = _FastEndpoint()
+    batcher = sync._Batcher(
+        endpoint,  # type: ignore[arg-type]
+        policy="preserve",
+        epoch="e",
+        gen=0,
+        progress=None,
+        total=0,
+    )
+    level6: list[bytes] = []
+    real = zlib.compressobj
+
+    class Spy:
+        def __init__(self, *args: Any) -> None:
+            self.obj = real(*args)
+            self.six = args[:1] == (6,)
+
+        def compress(self, data: bytes) -> bytes:
+            if self.six:
+                level6.append(data)
+            return self.obj.compress(data)
+
+        def flush(self, *mode: int) -> bytes:
+            return self.obj.flush(*mode)
+
+    monkeypatch.setattr(sync.zlib, "compressobj", Spy)
+    mesh = _mesh_like(200 * 1024, 2)
+    text = b"".join(b"double x_%d = %d.5;\n" % (i, i) for i in range(8000))
+    ops = [
+        M.Op(M.WRITE, p, expect=M.ABSENT, hash="00", size=len(d), source=M.SRC_DATA)
+        for p, d in (("mesh.stl", mesh), ("a.cpp", text), ("b.cpp", text[:5000]))
+    ]
+    packed = batcher._pack(
+        0, [(ops[0], mesh, True), (ops[1], text, True), (ops[2], text[:5000], True)], [None] * 3
+    )
+    assert level6 == [text, text[:5000]]  # the binary data never went through level 6
+    stream = zlib.decompress(b"".join(packed.zparts))  # the robot's inflate, checksum included
+    assert len(stream) == packed.zpos
+    for op, data in zip(packed.ops, (mesh, text, text[:5000])):
+        assert op.z and stream[op.blob[0] : op.blob[0] + op.blob[1]] == data
+    both = zlib.compress(text, 6) + zlib.compress(mesh, 6)
+    assert len(b"".join(packed.zparts)) < len(both) * 1.02

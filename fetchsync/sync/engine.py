@@ -542,6 +542,21 @@ def _blake2b(data: bytes) -> bytes:
     return hashlib.blake2b(data).digest()
 
 
+def _binary(data: bytes) -> bool:
+    """Whether content is binary: a NUL in its first 8 KiB (git's test)."""
+    return b"\0" in data[:8192]
+
+
+def _place(ops: list[M.Op], where: list[int], parts: list[bytes], *, z: int) -> int:
+    """Point ``ops[where[k]]`` at ``parts[k]`` laid end to end in a blob (``z``: the
+    blob's inflated compressed part); the blob's length."""
+    pos = 0
+    for i, data in zip(where, parts):
+        ops[i] = ops[i].but(blob=(pos, len(data)), z=1) if z else ops[i].but(blob=(pos, len(data)))
+        pos += len(data)
+    return pos
+
+
 def _pack_key(packed: list[bytes], *, level6: bool) -> bytes:
     """What determines a batch's zlib stream: the compressor and level, and its parts'
     bytes and boundaries (BLAKE2b: ~1 GB/s, a small price beside zlib 6's ~30 MB/s)."""
@@ -850,23 +865,26 @@ class _Batcher:
                 self._room.release()
 
     def _pack(self, gen: int, items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> _Packed:
-        ops: list[M.Op] = []
-        packed: list[bytes] = []
-        raw: list[bytes] = []
-        zpos = rpos = nbytes = 0
-        for op, data, z in items:
-            if data:
-                nbytes += len(data)
-                if z:
-                    op = op.but(blob=(zpos, len(data)), z=1)
-                    packed.append(data)
-                    zpos += len(data)
-                else:
-                    op = op.but(blob=(rpos, len(data)))
-                    raw.append(data)
-                    rpos += len(data)
-            ops.append(op)
-        # one zlib stream over the compressible parts, made without joining them
+        ops = [op for op, _, _ in items]
+        text: list[int] = []
+        binary: list[int] = []
+        raws: list[int] = []
+        for i, (_, data, z) in enumerate(items):
+            if not data:
+                continue
+            if not z:
+                raws.append(i)
+            elif _binary(data):
+                binary.append(i)
+            else:
+                text.append(i)
+        # one zlib stream over the compressible parts, made without joining them: the
+        # text first, then the binary data (see _deflate)
+        packed = [items[i][1] for i in text + binary]
+        zpos = _place(ops, text + binary, packed, z=1)
+        raw = [items[i][1] for i in raws]
+        _place(ops, raws, raw, z=0)
+        nbytes = zpos + sum(len(data) for data in raw)
         zparts: list[bytes] = []
         if packed:
             self._measure_link()
@@ -904,15 +922,41 @@ class _Batcher:
         self.done += nbytes
 
     def _deflate(self, packed: list[bytes], *, level6: bool) -> list[bytes]:
-        """``packed`` as one zlib stream, in parts (level 6, or ISA-L's level 1)."""
+        """``packed`` (its text, then its binary data) as one zlib stream, in parts: at
+        level 6, or ISA-L's level 1. At level 6 the binary data (``_binary``) goes at
+        ISA-L's level 1 all the same, in the same stream: its deflate blocks follow the
+        text's, and the stream's checksum is made here over both.
+
+        On binary data (meshes, maps, recordings) ISA-L's level 1 is as small as zlib's
+        level 6 for a tenth of its CPU; on text it is 7-10% larger. The bench's tree
+        (2,000 files, 40 MiB; 8 MiB streams): text 17.0 MB -> 4.90 MB at level 6 in
+        0.83 s of CPU; binary 24.9 MB -> 19.28 MB at level 6 in 1.06 s, 19.27 MB at
+        ISA-L's level 1 in 0.10 s."""
+        split = next((i for i, data in enumerate(packed) if _binary(data)), len(packed))
+        if not level6 or split == 0:
+            deflate = _deflate.compressobj(1)
+            zparts = [deflate.compress(data) for data in packed]
+            zparts.append(deflate.flush())
+            return zparts
         cpu = time.thread_time()
-        deflate = zlib.compressobj(6) if level6 else _deflate.compressobj(1)
-        zparts = [deflate.compress(data) for data in packed]
-        zparts.append(deflate.flush())
-        zbytes = sum(len(data) for data in packed)
-        if level6 and zbytes > SMALL_BATCH:
-            self._z6[0] += zbytes
+        head = zlib.compressobj(6)
+        zparts = [head.compress(data) for data in packed[:split]]
+        if split == len(packed):
+            zparts.append(head.flush())
+        else:
+            zparts.append(head.flush(zlib.Z_SYNC_FLUSH))  # byte-aligned, not the last block
+        text = sum(len(data) for data in packed[:split])
+        if text > SMALL_BATCH:
+            self._z6[0] += text
             self._z6[1] += time.thread_time() - cpu
+        if split < len(packed):
+            tail = _deflate.compressobj(1, zlib.DEFLATED, -15)  # raw deflate: no header
+            zparts += [tail.compress(data) for data in packed[split:]]
+            zparts.append(tail.flush())
+            check = zlib.adler32(b"")
+            for data in packed:
+                check = zlib.adler32(data, check)
+            zparts.append(check.to_bytes(4, "big"))
         return zparts
 
     def _measure_link(self) -> None:
@@ -1466,7 +1510,7 @@ class Syncer:
         keyed by the content's BLAKE2b and this push's algorithm, all a record depends
         on). Issue 27: 12 robots, the bench's 300-file tree on wifi, this was ~0.1 s of
         each robot's ~0.15 s of laptop CPU after its connection opened."""
-        if not data or b"\0" in data[:8192]:
+        if not data or _binary(data):
             return None
         if self.packs is None:
             return self._make_kept(data)
