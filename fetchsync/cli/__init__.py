@@ -23,6 +23,7 @@ from fetchsync.cli.common import resolve as _resolve
 from fetchsync.cli.common import say_where, target_options
 from fetchsync.cli.fleet import fleet_options, robots_for
 from fetchsync.errors import ConfigError, FetchsyncError
+from fetchsync.trace import mark
 
 # verb -> "module:attribute" of its click command, imported only when used
 LAZY_COMMANDS: dict[str, str] = {
@@ -424,6 +425,7 @@ def push(
     With --build or --install-deps, then builds on the robot.
     Several robots (--robot a,b or @group) are pushed in parallel; a table ends it.
     """
+    mark("push: start")
     from fetchsync.link.session import connect
     from fetchsync.protocol.ignore import build_rules
 
@@ -468,6 +470,7 @@ def push(
             with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare) as conn:
                 from fetchsync.sync.engine import Syncer
 
+                mark("push: connected")
                 syncer = Syncer(
                     conn,
                     state,
@@ -483,6 +486,7 @@ def push(
                     confirm_deletions=force,
                 )
                 report.connection = _connection_kind(conn)
+                mark("push: done")
         finally:
             progress.close()
             state.close()
@@ -493,6 +497,7 @@ def push(
         str(src),
         target.remote_workspace + "/src",
     )
+    mark("push: connection closed")
     _print_report(report, as_json)
     from fetchsync.sync.engine import raise_for
 
@@ -718,6 +723,7 @@ def _collect_less() -> None:
 
 
 def main() -> None:
+    mark("cli: imported")
     try:
         cli(prog_name="fetchsync")
         code: Any = 0
@@ -739,11 +745,13 @@ def _exit(code: int) -> None:
     import atexit
 
     atexit._run_exitfuncs()
+    mark("exit: exit handlers ran")
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):
             code = code or 1  # a closed or broken stdout is a failure to report
+    mark("exit: output flushed")
     os._exit(code)
 
 

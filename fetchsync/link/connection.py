@@ -18,6 +18,7 @@ from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteE
 from fetchsync.link.transport import Channel, Transport
 from fetchsync.protocol import hashing, wire
 from fetchsync.protocol.loader import NEED, loader_spec
+from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +130,7 @@ class Connection:
             watchdog.progress = lambda: (self.reader.bytes_in, self.bytes_out)
             watchdog.waiting = lambda: bool(self._owed)
             watchdog.on_fire = self._fail
+        self.ping_id: int | None = None  # a ping sent at open (see open)
         self._reader = threading.Thread(
             target=self._read_loop, name="fetchsync-reader", daemon=True
         )
@@ -177,6 +179,7 @@ class Connection:
         *,
         python: str | None = None,
         meanwhile: Callable[[Callable[[], bool]], Any] | None = None,
+        ping: bool = False,
     ) -> Connection:
         """Start the endpoint on the robot and exchange hellos.
 
@@ -185,8 +188,17 @@ class Connection:
         connection): work that needs no answer from the robot. It is given a
         function that tells whether the robot has said something yet (its hello,
         or that it needs the endpoint sent), for work worth stopping then.
+        Meanwhile a thread of ours answers the robot as soon as it speaks: sends
+        the endpoint when its loader asks, and our hello when its hello comes, so
+        the start-up's round trips run under the local work instead of after it.
+
+        ``ping`` also sends a ping right after our hello, as the first request: its
+        id is :attr:`ping_id`, and waiting for it (:meth:`wait`) proves that the
+        endpoint answers before anything else is asked of it (an endpoint handed
+        over by a connection master, see session.open_connection). Its round trip
+        runs under ``meanwhile`` too.
         """
-        return cls._open(transport, python or remote_python(), meanwhile)
+        return cls._open(transport, python or remote_python(), meanwhile, ping)
 
     @classmethod
     def _open(
@@ -194,43 +206,84 @@ class Connection:
         transport: Transport,
         python: str,
         meanwhile: Callable[[Callable[[], bool]], Any] | None,
+        ping: bool = False,
     ) -> Connection:
         command, archive = loader_spec(python)
+        mark("connection: imported, the loader's command made")
         channel = transport.exec(command)
+        mark("connection: the endpoint's command sent")
         reader = wire.Reader(channel.recv)
-        sent = 0
-        busy_here = threading.Event()  # our own work runs: the robot owes us nothing meanwhile
+        starting = threading.Event()  # the start-up waits on the robot
+        starting.set()
         watchdog = _Watchdog(
             channel,
             transport.name,
             progress_deadline(),
             progress=lambda: reader.bytes_in,
-            waiting=lambda: not busy_here.is_set(),
+            waiting=starting.is_set,
         )
-        try:
+        done: list[Connection] = []
+        failed: list[BaseException] = []
+
+        def start() -> None:
             try:
-                if meanwhile is not None:
-                    busy_here.set()
-                    meanwhile(channel.ready)
-                    busy_here.clear()
-                sent += cls._deliver(channel, reader, archive)
-                hello = reader.read_hello()
-            except EOFError as exc:
-                if watchdog.fired is not None:
-                    raise watchdog.fired from exc
-                raise cls._startup_error(transport, channel, exc) from exc
-            except ProtocolError:
-                channel.close()
+                done.append(
+                    cls._handshake(transport, channel, reader, archive, watchdog, ping=ping)
+                )
+            except BaseException as exc:  # raised in the caller's thread
+                failed.append(exc)
+            finally:
+                starting.clear()
+
+        if meanwhile is None:
+            start()
+        else:
+            helper = threading.Thread(target=start, name="fetchsync-start", daemon=True)
+            helper.start()
+            try:
+                meanwhile(channel.ready)
+                mark("connection: the local work meanwhile done")
+            except BaseException:
+                watchdog.stop()
+                channel.close()  # wakes the helper if it still waits on the robot
+                helper.join(1.0)
+                if done:
+                    done[0].close()
                 raise
-            except LinkLostError as exc:
-                if watchdog.fired is not None:
-                    raise watchdog.fired from exc
-                raise
-        except BaseException:
+            helper.join()
+        if failed:
             watchdog.stop()
+            raise failed[0]
+        return done[0]
+
+    @classmethod
+    def _handshake(
+        cls,
+        transport: Transport,
+        channel: Channel,
+        reader: wire.Reader,
+        archive: Callable[[], bytes],
+        watchdog: _Watchdog,
+        *,
+        ping: bool,
+    ) -> Connection:
+        """Deliver the endpoint if its loader asks, read its hello, send ours (and a ping)."""
+        try:
+            sent = cls._deliver(channel, reader, archive)
+            hello = reader.read_hello()
+            mark("connection: the endpoint's hello in")
+        except EOFError as exc:
+            if watchdog.fired is not None:
+                raise watchdog.fired from exc
+            raise cls._startup_error(transport, channel, exc) from exc
+        except ProtocolError:
+            channel.close()
+            raise
+        except LinkLostError as exc:
+            if watchdog.fired is not None:
+                raise watchdog.fired from exc
             raise
         if hello.get("version") != wire.VERSION:
-            watchdog.stop()
             channel.close()
             raise ProtocolError(
                 f"the robot's endpoint speaks protocol {hello.get('version')}, "
@@ -240,7 +293,6 @@ class Connection:
         try:
             algorithm = hashing.negotiate(hashing.available(), theirs)
         except ProtocolError:
-            watchdog.stop()
             channel.close()
             raise
         compress = "zlib" in (hello.get("compression") or [])
@@ -256,6 +308,8 @@ class Connection:
         channel.send_all(data)
         conn = cls(transport, channel, reader, hello, algorithm, compress, watchdog)
         conn.bytes_out = sent + len(data)
+        if ping:
+            conn.ping_id = conn.send({"op": "ping"})
         log.debug("endpoint up: %s", hello)
         return conn
 

@@ -15,9 +15,9 @@ from typing import Any, Callable, Iterator
 
 from fetchsync.config import Target
 from fetchsync.errors import ConfigError, ConnectError, LinkLostError
-from fetchsync.link.client import Endpoint
 from fetchsync.link.connection import Connection, remote_python
 from fetchsync.link.transport import LocalTransport, Transport, local_robot_home
+from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +137,7 @@ def open_transport(
             log.warning("fetchsync: no connection master: %s", exc)
     if path is not None:
         attached = mux.MuxTransport.attach(path, target.robot)
+        mark("session: the master " + ("answered" if attached else "is not there"))
         if attached is not None:
             return attached
     from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only when needed
@@ -173,8 +174,10 @@ def open_connection(
     call with "went away" before it has answered anything. Nothing was asked of it then,
     so this call starts a fresh endpoint in its place (through the master again, whose
     spare it took, or directly if the master is gone) instead of failing a push that the
-    next call would do. A ping is the proof, the one round trip this costs: no request
-    of the caller's is sent before it is answered, so no write is ever replayed.
+    next call would do. A ping is the proof: no request of the caller's is sent before
+    it is answered, so no write is ever replayed. It is sent with our hello, while the
+    caller's ``meanwhile`` work runs (Connection.open), so its round trip is paid only
+    where that work is shorter.
     Returns the transport in use (a new one after a retry) and the connection.
     """
     from fetchsync.link import mux
@@ -183,8 +186,10 @@ def open_connection(
         return transport, Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
     conn: Connection | None = None
     try:
-        conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile)
-        Endpoint(conn).ping()
+        conn = Connection.open(transport, python=remote_python(), meanwhile=meanwhile, ping=True)
+        assert conn.ping_id is not None
+        conn.wait(conn.ping_id)
+        mark("session: the endpoint answered a ping")
         return transport, conn
     except (LinkLostError, ConnectError) as exc:
         log.info(
