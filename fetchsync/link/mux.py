@@ -18,8 +18,9 @@ workspace and reads nothing before the client's own requests, so it checks
 everything at open as a fresh one does, and the loader verifies its cache as
 for any start. A spare that has ended meanwhile (it said more than its hello,
 its channel closed, it exited) is noticed when a call takes it, closed, and
-replaced by a fresh start in that same call; a new spare is started as each
-one is handed out.
+replaced by a fresh start in that same call; the next spare is started once
+the call that took one has ended (or a few seconds into it), so its start does
+not compete with that call for the robot's CPU and the link.
 
 Socket protocol (one connection per remote command): the client sends one
 JSON line ``{"exec": COMMAND}`` and then the command's stdin as raw bytes
@@ -58,6 +59,7 @@ _HDR = struct.Struct(">BI")
 DEFAULT_PERSIST = 600.0
 CHECK_TIMEOUT = 5.0  # seconds a master may take to re-check the robot's host key
 IDLE_CHECK = 0.5  # seconds between looks at the link and the idle time while no call comes
+REFILL_AFTER = 2.0  # seconds into a call that took the spare when the next one starts anyway
 SPARE_WAIT = (
     5.0  # seconds a call waits for a spare endpoint still starting before it starts its own
 )
@@ -503,7 +505,7 @@ class Master:
         """A channel running ``command`` and what it printed already: the spare endpoint
         when it is that command and still alive, else a fresh start (a dead spare is
         replaced here, in this call). A spare still starting is waited for (a while): it
-        is ahead of a fresh start. Either way a new spare is started."""
+        is ahead of a fresh start. The caller starts the next spare (:meth:`_refill_later`)."""
         with self.lock:
             if command == self.warm and self.spare is None and self.starting:
                 self.started.wait_for(lambda: not self.starting, SPARE_WAIT)
@@ -511,7 +513,6 @@ class Master:
             if spare is not None:
                 self.spare = None
         if spare is not None:
-            self._start_refill()
             if spare.alive():
                 log.info("took the spare endpoint")
                 if os.environ.get("FETCHSYNC_TEST_SPARE_DIES") == "1" and not self.hook_fired:
@@ -532,6 +533,7 @@ class Master:
             return False
 
     def _client(self, conn: socket.socket) -> None:
+        refill: threading.Timer | None = None
         try:
             f = conn.makefile("rb")
             line = f.readline(1 << 16)
@@ -546,6 +548,8 @@ class Master:
             if not isinstance(command, str):
                 raise ValueError("not a command")
             channel, said = self._take(command)
+            if command == self.warm:
+                refill = self._refill_later()
             if said:
                 conn.sendall(_HDR.pack(K_STDOUT, len(said)) + said)
         except Exception as exc:
@@ -555,6 +559,9 @@ class Master:
             except OSError:
                 pass
             conn.close()
+            if refill is not None:
+                refill.cancel()
+                self._start_refill()
             self._done()
             return
         ended = threading.Event()  # set before conn closes: its fd number may be reused then
@@ -595,7 +602,22 @@ class Master:
             ended.set()
             channel.close()
             conn.close()
+            if refill is not None:
+                refill.cancel()
+                self._start_refill()
             self._done()
+
+    def _refill_later(self) -> threading.Timer:
+        """Start the next spare once this call has ended, or REFILL_AFTER seconds into it if
+        it lives on (a watch agent's session): not at once. A spare's start (a session
+        opened through the link, sshd's fork, the robot's Python and loader: ~0.1 s of the
+        robot's CPU, as much of ours for SSH) started while the call runs competes with it
+        for both ends' CPU and the link: the push's listing took 66 instead of ~20 ms on
+        the bench's wifi robot (strace of the master, 27 Nov)."""
+        timer = threading.Timer(REFILL_AFTER, self._refill)
+        timer.daemon = True
+        timer.start()
+        return timer
 
     @staticmethod
     def _upstream(conn: socket.socket, f: Any, channel: Any, ended: threading.Event) -> None:
