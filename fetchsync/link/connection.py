@@ -17,7 +17,7 @@ from typing import Any, Callable
 from fetchsync.errors import ConnectError, LinkLostError, ProtocolError, RemoteError
 from fetchsync.link.transport import Channel, Transport
 from fetchsync.protocol import hashing, wire
-from fetchsync.protocol.loader import NEED, loader_spec
+from fetchsync.protocol.loader import LOADER_BYTES, NEED, NEED_LOADER, loader_spec
 from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
@@ -315,18 +315,24 @@ class Connection:
 
     @staticmethod
     def _deliver(channel: Channel, reader: wire.Reader, archive: Callable[[], bytes]) -> int:
-        """Send the endpoint if the loader says NEED; stop at the hello's magic."""
+        """Send the loader if the stub says NEED_LOADER, the endpoint if the loader says
+        NEED; stop at the hello's magic. The bytes sent."""
         buf = reader._buf
+        sent = 0
         while True:
-            need_at = buf.find(NEED)
-            magic_at = buf.find(wire.MAGIC)
-            if magic_at >= 0 and (need_at < 0 or magic_at < need_at):
-                return 0
-            if need_at >= 0:
-                del buf[: need_at + len(NEED)]
-                data = archive()
+            at = {mark: buf.find(mark) for mark in (NEED_LOADER, NEED, wire.MAGIC)}
+            found = [(i, mark) for mark, i in at.items() if i >= 0]
+            if found:
+                i, first = min(found)
+                if first == wire.MAGIC:
+                    return sent
+                del buf[: i + len(first)]
+                data = LOADER_BYTES if first == NEED_LOADER else archive()
                 channel.send_all(data)
-                return len(data)
+                sent += len(data)
+                if first == NEED:
+                    return sent
+                continue
             if len(buf) > wire.MAX_NOISE:
                 raise ProtocolError("the robot printed too much before the endpoint started")
             if not reader._fill(len(buf) + 1):

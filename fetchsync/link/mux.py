@@ -10,8 +10,8 @@ as soon as its link dies.
 
 The master also keeps one *spare* robot endpoint started: the endpoint's
 command (the loader line a push runs) is run ahead of the call and
-left waiting right after the endpoint's hello (or its loader's request for the
-endpoint's archive), so the next push does not wait for sshd's session start,
+left waiting right after the endpoint's hello (or its request for the loader or
+the endpoint's archive), so the next push does not wait for sshd's session start,
 the robot's Python start and the loader (0.4-0.5 s of a one-edit push's 0.7 s
 on the shaped Wi-Fi link). The spare only starts: an endpoint opens no
 workspace and reads nothing before the client's own requests, so it checks
@@ -375,13 +375,13 @@ class _Spare:
 
 
 def _until_ready(channel: Any) -> bytes | None:
-    """Read a started endpoint's output up to its hello's magic or its loader's request
-    for the archive; None if it ended first or printed too much."""
-    from fetchsync.protocol.loader import NEED
+    """Read a started endpoint's output up to its hello's magic or its request for the
+    loader or the archive; None if it ended first or printed too much."""
+    from fetchsync.protocol.loader import NEED, NEED_LOADER
     from fetchsync.protocol.wire import MAGIC, MAX_NOISE
 
     said = bytearray()
-    while MAGIC not in said and NEED not in said:
+    while MAGIC not in said and NEED not in said and NEED_LOADER not in said:
         if len(said) > MAX_NOISE + len(MAGIC):
             return None
         chunk = channel.recv(1 << 16)

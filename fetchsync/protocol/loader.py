@@ -1,8 +1,15 @@
 """Delivery of the robot-side endpoint over the connection itself.
 
-The client runs a short loader with ``python3 -S -c`` on the robot. The loader
-refuses a Python older than 3.6 with a message that says so (the endpoint
-itself would fail with a SyntaxError that says nothing useful), then looks
+The client runs a short fixed stub with ``python3 -S -c`` on the robot (~1.3 KB
+of command line at every endpoint start, where the whole loader took 4.3 KB).
+The stub refuses a Python older than 3.6 with a message that says so (the
+endpoint itself would fail with a SyntaxError that says nothing useful), then
+runs the loader from the cache: ``loader-HASH.py`` in the private cache
+directory (opened without following a symlink, the user's and mode 0700, the
+file the user's, regular and writable by no one else), only if its SHA-256 is
+the one on the command line; else it says ``NEED_LOADER``, reads the loader
+from stdin, checks its hash and runs it, and the loader caches itself once it
+has checked the directory as below. The loader looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
 reads exactly that many bytes from stdin, checks their hash and caches them.
@@ -21,12 +28,50 @@ else; it is extracted from the verified bytes, not from the file again.
 Nothing is installed with root and nothing is downloaded by the robot.
 """
 
+import hashlib
 import os
 from typing import Callable, Tuple
 
 from fetchsync.protocol.errors import ProtocolError
 
 NEED = b"FSYNC-NEED\n"
+NEED_LOADER = b"FSYNC-NEED-LOADER\n"
+
+# The command line of every endpoint start: the version check, then the loader from
+# the cache when the private cache directory holds it under its hash, else from the
+# client (it caches itself). Every byte of it crosses the link at every start (a push
+# through the master pays its spare's), and every user on the robot can read it in ps.
+STUB = r"""
+import sys, os, hashlib
+if sys.version_info < (3, 6):
+    sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.6: install one (apt install python3) and set FETCHSYNC_REMOTE_PYTHON to it" % tuple(sys.version_info[:3]))
+h, n, u = sys.argv[1], int(sys.argv[2]), os.getuid()
+def cached():
+    d = os.open(os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "fetchsync"), os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+    try:
+        s = os.fstat(d)
+        if s.st_uid != u or s.st_mode & 0o077:
+            return None
+        f = os.fdopen(os.open("loader-" + h[:32] + ".py", os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK, dir_fd=d), "rb")
+    finally:
+        os.close(d)
+    with f:
+        s = os.fstat(f.fileno())
+        return f.read(n + 1) if s.st_uid == u and s.st_mode & 0o170022 == 0o100000 else None
+try:
+    b = cached()
+except OSError:
+    b = None
+g = {"__name__": "__main__", "__builtins__": __builtins__, "NEW": None, "LH": h}
+if b is None or hashlib.sha256(b).hexdigest() != h:
+    sys.stdout.buffer.write(b"FSYNC-NEED-LOADER\n")
+    sys.stdout.buffer.flush()
+    b = g["NEW"] = sys.stdin.buffer.read(n)
+    if hashlib.sha256(b).hexdigest() != h:
+        sys.exit("fetchsync: the loader was damaged in transit")
+del sys.argv[1:3]
+exec(compile(b, "fetchsync-loader", "exec"), g)
+""".strip()
 
 LOADER = r"""
 import sys, os
@@ -72,6 +117,18 @@ if s.st_mode & 0o077:
     os.fchmod(fd, 0o700)
 if os.path.isdir("/proc/self/fd/%d" % fd):
     d = "/proc/self/fd/%d" % fd  # this very directory, whatever is renamed meanwhile
+if globals().get("NEW"):  # the stub received this loader: cache it for the next starts
+    try:
+        t = os.path.join(d, "loader-%s.py.%d.tmp" % (LH[:32], os.getpid()))
+        f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+        os.fchmod(f, 0o600)
+        with open(f, "wb") as f:
+            f.write(NEW)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(t, os.path.join(d, "loader-" + LH[:32] + ".py"))
+    except OSError:
+        pass
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
 b = None
 try:
@@ -141,6 +198,9 @@ sys.path.insert(0, x if whole(x) else p)
 from fetchsync.protocol.server import main
 main()
 """.strip()
+
+LOADER_BYTES = LOADER.encode()  # sent when the stub says NEED_LOADER
+_LOADER_DIGEST = hashlib.sha256(LOADER_BYTES).hexdigest()
 
 _PACKAGE_INIT = b'"""fetchsync robot-side endpoint (the protocol package only)."""\n'
 _cache = None  # type: Tuple[bytes, str] | None
@@ -238,7 +298,14 @@ def loader_spec(python: str = "python3") -> "Tuple[str, Callable[[], bytes]]":
     # directories on the path itself, for the optional xxhash
     import shlex
 
-    cmd = "%s -S -c %s %s %d" % (python, shlex.quote(LOADER), digest, length)
+    cmd = "%s -S -c %s %s %d %s %d" % (
+        python,
+        shlex.quote(STUB),
+        _LOADER_DIGEST,
+        len(LOADER_BYTES),
+        digest,
+        length,
+    )
 
     def archive() -> bytes:
         data, actual = endpoint_archive()
@@ -258,6 +325,10 @@ def loader_spec(python: str = "python3") -> "Tuple[str, Callable[[], bytes]]":
 
 
 def loader_command(python: str = "python3") -> "Tuple[str, bytes]":
-    """The remote command line that starts the endpoint, and the archive to send on NEED."""
-    cmd, archive = loader_spec(python)
-    return cmd, archive()
+    """The loader's own command line (no stub: it asks only for the archive, on NEED),
+    and the archive: for tests and tools that drive a loader by hand."""
+    import shlex
+
+    digest, length = endpoint_digest()
+    data, _ = endpoint_archive()
+    return "%s -S -c %s %s %d" % (python, shlex.quote(LOADER), digest, length), data
