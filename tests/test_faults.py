@@ -253,7 +253,7 @@ def endpoints_under(pid: int) -> list[int]:
                 cmdline = Path(f"/proc/{child}/cmdline").read_bytes()
             except OSError:
                 continue
-            if b"fetchsync.protocol.server" in cmdline:
+            if b"FSYNC-NEED" in cmdline:  # the endpoint command (loader.STUB)
                 found.append(child)
     return found
 
