@@ -618,6 +618,7 @@ def _fleet_push(
 ) -> int:
     """``push`` (and its build) to each robot; the exit status. The local tree is checked
     and scanned once; each robot then hashes against its own state, as a single push does."""
+    from concurrent.futures import ThreadPoolExecutor
     from contextlib import ExitStack
 
     from fetchsync.chores.build import build_on_robot
@@ -636,6 +637,17 @@ def _fleet_push(
     scanned = scan_tree(str(src), rules)  # once for all robots: it is only read
     packs = SharedPacks()  # each batch compressed once for the robots that send it
     silent = quiet()
+    connector = ThreadPoolExecutor(
+        max_workers=max(1, min(jobs, len(robots))), thread_name_prefix="fetchsync-link"
+    )
+
+    def link(target: Any) -> tuple[Any, Any]:
+        transport = open_transport(target, accept_fingerprint=accept_host_key)
+        try:
+            return transport, Connection.open(transport, python=remote_python())
+        except BaseException:
+            transport.close()
+            raise
 
     def work(name: str, out: Prefixed) -> RobotResult:
         target = resolve(name, user, workspace, remote_workspace)
@@ -643,14 +655,20 @@ def _fleet_push(
             out.line(where_line("push", target, local=src, remote=target.remote_workspace + "/src"))
         report = None if (dry_run or strict or excludes or force) else _push_via_agent(target)
         if report is None:
-            state = open_state(target)
+            # the robot's connection opens while its state does (a database on the
+            # laptop's disk, new ones synced to it: 20 at once took 0.1-0.3 s on the bench)
+            linked = connector.submit(link, target)
+            try:
+                state = open_state(target)
+            except BaseException:
+                linked.add_done_callback(_unlink)
+                raise
             if state.note:
                 out.line(f"fetchsync: note: {state.note}")
             try:
                 with ExitStack() as stack:
-                    transport = open_transport(target, accept_fingerprint=accept_host_key)
+                    transport, conn = linked.result()
                     stack.callback(transport.close)
-                    conn = Connection.open(transport, python=remote_python())
                     stack.callback(conn.close)
                     syncer = Syncer(
                         conn,
@@ -705,8 +723,19 @@ def _fleet_push(
             result.build = "ok"
         return result
 
-    results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast)
+    try:
+        results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast)
+    finally:
+        connector.shutdown(wait=False, cancel_futures=True)
     return finish("push", results, as_json=as_json)
+
+
+def _unlink(linked: Any) -> None:
+    """Close a robot's connection that opened for a push that failed before using it."""
+    if not linked.cancelled() and linked.exception() is None:
+        transport, conn = linked.result()
+        conn.close()
+        transport.close()
 
 
 def _collect_less() -> None:
