@@ -20,7 +20,6 @@ an ssh config has to be read for the user.
 
 from __future__ import annotations
 
-import getpass
 import ipaddress
 import os
 import posixpath
@@ -193,7 +192,7 @@ def user_with_source(
         value = ssh_config_user(host, ssh_config=ssh_config, environ=environ)
         source = f"the ssh config's User for {host}"
     if value is None:
-        value, source = _get(environ, "USER") or getpass.getuser(), "$USER"
+        value, source = _get(environ, "USER") or _user(), "$USER"
     if value.startswith("-") or any(c.isspace() or c in "@/\0" for c in value):
         raise ConfigError(f"invalid user name {value!r}: pass --user NAME")
     return value, source
@@ -263,7 +262,7 @@ def login_name(target: Target, *, environ: Mapping[str, str] = os.environ) -> st
         found = ssh_config_user(target.host, ssh_config=path, environ=environ)
     else:
         found = _noted_user(target.host, path, content, environ)
-    return found or _get(environ, "USER") or getpass.getuser()
+    return found or _get(environ, "USER") or _user()
 
 
 def _noted_user(host: str, path: Path, content: bytes, environ: Mapping[str, str]) -> str | None:
@@ -273,9 +272,7 @@ def _noted_user(host: str, path: Path, content: bytes, environ: Mapping[str, str
 
     from fetchsync.protocol.loader import cache_dir
 
-    key = json.dumps(
-        [host, hashlib.sha256(content).hexdigest(), str(_home(environ)), getpass.getuser()]
-    )
+    key = json.dumps([host, hashlib.sha256(content).hexdigest(), str(_home(environ)), _user()])
     note = os.path.join(cache_dir(), "user-" + hashlib.sha256(key.encode()).hexdigest()[:32])
     try:
         fd = os.open(note, os.O_RDONLY | os.O_NOFOLLOW)
@@ -539,3 +536,10 @@ __all__ = [
     "workspace_around",
     "workspace_with_source",
 ]
+
+
+def _user() -> str:
+    """The login name, when $USER does not say it (getpass imports ~1 ms: only then)."""
+    import getpass
+
+    return getpass.getuser()

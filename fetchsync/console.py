@@ -23,8 +23,6 @@ import logging
 import os
 import re
 import select
-import shutil
-import signal
 import threading
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
@@ -77,6 +75,8 @@ def window_size(fd: int = 1) -> tuple[int, int]:
             return size.columns, size.lines
         except OSError:
             continue
+    import shutil  # only without a terminal on the standard streams
+
     size = shutil.get_terminal_size()
     return size.columns, size.lines
 
@@ -190,6 +190,8 @@ def _window_changes(resize: Callable[[int, int], None] | None) -> Iterator[None]
     if resize is None or threading.current_thread() is not threading.main_thread():
         yield
         return
+
+    import signal  # only for a PTY's window (a push imports this module too)
 
     def changed(_signum: int, _frame: Any) -> None:
         resize(*window_size())

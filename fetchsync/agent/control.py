@@ -8,6 +8,7 @@ it returns None when no agent is running for the target.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -16,7 +17,10 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from fetchsync.config import Target
 
 log = logging.getLogger(__name__)
 
@@ -187,3 +191,22 @@ def push(path: Path, *, timeout: float = 3600.0) -> dict[str, Any] | None:
         )
         return None
     return reply
+
+
+def agent_paths(target: Target) -> tuple[Path, Path]:
+    """The lock file and the control socket of the agent for this target.
+
+    Here, not in service.py: every one-shot push asks whether an agent runs, and
+    this module is the light one (service.py's imports cost a push ~2 ms of CPU)."""
+    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
+    from fetchsync.link.session import robot_id
+
+    key = hashlib.sha256(
+        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape")
+    ).hexdigest()[:20]
+    base = runtime_dir()
+    sock = base / f"agent-{key}.sock"
+    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
+        base = runtime_dir(short=True)
+        sock = base / f"agent-{key}.sock"
+    return base / f"agent-{key}.lock", sock

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import fcntl
 import gc
-import hashlib
 import logging
 import os
 import threading
@@ -30,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from fetchsync.agent.control import agent_paths  # noqa: F401  (it lives by the control socket)
 from fetchsync.config import Target
 from fetchsync.errors import FetchsyncError, TransportError, UsageError
 from fetchsync.protocol.errors import ProtocolError
@@ -60,22 +60,6 @@ def release_memory() -> None:
     trim = libc("malloc_trim")
     if trim is not None:
         trim(0)
-
-
-def agent_paths(target: Target) -> tuple[Path, Path]:
-    """The lock file and the control socket of the agent for this target."""
-    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
-    from fetchsync.link.session import robot_id
-
-    key = hashlib.sha256(
-        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape")
-    ).hexdigest()[:20]
-    base = runtime_dir()
-    sock = base / f"agent-{key}.sock"
-    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
-        base = runtime_dir(short=True)
-        sock = base / f"agent-{key}.sock"
-    return base / f"agent-{key}.lock", sock
 
 
 @dataclass

@@ -96,8 +96,7 @@ class _Progress:
 
 def _push_via_agent(target: Any) -> Any:
     """The report of a full push made by the running agent, or None if none runs."""
-    from fetchsync.agent.control import push
-    from fetchsync.agent.service import agent_paths
+    from fetchsync.agent.control import agent_paths, push
     from fetchsync.errors import ConnectError, SyncError
 
     try:
@@ -131,8 +130,7 @@ def _open_state(target: Any) -> Any:
 def _resume_agent(target: Any) -> None:
     """Have a running agent (one paused before a mass deletion, say) push once more, now
     that a forced push made the robot match: it then finds nothing to delete."""
-    from fetchsync.agent.control import call
-    from fetchsync.agent.service import agent_paths
+    from fetchsync.agent.control import agent_paths, call
 
     call(agent_paths(target)[1], {"cmd": "push"}, timeout=60)
 

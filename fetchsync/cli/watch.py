@@ -276,9 +276,8 @@ def _fleet_sockets(
     """The robots and agent sockets status and flush talk to when they are several: those
     ``--robot`` (or the robot variables) name as a fleet, else, with no ``--robot``, those
     of a fleet watch running on this workspace; None for the single-robot way."""
-    from fetchsync.agent.control import call
+    from fetchsync.agent.control import agent_paths, call
     from fetchsync.agent.fleet import fleet_paths
-    from fetchsync.agent.service import agent_paths
     from fetchsync.cli.fleet import names_given
     from fetchsync.config import resolve_workspace
 
@@ -316,7 +315,7 @@ def _in_parallel(
 def _agent_socket(
     robot: str | None, user: str | None, workspace: str | None, remote_workspace: str | None
 ) -> tuple[Any, Path]:
-    from fetchsync.agent.service import agent_paths
+    from fetchsync.agent.control import agent_paths
 
     target = resolve(robot, user, workspace, remote_workspace)
     return target, agent_paths(target)[1]
