@@ -115,3 +115,25 @@ def test_another_writer_makes_it_fall_back_to_a_full_push(env, tmp_path):
     r = s.push_paths({"my_pkg/new.txt"})
     assert r.errors == []
     assert tree_of(src) == tree_of(robot)  # the full push also undid the other writer's tree
+
+
+def test_a_burst_of_new_files_is_read_once_each(env, monkeypatch):
+    """The watch agent's burst (new files, in a new directory or beside others): each is
+    opened once, to be sent and hashed as it is read; an edited file is read to see if
+    its content changed, then to be sent."""
+    s, src, robot = env
+    (src / "burst").mkdir()
+    for i in range(40):
+        (src / "burst" / f"f{i}.txt").write_text(f"new file {i}\n" * (i + 1))
+    (src / "my_pkg/new.txt").write_text("beside the others\n")
+    (src / "my_pkg/src/node.cpp").write_text("int main() { return 3; }\n")
+    opened: list[str] = []
+    monkeypatch.setattr(
+        sync, "read_hook", lambda full, event: opened.append(full) if event == "open" else None
+    )
+    r = s.push_paths({"my_pkg/new.txt", "my_pkg/src/node.cpp"}, {"burst"})
+    assert r.errors == [] and r.files == 42
+    assert tree_of(src) == tree_of(robot)
+    new = [p for p in opened if "/burst/" in p or p.endswith("new.txt")]
+    assert len(new) == len(set(new)) == 41
+    assert sum(p.endswith("node.cpp") for p in opened) == 2

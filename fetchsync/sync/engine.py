@@ -296,7 +296,11 @@ def scan_touched(
     """The local tree restricted to ``paths``, the subtrees below ``dirs`` and their
     ancestors, the predicate saying which paths that scope covers and, when no
     directory is involved, the set of those paths (so callers need not test
-    every path of the state against the predicate)."""
+    every path of the state against the predicate).
+
+    Files the state does not know are left unhashed, as :func:`scan_local`'s ``lazy``
+    leaves them, for :meth:`LocalTree.hash_where_needed`: the watch agent's burst of
+    new files is then read once (to be sent, and hashed as it is), not twice."""
     from fetchsync.protocol.paths import is_within
 
     tree = LocalTree({}, {}, [])
@@ -334,7 +338,9 @@ def _add_touched(
         tree.skipped.append((path, f"cannot read: {exc.strerror or exc}"))
         return
     if e is not None and not rules.ignored_any(path, e.kind == "d"):
-        _add_entry(root, path, e, synced, algorithm, tree.items, tree.stats, tree.skipped)
+        _add_entry(
+            root, path, e, synced, algorithm, tree.items, tree.stats, tree.skipped, tree.unhashed
+        )
 
 
 def _add_below(
@@ -356,8 +362,18 @@ def _add_below(
         return
     tree.skipped.extend(result.skipped)
     for path, entry in result.entries.items():
-        if tree.stats.get(path) != entry:  # else a touched path already added (and hashed)
-            _add_entry(root, path, entry, synced, algorithm, tree.items, tree.stats, tree.skipped)
+        if tree.stats.get(path) != entry:  # else a touched path already added
+            _add_entry(
+                root,
+                path,
+                entry,
+                synced,
+                algorithm,
+                tree.items,
+                tree.stats,
+                tree.skipped,
+                tree.unhashed,
+            )
 
 
 def _add_entry(
@@ -1238,6 +1254,7 @@ class Syncer:
             remote = {p: synced[p].listed(p) for p in only if p in synced}
         else:
             remote = {p: s.listed(p) for p, s in synced.items() if scope(p)}
+        local.hash_where_needed(self.local_root, remote, self.algorithm)
         _report_skipped(local, report)
         stale = self._converge(
             local,
