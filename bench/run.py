@@ -1374,8 +1374,18 @@ def _profile_one(
     lines = ["", f"Profile of a no-op `{tool.name} push` (cProfile; seconds)", ""]
     prof = bench.workdir / f"noop-{tool.name}.prof"
     t0 = time.perf_counter()
+    # `-m cProfile` writes its file after the module returns; fetchsync's main ends the
+    # process with os._exit once the exit handlers ran, so the profile is dumped by one
+    profiled = (
+        "import atexit, cProfile, runpy, sys\n"
+        "out = sys.argv.pop(1)\n"
+        "p = cProfile.Profile()\n"
+        "atexit.register(lambda: (p.disable(), p.dump_stats(out)))\n"
+        "p.enable()\n"
+        "runpy.run_module('fetchsync', run_name='__main__', alter_sys=True)\n"
+    )
     run = subprocess.run(
-        [sys.executable, "-m", "cProfile", "-o", str(prof), *argv[1:]],
+        [sys.executable, "-c", profiled, str(prof), *argv[argv.index("fetchsync") + 1 :]],
         env=env,
         capture_output=True,
         text=True,
