@@ -195,3 +195,16 @@ def test_binary_data_goes_at_the_fast_level_in_the_texts_stream(monkeypatch):
         assert op.z and stream[op.blob[0] : op.blob[0] + op.blob[1]] == data
     both = zlib.compress(text, 6) + zlib.compress(mesh, 6)
     assert len(b"".join(packed.zparts)) < len(both) * 1.02
+
+
+def test_the_engine_imports_its_compressor_only_when_it_compresses():
+    """A no-op push compresses nothing: ISA-L is imported at the first compression."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; import fetchsync.sync.engine as e; assert 'isal' not in sys.modules;"
+        "e._fast(); print('isal' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "True"

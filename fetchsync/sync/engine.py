@@ -45,13 +45,24 @@ from fetchsync.sync.state import State, Synced
 
 log = logging.getLogger(__name__)
 
-_deflate: types.ModuleType
-try:
-    # ISA-L's deflate: the same zlib streams the robot's standard library inflates,
-    # made ~7x faster than zlib's level 1 at the same size (bench/README.md)
-    from isal import isal_zlib as _deflate
-except ImportError:  # no wheel for this platform: the standard library's
-    _deflate = zlib
+_deflate: types.ModuleType | None = None  # see _fast
+
+
+def _fast() -> types.ModuleType:
+    """ISA-L's deflate: the same zlib streams the robot's standard library inflates,
+    made ~7x faster than zlib's level 1 at the same size (bench/README.md); the
+    standard library's where it has no wheel. Imported when first needed: a no-op
+    push compresses nothing, and the import was ~5-9 ms of every push's CPU."""
+    global _deflate
+    if _deflate is None:
+        try:
+            from isal import isal_zlib
+
+            _deflate = isal_zlib
+        except ImportError:
+            _deflate = zlib
+    return _deflate
+
 
 # Files from SIG_MIN up travel as deltas against the signature the laptop kept of what
 # it last sent (no round trip); smaller ones go whole, their delta being about their
@@ -576,7 +587,7 @@ def _place(ops: list[M.Op], where: list[int], parts: list[bytes], *, z: int) -> 
 def _pack_key(packed: list[bytes], *, level6: bool) -> bytes:
     """What determines a batch's zlib stream: the compressor and level, and its parts'
     bytes and boundaries (BLAKE2b: ~1 GB/s, a small price beside zlib 6's ~30 MB/s)."""
-    key = hashlib.blake2b(b"zlib-6" if level6 else _deflate.__name__.encode() + b"-1")
+    key = hashlib.blake2b(b"zlib-6" if level6 else _fast().__name__.encode() + b"-1")
     for data in packed:
         key.update(len(data).to_bytes(8, "little"))
         key.update(data)
@@ -684,7 +695,7 @@ class SharedPacks:
     def pack_key(self, packed: list[bytes], *, level6: bool) -> bytes:
         """:func:`_pack_key`'s identity of a batch's stream, from each part's BLAKE2b as
         :meth:`hashed` keeps it (length and digest per part: as exact)."""
-        key = hashlib.blake2b(b"parts:zlib-6" if level6 else b"parts:" + _deflate.__name__.encode())
+        key = hashlib.blake2b(b"parts:zlib-6" if level6 else b"parts:" + _fast().__name__.encode())
         for data in packed:
             key.update(len(data).to_bytes(8, "little"))
             key.update(self.hashed("blake2b-512", data, _blake2b))
@@ -950,7 +961,7 @@ class _Batcher:
         ISA-L's level 1 in 0.10 s."""
         split = next((i for i, data in enumerate(packed) if _binary(data)), len(packed))
         if not level6 or split == 0:
-            deflate = _deflate.compressobj(1)
+            deflate = _fast().compressobj(1)
             zparts = [deflate.compress(data) for data in packed]
             zparts.append(deflate.flush())
             return zparts
@@ -966,7 +977,7 @@ class _Batcher:
             self._z6[0] += text
             self._z6[1] += time.thread_time() - cpu
         if split < len(packed):
-            tail = _deflate.compressobj(1, zlib.DEFLATED, -15)  # raw deflate: no header
+            tail = _fast().compressobj(1, zlib.DEFLATED, -15)  # raw deflate: no header
             zparts += [tail.compress(data) for data in packed[split:]]
             zparts.append(tail.flush())
             check = zlib.adler32(b"")
@@ -1542,7 +1553,7 @@ class Syncer:
 
     def _make_kept(self, data: bytes) -> bytes | None:
         if len(data) <= M.ZDICT_BASE_MAX:
-            packed: bytes = _deflate.compress(data, 1)
+            packed: bytes = _fast().compress(data, 1)
             return BASE_MAGIC + packed
         if len(data) >= SIG_MIN:
             return delta_mod.signature(data, algorithm=self.algorithm).to_bytes()
