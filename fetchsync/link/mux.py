@@ -6,7 +6,9 @@ connection and serves later calls over an owner-only unix socket. A later
 ``fetchsync push`` then pays no SSH handshake (several round trips and a key
 exchange: on a Wi-Fi link, the larger part of a small push's time). The master
 exits after ``FETCHSYNC_PERSIST`` idle seconds (default 600; 0 disables it) or
-as soon as its link dies.
+as soon as its link dies. While a master connects it holds a lock beside the
+socket (``mux-*.sock.starting``): a call that comes meanwhile waits for it
+rather than connecting on its own, and a second master leaves it to the first.
 
 The master also keeps one *spare* robot endpoint started: the endpoint's
 command (the loader line a push runs) is run ahead of the call and
@@ -42,7 +44,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError
 from fetchsync.link.transport import Capabilities
@@ -149,6 +151,61 @@ def _connect(path: Path) -> socket.socket:
         sock.close()
         raise
     return sock
+
+
+MASTER_WAIT = 5.0  # seconds a call waits for a master that is connecting before going direct
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(path.name + ".starting")
+
+
+def _starting(path: Path) -> int | None:
+    """Hold the lock that says a master for ``path`` is connecting: its descriptor, to
+    close once the master listens (or never: its exit releases it); None if another
+    master holds it (that one serves) or the lock cannot be made (we start anyway: -1)."""
+    import fcntl
+
+    try:
+        fd = os.open(_lock_path(path), os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    except OSError:
+        return -1
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def wait_while_starting(path: Path, timeout: float = MASTER_WAIT) -> None:
+    """Return once no master for ``path`` is connecting (or after ``timeout`` seconds).
+
+    A call that comes while the master left by the call before it is still connecting
+    (the push right after a first one: the master's Python, paramiko and handshake take
+    ~0.5-1 s) waits for it instead of connecting on its own: the master's handshake
+    started first, so it ends first, and no second master is started beside it.
+    """
+    import fcntl
+
+    try:
+        fd = os.open(_lock_path(path), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        return  # no master was ever started here
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    return
+                time.sleep(0.01)
+            except OSError:
+                return
+    finally:
+        os.close(fd)
 
 
 # --------------------------------------------------------------------------- client side
@@ -425,14 +482,18 @@ class Master:
             self.refused.set()
             raise
 
-    def serve(self) -> None:
+    def serve(self, *, listening: Callable[[], None] | None = None) -> None:
+        """Serve calls until idle, the link's end, or another master's taking the socket;
+        ``listening`` is called once calls can connect."""
         tmp = self.path.with_name(self.path.name + f".{os.getpid()}")
         srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         srv.bind(str(tmp))
         os.chmod(tmp, 0o600)
         own = os.stat(tmp).st_ino
-        os.replace(tmp, self.path)
         srv.listen(16)
+        os.replace(tmp, self.path)
+        if listening is not None:
+            listening()
         srv.settimeout(IDLE_CHECK)
         self._start_refill()
         try:
@@ -654,8 +715,6 @@ class Master:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from fetchsync.link.ssh import SSHTransport
-
     parser = argparse.ArgumentParser(prog="fetchsync-mux")
     parser.add_argument("--host", required=True)
     parser.add_argument("--user")
@@ -664,6 +723,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spare", action="store_true")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
+    starting = _starting(Path(args.socket))
+    if starting is None:
+        log.info("another connection master for %s is starting: leaving it to that one", args.host)
+        return 0
+    slow = os.environ.get("FETCHSYNC_TEST_MASTER_SLOW")  # tests only: a slow handshake
+    if slow:
+        time.sleep(float(slow))
+    from fetchsync.link.ssh import SSHTransport  # paramiko: while the lock tells calls to wait
+
     try:
         transport = SSHTransport.connect(args.host, user=args.user)
     except Exception as exc:
@@ -676,7 +744,9 @@ def main(argv: list[str] | None = None) -> int:
             from fetchsync.protocol.loader import loader_spec
 
             warm = loader_spec(remote_python())[0]
-        Master(transport, Path(args.socket), args.idle, warm).serve()
+        Master(transport, Path(args.socket), args.idle, warm).serve(
+            listening=lambda: os.close(starting) if starting >= 0 else None
+        )
     except OSError as exc:
         log.error("cannot serve on %s: %s", args.socket, exc)
         transport.close()
