@@ -378,6 +378,11 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
         return
     import subprocess  # only a call that connected directly starts a master
 
+    # the lock that says a master is connecting is taken here and handed to the master,
+    # so a call that comes before the master's Python has started waits for it too
+    lock = _starting(path)
+    if lock is None:
+        return  # another master is connecting already
     argv = [
         sys.executable,
         "-m",
@@ -389,13 +394,15 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
         "--idle",
         str(seconds),
     ]
+    if lock >= 0:
+        argv += ["--lock-fd", str(lock)]
     if user:
         argv += ["--user", user]
     if spare:
         argv += ["--spare"]
     log_path = os.environ.get("FETCHSYNC_MUX_LOG")
-    if log_path:
-        with open(log_path, "ab") as err:
+    try:
+        with open(log_path or os.devnull, "ab") as err:
             subprocess.Popen(
                 argv,
                 stdin=subprocess.DEVNULL,
@@ -403,16 +410,11 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
                 stderr=err,
                 start_new_session=True,
                 close_fds=True,
+                pass_fds=(lock,) if lock >= 0 else (),
             )
-    else:
-        subprocess.Popen(
-            argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            start_new_session=True,
-            close_fds=True,
-        )
+    finally:
+        if lock >= 0:
+            os.close(lock)  # the master holds it now (or, if it did not start, nobody)
 
 
 # --------------------------------------------------------------------------- master side
@@ -721,9 +723,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--socket", required=True)
     parser.add_argument("--idle", type=float, default=DEFAULT_PERSIST)
     parser.add_argument("--spare", action="store_true")
+    parser.add_argument("--lock-fd", type=int, help="the connecting lock, taken by the caller")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="fetchsync-mux: %(message)s")
-    starting = _starting(Path(args.socket))
+    starting = args.lock_fd if args.lock_fd is not None else _starting(Path(args.socket))
     if starting is None:
         log.info("another connection master for %s is starting: leaving it to that one", args.host)
         return 0
