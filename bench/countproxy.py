@@ -167,9 +167,9 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[n:]
 
 
-def _open_counts(countdir: str) -> mmap.mmap:
+def _open_counts(countdir: str, name: str = "") -> mmap.mmap:
     os.makedirs(countdir, exist_ok=True)
-    path = os.path.join(countdir, f"{os.getpid()}.count")
+    path = os.path.join(countdir, f"{name or os.getpid()}.count")
     fd = os.open(path + ".tmp", os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
     os.ftruncate(fd, _FILE_SIZE)
     counts = mmap.mmap(fd, _FILE_SIZE)
@@ -217,10 +217,11 @@ def proxy(host: str, port: int, countdir: str, link: Link | None = None) -> int:
     return 0
 
 
-def _stopped(counts: mmap.mmap, up: int, down: int) -> None:
-    """The final counts, this process's CPU time, then *done*."""
-    t = os.times()
-    _U64.pack_into(counts, _CPU_AT, int((t.user + t.system) * 1e6))
+def _stopped(counts: mmap.mmap, up: int, down: int, *, cpu: bool = True) -> None:
+    """The final counts, this process's CPU time (``cpu``: a proxy of its own), then *done*."""
+    if cpu:
+        t = os.times()
+        _U64.pack_into(counts, _CPU_AT, int((t.user + t.system) * 1e6))
     _REC.pack_into(counts, 0, up, down, 1)
 
 
@@ -415,6 +416,173 @@ def _shaped(host: str, port: int, counts: mmap.mmap, link: Link, countdir: str) 
     os._exit(1 if refused else 0)  # the threads may be blocked reading: do not wait for them
 
 
+def serve(host: str, port: int, countdir: str, link: Link | None) -> int:
+    """The link as a server: listen on a port of 127.0.0.1 (printed on stdout, one line)
+    and shape every connection made to it to ``host:port`` as :func:`proxy` does, each
+    counted in its own ``COUNTDIR/<pid>-<n>.count``; until SIGTERM.
+
+    One process for every connection of a robot: a proxy started per connection costs
+    ~40 ms of CPU (an interpreter's start), twenty at once in a fleet push, where a real
+    link costs the laptop nothing; and the client connects over TCP, as to a robot, not
+    through a ProxyCommand's pipes. The process's CPU is the link's (its /proc stat);
+    the count files carry no CPU of their own. Outages as :func:`proxy`'s: ``blackhole``
+    holds new connections before they reach the server and what open ones carry; ``cut``
+    ends every open connection and closes new ones at once."""
+    for sig in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, _on_signal)
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    os.makedirs(countdir, exist_ok=True)
+    link_up = threading.Event()
+    conns: set[threading.Event] = set()
+    lock = threading.Lock()
+
+    def apply_state() -> str:
+        state = link_state(countdir)
+        if state == "blackhole":
+            link_up.clear()
+        else:
+            link_up.set()
+        if state == "cut":
+            with lock:
+                for done in conns:
+                    done.set()
+        return state
+
+    def watch_state() -> None:
+        changes = _state_changes(countdir)
+        while True:
+            apply_state()
+            if changes is None:
+                time.sleep(0.02)
+            else:
+                changes()
+
+    apply_state()
+    threading.Thread(target=watch_state, daemon=True).start()
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(128)
+    sys.stdout.write(f"{listener.getsockname()[1]}\n")
+    sys.stdout.flush()
+    n = 0
+    try:
+        while True:
+            client, _ = listener.accept()
+            n += 1
+            threading.Thread(
+                target=_serve_one,
+                args=(client, host, port, countdir, f"{os.getpid()}-{n}", link),
+                kwargs={"link_up": link_up, "conns": conns, "lock": lock},
+                daemon=True,
+            ).start()
+    except _Stop:
+        pass
+    return 0
+
+
+def _serve_one(
+    client: socket.socket,
+    host: str,
+    port: int,
+    countdir: str,
+    name: str,
+    link: Link | None,
+    *,
+    link_up: threading.Event,
+    conns: set[threading.Event],
+    lock: threading.Lock,
+) -> None:
+    """One connection of :func:`serve`: held while the link is a blackhole, closed at once
+    while it is cut, else shaped (or copied, unshaped) both ways until either end is done."""
+    counts = _open_counts(countdir, name)
+    done = threading.Event()
+    up = down = 0
+
+    def count_up(k: int) -> None:
+        nonlocal up
+        up += k
+        _U64.pack_into(counts, 0, up)
+
+    def count_down(k: int) -> None:
+        nonlocal down
+        down += k
+        _U64.pack_into(counts, 8, down)
+
+    sock = None
+    try:
+        if link is not None:
+            while link_state(countdir) == "blackhole":  # the SYN is lost until the link is back
+                time.sleep(0.02)
+            if link_state(countdir) == "cut":
+                return
+        with lock:
+            conns.add(done)
+        client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock = socket.create_connection((host, port))
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        server = sock
+
+        def end_up() -> None:
+            try:
+                server.shutdown(socket.SHUT_WR)
+            except OSError:
+                done.set()
+
+        for read, write, count, at_eof in (
+            (lambda: client.recv(_CHUNK), server.sendall, count_up, end_up),
+            (lambda: server.recv(_CHUNK), client.sendall, count_down, done.set),
+        ):
+            if link is None:
+                threading.Thread(
+                    target=_copy, args=(read, write, count, at_eof, done.set), daemon=True
+                ).start()
+            else:
+                _Direction(
+                    link,
+                    read=read,
+                    write=write,
+                    count=count,
+                    at_eof=at_eof,
+                    failed=done.set,
+                    up=link_up,
+                )
+        done.wait()
+    except OSError:
+        pass
+    finally:
+        with lock:
+            conns.discard(done)
+        for s in (client, sock):
+            if s is not None:
+                with contextlib.suppress(OSError):
+                    s.shutdown(socket.SHUT_RDWR)
+                s.close()
+        _stopped(counts, up, down, cpu=False)
+        counts.close()
+
+
+def _copy(
+    read: Callable[[], bytes],
+    write: Callable[[bytes], None],
+    count: Callable[[int], None],
+    at_eof: Callable[[], None],
+    failed: Callable[[], None],
+) -> None:
+    """One direction of an unshaped connection of :func:`serve`."""
+    try:
+        while True:
+            data = read()
+            if not data:
+                break
+            count(len(data))
+            write(data)
+    except OSError:
+        failed()
+        return
+    at_eof()
+
+
 _IN_CREATE, _IN_CLOSE_WRITE, _IN_MOVED_TO = 0x100, 0x8, 0x80
 
 
@@ -546,12 +714,19 @@ def proxy_command(host: str, port: int, countdir: Path, link: Link | None) -> st
 
 
 def main(args: list[str]) -> int:
+    serving = args[:1] == ["--serve"]
+    if serving:
+        args = args[1:]
     if len(args) not in (3, 4):
-        sys.exit("usage: countproxy.py HOST PORT COUNTDIR [loopback|wifi|weak|RATE_MBIT:DELAY_MS]")
+        sys.exit(
+            "usage: countproxy.py [--serve] HOST PORT COUNTDIR [loopback|wifi|weak|RATE_MBIT:DELAY_MS]"
+        )
     try:
         shaping = parse_link(args[3]) if len(args) == 4 else None
     except ValueError as e:
         sys.exit(f"countproxy.py: {e}")
+    if serving:
+        return serve(args[0], int(args[1]), args[2], shaping)
     return proxy(args[0], int(args[1]), args[2], shaping)
 
 

@@ -6,8 +6,9 @@
 
 A lab pushes the same workspace to a class of twenty robots. Each robot here is a
 separate OpenSSH ``sshd`` on 127.0.0.1 (``tests/sshd.py``), each behind its own
-link (``bench/countproxy.py`` as its ``ProxyCommand``: shaped as ``--link``, and
-counting that robot's bytes), each with its own remote workspace; the laptop's
+link (``bench/countproxy.py --serve``, a shaper the laptop reaches over TCP as it
+would a robot: shaped as ``--link``, and counting that robot's bytes), each with
+its own remote workspace; the laptop's
 workspace is the bench's generated tree (``bench/workspace.py``). Every push is a
 new ``fetchsync`` process without a connection master (``FETCHSYNC_PERSIST=0``:
 a first push of the day); the robots' endpoint cache is warm (one warm-up push).
@@ -52,7 +53,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from countproxy import LINKS, Counter, proxy_command, set_link_state
+from countproxy import LINKS, Counter, set_link_state
 from robot import RobotSide, add_robot_user_option
 from run import robot_python
 from sshd import SSHD, running_sshd
@@ -89,17 +90,38 @@ class Fleet:
         known = ssh / "known_hosts"
         config = ssh / "config"
         hosts, blocks = [], []
+        # each robot's link: a shaper serving on a port of its own, reached over TCP as a
+        # robot is (not a ProxyCommand: a proxy process started per connection cost ~40 ms
+        # of CPU, twenty at once, where a lab's link costs the laptop nothing)
+        self.links: list[subprocess.Popen[str]] = []
         for name, sshd in zip(self.names, sshds):
             with open(sshd.workdir / "authorized_keys", "a") as fh:
                 fh.write(pub)
-            hosts.append(f"[{sshd.host}]:{sshd.port} {sshd.host_key_pub}\n")
-            proxy = proxy_command(sshd.host, sshd.port, self.wire(name), LINKS[link])
+            served = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-S",
+                    str(BENCH / "countproxy.py"),
+                    "--serve",
+                    sshd.host,
+                    str(sshd.port),
+                    str(self.wire(name)),
+                    link,
+                ],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            self.links.append(served)
+            assert served.stdout is not None
+            port = int(served.stdout.readline())
+            hosts.append(f"[127.0.0.1]:{port} {sshd.host_key_pub}\n")
             blocks.append(
-                f"Host {name}\n    HostName {sshd.host}\n    Port {sshd.port}\n"
+                f"Host {name}\n    HostName 127.0.0.1\n    Port {port}\n"
                 f"    User {sshd.user}\n    IdentityFile {identity}\n    IdentitiesOnly yes\n"
                 f"    UserKnownHostsFile {known}\n    GlobalKnownHostsFile /dev/null\n"
                 f"    StrictHostKeyChecking yes\n    UpdateHostKeys no\n"
-                f"    ConnectTimeout {CONNECT_TIMEOUT}\n    ProxyCommand {proxy}\n"
+                f"    ConnectTimeout {CONNECT_TIMEOUT}\n"
             )
         known.write_text("".join(hosts))
         config.write_text("\n".join(blocks))
@@ -114,6 +136,17 @@ class Fleet:
         )
         self.state = 0
         self.trace: Path | None = None  # --trace: the fleet pushes run under fleettrace.py
+
+    def close(self) -> None:
+        """Stop the links' shapers (ours, by their pids)."""
+        for served in self.links:
+            served.terminate()
+        for served in self.links:
+            try:
+                served.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                served.kill()
+                served.wait()
 
     def wire(self, name: str) -> Path:
         return self.workdir / "wire" / self.link / name
@@ -167,6 +200,7 @@ class Fleet:
                 )
                 argv[1:1] = [str(BENCH / "fleettrace.py"), str(out)]
         links0, robots0 = self.links_cpu(robots), self.robots_cpu(robots)
+        proxies0 = self.proxies_cpu(robots)
         cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
@@ -186,11 +220,15 @@ class Fleet:
         for n in robots:
             after = counters[n].settle(quiet=0.2, timeout=15)
             wire[n] = after.up + after.down - before[n].up - before[n].down
-        _reap_orphans()  # the links' proxies the push left to exit after it
+        keep = {p.pid for p in self.links} | {
+            pid for pid in (_listener(sshd) for sshd in self.sshds) if pid
+        }
+        orphans = _reap_orphans(keep=keep, robot_uid=self.side.uid)  # robots' endpoints
         cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
         links = self.links_cpu(robots) - links0
-        robots_cpu = self.robots_cpu(robots, settle=True) - robots0
+        proxies = self.proxies_cpu(robots) - proxies0  # a ProxyCommand's: the push's children
+        robots_cpu = self.robots_cpu(robots, settle=True) - robots0 + orphans
         reports: list[dict[str, Any]] = []
         for line in reversed(stdout.splitlines()):
             if line.startswith(("[", "{")):
@@ -205,7 +243,8 @@ class Fleet:
             "reports": reports,
             "table": table,
             "stderr": stderr[-4000:],
-            "cpu": cpu - links,  # the push process and what it ran, but the links
+            # the push process and what it ran, but the links and the robots' orphans
+            "cpu": cpu - proxies - orphans,
             "cpu_links": links,
             "cpu_robots": robots_cpu,
             "fds": peak_fds,
@@ -213,7 +252,14 @@ class Fleet:
         }
 
     def links_cpu(self, robots: list[str]) -> float:
-        """CPU seconds the stopped link proxies (countproxy.py) of ``robots`` used, in all."""
+        """CPU seconds the links (countproxy.py shapers) of ``robots`` have used, in all."""
+        return self.proxies_cpu(robots) + sum(
+            _cpu_with_reaped(self.links[self.names.index(n)].pid) for n in robots
+        )
+
+    def proxies_cpu(self, robots: list[str]) -> float:
+        """CPU seconds of the stopped per-connection proxies of ``robots`` (none since the
+        links serve: kept for a ProxyCommand in a user's ssh config)."""
         return sum(Counter(self.wire(n)).cpu() for n in robots)
 
     def robots_cpu(self, robots: list[str], *, settle: bool = False) -> float:
@@ -257,30 +303,47 @@ def _cpu_with_reaped(pid: int) -> float:
 
 
 def _become_subreaper() -> None:
-    """Orphans of our children (a link proxy its push left behind) become ours, so their
-    CPU time is ours to collect (:func:`_reap_orphans`) and counted, not init's."""
+    """Orphans of our children (a robot's endpoint that outlived its sshd session) become
+    ours, so their CPU time is ours to collect (:func:`_reap_orphans`) and counted, not
+    init's."""
     import ctypes
 
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
 
 
-def _reap_orphans() -> None:
-    """Wait for the link proxies that were handed to us (by pid, each at most 2 s)."""
-    for pid in _children(os.getpid()):
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
-        except OSError:
-            continue
-        if b"countproxy" in cmd:
-            deadline = time.monotonic() + 2
-            while time.monotonic() < deadline:
+def _reap_orphans(*, keep: set[int], robot_uid: int, wait: float = 3.0) -> float:
+    """Reap the processes handed to us (we are a subreaper), and the CPU they used.
+
+    A robot's endpoint can outlive its sshd session by a moment (the session's sshd ends
+    when the link closes and does not wait for it): it is then ours, and its CPU is not
+    in its sshd's count. Exited ones are reaped at once; the robot account's that still
+    run (not ``keep``: our sshds and links) are waited for, ``wait`` seconds at most."""
+    total = 0.0
+    deadline = time.monotonic() + wait
+    while True:
+        running = []
+        for pid in _children(os.getpid()):
+            if pid in keep:
+                continue
+            try:
+                status = Path(f"/proc/{pid}/status").read_text()
+            except OSError:
+                continue
+            zombie = "\nState:\tZ" in status
+            uid = int(status.split("\nUid:")[1].split()[0])
+            if zombie:
                 try:
-                    if os.waitpid(pid, os.WNOHANG)[0]:
-                        break
-                except ChildProcessError:  # reaped already
-                    break
-                time.sleep(0.02)
+                    _pid, _status, usage = os.wait4(pid, os.WNOHANG)
+                except ChildProcessError:
+                    continue
+                if _pid:
+                    total += usage.ru_utime + usage.ru_stime
+            elif uid == robot_uid:
+                running.append(pid)
+        if not running or time.monotonic() > deadline:
+            return total
+        time.sleep(0.02)
 
 
 def _usage(pid: int) -> tuple[int, int]:
@@ -425,8 +488,8 @@ def report(data: dict[str, Any]) -> str:
         "",
         (
             "Who used the CPUs (user+sys seconds; the laptop: the push process and what it ran, "
-            "the links' proxies apart; the links: the bench's shapers, `countproxy.py`, one per "
-            "connection, their own report; the robots: each robot's sshd with the sessions and "
+            "the links apart; the links: the bench's shapers, `countproxy.py --serve`, one per "
+            "robot, their CPU in /proc; the robots: each robot's sshd with the sessions and "
             "endpoints it ran, which a lab runs on the robots, not here), and the push's wall "
             "time times the CPUs: what this machine had. Peak descriptors and threads of the "
             "push process:"
@@ -575,6 +638,7 @@ def main() -> int:
             fleet = fleets[link] = Fleet(
                 workdir=workdir / link, sshds=sshds, link=link, ws_root=ws.root, side=side
             )
+            stack.callback(fleet.close)
             fleet.trace = args.trace.resolve() if args.trace else None
             fleet.reset()
             _check(fleet.push(fleet.names[:1], jobs=1), "warm-up push")  # the endpoint cache
