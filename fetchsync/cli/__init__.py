@@ -428,6 +428,7 @@ def push(
     from fetchsync.protocol.ignore import build_rules
 
     _collect_less()
+    mark("push: session imported")
     robots = robots_for("push", robot, retry_failed=retry_failed)
     if robots is not None:
         sys.exit(
@@ -453,10 +454,13 @@ def push(
     rules = build_rules(excludes)
     # a running watch agent for this robot and workspace already holds the
     # connection and the state: a plain push goes through it
+    mark("push: target resolved")
     report = None if (dry_run or strict or excludes or force) else _push_via_agent(target)
+    mark("push: asked for an agent")
     if report is None:
         progress = _Progress(not as_json)
         state = _open_state(target)
+        mark("push: state open")
         scanned: list[Any] = []  # the local scan, made while the robot's endpoint starts
 
         def prepare(_answered: Callable[[], bool]) -> None:

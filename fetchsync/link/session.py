@@ -136,6 +136,7 @@ def open_transport(
         except ConnectError as exc:  # this call goes direct: only the master needs the socket
             log.warning("fetchsync: no connection master: %s", exc)
     if path is not None:
+        mark("session: asking the master")
         mux.wait_while_starting(path)
         attached = mux.MuxTransport.attach(path, target.robot)
         mark("session: the master " + ("answered" if attached else "is not there"))
