@@ -532,6 +532,27 @@ def report(data: dict[str, Any]) -> str:
                 f"| {s['scenario']} | {s['link']} | {label} | {avail:.1f} s | {share(lap)} | "
                 f"{share(lnk)} | {share(rob)} | {fds} | {thr} |"
             )
+    lines += [
+        "",
+        "The CPU floor: what the fleet push's processes used over the CPUs, the least wall "
+        "time this machine allows before any waiting, against the slowest single push; and "
+        "the laptop's share alone (in a lab the links and the robots' side are elsewhere):",
+        "",
+        "| scenario | link | CPU-s (laptop + links + robots) | floor on "
+        f"{cpus} CPUs | floor / slowest single | laptop alone / slowest single "
+        "| laptop CPU per further robot |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for s in data["scenarios"]:
+        fl, single = s["fleet"], s["single"]
+        total = fl["cpu"] + fl.get("cpu_links", 0.0) + fl.get("cpu_robots", 0.0)
+        slowest = max(single["seconds"].values())
+        one = statistics.median(single["cpu"].values())
+        extra = (fl["cpu"] - one) / max(1, len(fl["bytes"]) - 1)
+        lines.append(
+            f"| {s['scenario']} | {s['link']} | {total:.2f} s | {total / cpus:.2f} s | "
+            f"{total / cpus / slowest:.2f}x | {fl['cpu'] / slowest:.2f}x | {extra * 1000:.0f} ms |"
+        )
     d = data.get("two_down")
     if d:
         lines += [

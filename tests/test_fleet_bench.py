@@ -39,6 +39,7 @@ def test_the_fleet_bench_runs_with_three_robots(tmp_path):
     for name, why in down["failed"].items():  # each failed row says why, naming its robot
         assert name in why, down
     assert "| initial | wifi |" in out and "Two robots down" in out
+    assert "The CPU floor" in out and "laptop CPU per further robot" in out
 
 
 def test_the_fleet_bench_traces_where_a_fleet_push_goes(tmp_path):
