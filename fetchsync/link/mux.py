@@ -452,6 +452,13 @@ def _until_ready(channel: Any) -> bytes | None:
     return bytes(said)
 
 
+def _spare_dies() -> str:
+    """FETCHSYNC_TEST_SPARE_DIES (tests only): "1" closes a taken spare right after the
+    master's check, before the caller reads it; "answer" closes it when it first answers
+    the caller (our hello read, the ping's answer dropped)."""
+    return os.environ.get("FETCHSYNC_TEST_SPARE_DIES", "")
+
+
 class Master:
     """Serves the commands of later calls over one authenticated SSH connection."""
 
@@ -580,7 +587,7 @@ class Master:
         if spare is not None:
             if spare.alive():
                 log.info("took the spare endpoint")
-                if os.environ.get("FETCHSYNC_TEST_SPARE_DIES") == "1" and not self.hook_fired:
+                if _spare_dies() == "1" and not self.hook_fired:
                     # tests only: the spare dies after its check, before the caller reads it
                     self.hook_fired = True
                     spare.channel.close()
@@ -649,10 +656,16 @@ class Master:
 
         et = threading.Thread(target=errpump, daemon=True)
         et.start()
+        # tests only: a spare that read our hello dies before its first answer (the ping's)
+        dies = bool(said) and _spare_dies() == "answer" and not self.hook_fired
         try:
             while True:
                 data = channel.recv(1 << 16)
                 if not data:
+                    break
+                if dies:
+                    self.hook_fired = True
+                    channel.close()
                     break
                 send(K_STDOUT, data)
             status = channel.exit_status(timeout=5)
