@@ -55,7 +55,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
 
 from countproxy import LINKS, Counter, set_link_state
 from robot import RobotSide, add_robot_user_option
-from run import robot_python
+from run import compile_checkout, robot_python
 from sshd import SSHD, running_sshd
 from workspace import generate
 
@@ -610,6 +610,7 @@ def main() -> int:
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw numbers here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     args = ap.parse_args()
+    compile_checkout()  # as pip install does: each push's start pays no compiling
     if args.robots < 3:
         ap.error("--robots: at least 3 (two are taken down)")
     jobs = args.jobs or args.robots
