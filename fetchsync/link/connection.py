@@ -119,6 +119,10 @@ class Connection:
         self._next_id = 1
         self._pending: dict[int, wire.Frame] = {}
         self._lock = threading.Lock()
+        # one frame at a time on the channel: a round abandoned mid-send lets its sender
+        # finish the frame it is sending (engine._Batcher.close) while the caller may
+        # already send the next push's requests (the watch agent keeps its connection)
+        self._sending = threading.Lock()
         # responses are read as they come, whatever the main thread is doing:
         # a client that writes a long pipeline before reading would otherwise
         # deadlock with an endpoint blocked on writing its first answer
@@ -397,15 +401,16 @@ class Connection:
         # in pieces, so bytes_out shows progress during a long frame on a slow
         # link (check_link's callers tell a slow link from a dead one by it)
         try:
-            for data in parts:
-                view = memoryview(data)  # pieces of it, not copies
-                for start in range(0, len(data), SEND_PIECE):
-                    piece = view[start : start + SEND_PIECE]
-                    self.channel.send_all(piece)
-                    self.bytes_out += len(piece)
-                    done += len(piece)
-                    if sent is not None:
-                        sent(done, total)
+            with self._sending:
+                for data in parts:
+                    view = memoryview(data)  # pieces of it, not copies
+                    for start in range(0, len(data), SEND_PIECE):
+                        piece = view[start : start + SEND_PIECE]
+                        self.channel.send_all(piece)
+                        self.bytes_out += len(piece)
+                        done += len(piece)
+                        if sent is not None:
+                            sent(done, total)
         except LinkLostError as exc:
             if self._watchdog is not None and self._watchdog.fired is not None:
                 raise self._watchdog.fired from exc
