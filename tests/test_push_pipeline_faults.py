@@ -91,3 +91,31 @@ def test_a_file_changed_after_its_batch_was_packed_lands_as_read_then_as_changed
     assert report.errors == []
     assert tree_of(src) == tree_of(robot_src)
     assert (robot_src / path).read_bytes() == b"changed while its batch waited for the link\n"
+
+
+def test_an_error_on_the_packer_thread_stops_the_reading_at_once(syncer, monkeypatch):
+    """After the packer fails, the caller does not go on reading and hashing the rest of
+    the tree for nothing (all of it on a large workspace, before the error is said):
+    it stops at its next batch, a window's worth of operations at most."""
+    monkeypatch.setattr(sync, "BATCH_OPS", 10)
+    s, src, robot_src = syncer
+    real_pack, real_add = sync._Batcher._pack, sync._Batcher.add
+    adds: list[int] = []
+    failed_at: list[int] = []
+
+    def pack(self, *args, **kw):
+        if not failed_at and len(adds) >= 20:
+            failed_at.append(len(adds))
+            raise RuntimeError("the packer broke")
+        return real_pack(self, *args, **kw)
+
+    def add(self, *args, **kw):
+        adds.append(1)
+        return real_add(self, *args, **kw)
+
+    monkeypatch.setattr(sync._Batcher, "_pack", pack)
+    monkeypatch.setattr(sync._Batcher, "add", add)
+    with pytest.raises(RuntimeError, match="the packer broke"):
+        s.push()
+    assert failed_at and len(adds) - failed_at[0] <= (sync.WINDOW + 1) * sync.BATCH_OPS
+    assert len(adds) < 100  # of the tree's 120 files

@@ -827,6 +827,10 @@ class _Batcher:
             self.flush()
 
     def flush(self) -> None:
+        if self._failure is not None:
+            # the packer or the sender failed: say so now, not after reading and
+            # hashing the rest of the tree for batches that would never be sent
+            raise self._failure
         if not self.items:
             return
         # each batch applied moves the robot's generation on by one: batch k
