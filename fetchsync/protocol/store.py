@@ -1597,7 +1597,7 @@ class _Batch:
             try:
                 if aside or not self._swap_in(op, dir_fd, name, tmp, before, preserved):
                     os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
-                elif lstat_at(tmp, dir_fd) is not None:
+                elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
                     # what the exchange took out changed after it was checked: kept
                     preserved = s._set_aside(dir_fd, tmp, op.path, "conflicts")
             except BaseException:
@@ -1686,6 +1686,8 @@ _RENAMEAT2 = {
     "armv8l": 382,
     "ppc64le": 357,
 }
+# this machine's number, looked up once (not an uname per renamed file)
+_RENAMEAT2_NR = _RENAMEAT2.get(os.uname().machine)
 _renameat2_works = True
 
 
@@ -1694,7 +1696,7 @@ def _renameat2(dir_fd: int, src: str, dst: str, flags: int) -> bool:
     system cannot (the caller renames plainly); an OSError otherwise (EEXIST: something
     appeared at ``dst`` under RENAME_NOREPLACE)."""
     global _renameat2_works, _libc
-    number = _RENAMEAT2.get(os.uname().machine)
+    number = _RENAMEAT2_NR
     if not _renameat2_works or number is None:
         return False
     import ctypes
