@@ -198,15 +198,23 @@ def agent_paths(target: Target) -> tuple[Path, Path]:
 
     Here, not in service.py: every one-shot push asks whether an agent runs, and
     this module is the light one (service.py's imports cost a push ~2 ms of CPU)."""
-    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
     from fetchsync.link.session import robot_id
 
-    key = hashlib.sha256(
-        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape")
-    ).hexdigest()[:20]
+    return runtime_paths(
+        "agent",
+        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape"),
+    )
+
+
+def runtime_paths(kind: str, identity: bytes) -> tuple[Path, Path]:
+    """``KIND-KEY.lock`` and ``KIND-KEY.sock`` in the private runtime directory, KEY from
+    ``identity``; in the short one when the socket's path would be too long for a socket."""
+    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
+
+    key = hashlib.sha256(identity).hexdigest()[:20]
     base = runtime_dir()
-    sock = base / f"agent-{key}.sock"
+    sock = base / f"{kind}-{key}.sock"
     if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
         base = runtime_dir(short=True)
-        sock = base / f"agent-{key}.sock"
-    return base / f"agent-{key}.lock", sock
+        sock = base / f"{kind}-{key}.sock"
+    return base / f"{kind}-{key}.lock", sock

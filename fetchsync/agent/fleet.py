@@ -14,14 +14,13 @@ without ``--robot`` find every robot of the watch running on this workspace.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from fetchsync.agent.control import ControlServer
+from fetchsync.agent.control import ControlServer, runtime_paths
 from fetchsync.agent.service import Agent, take_lock
 from fetchsync.errors import UsageError
 
@@ -30,16 +29,7 @@ STOP_JOIN = 3.0  # seconds to wait for each robot's agent to wind down (its own 
 
 def fleet_paths(src: str | os.PathLike[str]) -> tuple[Path, Path]:
     """The lock file and the control socket of the fleet watch of the local ``src``."""
-    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
-
-    real = os.path.realpath(src)
-    key = hashlib.sha256(b"fleet\0" + os.fsencode(real)).hexdigest()[:20]
-    base = runtime_dir()
-    sock = base / f"fleet-{key}.sock"
-    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
-        base = runtime_dir(short=True)
-        sock = base / f"fleet-{key}.sock"
-    return base / f"fleet-{key}.lock", sock
+    return runtime_paths("fleet", b"fleet\0" + os.fsencode(os.path.realpath(src)))
 
 
 class FleetWatch:
