@@ -117,16 +117,18 @@ if s.st_mode & 0o077:
     os.fchmod(fd, 0o700)
 if os.path.isdir("/proc/self/fd/%d" % fd):
     d = "/proc/self/fd/%d" % fd  # this very directory, whatever is renamed meanwhile
+def put(p, b):
+    t = p + ".%d.tmp" % os.getpid()
+    f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+    os.fchmod(f, 0o600)
+    with open(f, "wb") as f:
+        f.write(b)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(t, p)
 if globals().get("NEW"):  # the stub received this loader: cache it for the next starts
     try:
-        t = os.path.join(d, "loader-%s.py.%d.tmp" % (LH[:32], os.getpid()))
-        f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
-        os.fchmod(f, 0o600)
-        with open(f, "wb") as f:
-            f.write(NEW)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(t, os.path.join(d, "loader-" + LH[:32] + ".py"))
+        put(os.path.join(d, "loader-" + LH[:32] + ".py"), NEW)
     except OSError:
         pass
 p = os.path.join(d, "endpoint-" + h[:32] + ".pyz")
@@ -146,14 +148,7 @@ if b is None:
     b = sys.stdin.buffer.read(n)
     if hashlib.sha256(b).hexdigest() != h:
         sys.exit("fetchsync: the endpoint was damaged in transit")
-    t = p + ".%d.tmp" % os.getpid()
-    f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
-    os.fchmod(f, 0o600)
-    with open(f, "wb") as f:
-        f.write(b)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(t, p)
+    put(p, b)
 x = p[:-4] + "-" + str(sys.implementation.cache_tag)
 def whole(x):
     if not os.path.isdir(x) or not mine(x, True):
