@@ -283,7 +283,12 @@ def test_directory_moved_within_the_tree(src: Path, feed: Feed) -> None:
     m = feed.mark()
     os.rename(src / "pkg", src / "pkg2")
     feed.wait_path("pkg2", since=m)
-    assert only(feed, m) == {"pkg/", "pkg2/"}
+    got = only(feed, m)
+    # both directories, to rescan below; watchdog's per-entry "moved" events for what the
+    # directory holds may come in a later batch on a busy machine (a CI run saw
+    # pkg/node.cpp, pkg2/src/, ...): paths below them, more work, never a wrong sync
+    assert {"pkg/", "pkg2/"} <= got
+    assert all(p.startswith(("pkg/", "pkg2/")) for p in got), got
 
 
 def test_directory_deleted(src: Path, feed: Feed) -> None:
