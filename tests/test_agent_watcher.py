@@ -307,7 +307,8 @@ def test_directory_moved_out_of_and_into_the_tree(src: Path, feed: Feed, tmp_pat
     os.rename(tmp_path / "away", src / "back")
     (src / "back" / "late.cpp").write_text("// after the move\n")
     feed.wait_path("back", since=m)
-    assert only(feed, m) == {"back/"}
+    got = only(feed, m)  # late.cpp may come in a batch after the move's (a busy machine)
+    assert "back/" in got and all(p.startswith("back/") for p in got), got
 
 
 def test_a_file_replaced_by_a_directory(src: Path, feed: Feed) -> None:
