@@ -7,7 +7,8 @@
 
 One run generates a seeded ROS-like workspace (``bench/workspace.py``), starts
 the test suite's real OpenSSH ``sshd`` on 127.0.0.1 (``tests/sshd.py``; the
-robot is this machine) and measures, each as a new process of this checkout's
+robot is this machine; run as root, it logs in as the bench's ``fsrobot``
+account, as the other benches do: ``--robot-user``, ``bench/robot.py``) and measures, each as a new process of this checkout's
 fetchsync with ``FETCHSYNC_PERSIST=0`` (no connection master: every step pays
 its own connection and endpoint start-up, and no process outlives its step):
 
@@ -59,8 +60,9 @@ for _p in (str(BENCH), str(REPO / "tests")):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from run import _workdir, differences, machine_info, snapshot
-from sshd import make_ssh_home, running_sshd
+from robot import RobotSide, add_robot_user_option
+from run import _workdir, differences, machine_info, snapshot, start_robot
+from sshd import make_ssh_home
 from workspace import Workspace, generate
 
 STARTUP_TARGET = 10.0  # seconds, watch start-up on an unchanged workspace
@@ -125,9 +127,11 @@ def inotify_watches(pid: int) -> int:
 class Robot:
     """Where the endpoint runs and how to find its processes."""
 
-    def __init__(self, kind: str, sshd: Any) -> None:
+    def __init__(self, kind: str, sshd: Any, side: RobotSide | None = None) -> None:
         self.kind = kind
         self.sshd = sshd
+        self.side = side
+        """The robot account's side (``--robot-user``: the sshd logs in as it), for ``ssh``."""
         self._listener: int | None = None
 
     def endpoint_pids(self, client: int) -> list[int]:
@@ -223,8 +227,9 @@ class ScaleBench:
             self.remote_src = home / "robot_ws" / "src"
         else:
             ssh_home = make_ssh_home(workdir / "home", sshd=robot.sshd)
-            remote = workdir / "robot" / "robot_ws"
-            remote.parent.mkdir(parents=True, exist_ok=True)
+            assert robot.side is not None
+            self.robot_dir = robot.side.mkdir(robot.side.root / "robot")  # the account's
+            remote = self.robot_dir / "robot_ws"
             env.update(
                 HOME=str(ssh_home.home),
                 FETCHSYNC_ROBOT="robot",
@@ -247,7 +252,7 @@ class ScaleBench:
                 Path(self.env["FETCHSYNC_LOCAL_ROBOT_HOME"]) / f"robot_ws_{tag}" / "src"
             )
         else:
-            remote = self.workdir / "robot" / f"robot_ws_{tag}"
+            remote = self.robot_dir / f"robot_ws_{tag}"
             self.env["FETCHSYNC_REMOTE_WORKSPACE"] = str(remote)
             self.remote_src = remote / "src"
 
@@ -460,7 +465,12 @@ def render(res: dict[str, Any]) -> str:
         (
             f"Workspace: {w['files']} files + {w['symlinks']} symlink in {w['dirs']} directories, "
             f"{w['bytes'] / 2**20:.0f} MiB (seed {res['params']['seed']}); robot: "
-            f"{'the real sshd on 127.0.0.1' if res['params']['robot'] == 'ssh' else 'local'}; "
+            + (
+                f"the real sshd on 127.0.0.1, account {res['params'].get('robot_user', '?')}"
+                if res["params"]["robot"] == "ssh"
+                else "local"
+            )
+            + "; "
             f"each step a new process with FETCHSYNC_PERSIST=0; "
             f"fs.inotify.max_user_watches = {res['max_user_watches']}."
         ),
@@ -552,6 +562,7 @@ def main(argv: list[str] | None = None) -> int:
         help="also start the agent on an empty robot with no state: its first, full sync",
     )
     ap.add_argument("--seed", type=int, default=1)
+    add_robot_user_option(ap)
     ap.add_argument("--json", dest="json_out", type=Path, help="write the raw figures here")
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
@@ -586,8 +597,13 @@ def main(argv: list[str] | None = None) -> int:
                 "the agent will run degraded (rescans)"
             )
         with contextlib.ExitStack() as stack:
-            sshd = stack.enter_context(running_sshd(workdir / "sshd")) if a.robot == "ssh" else None
-            bench = ScaleBench(workdir, ws, Robot(a.robot, sshd))
+            if a.robot == "ssh":
+                side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+                res["params"]["robot_user"] = side.user
+                robot = Robot("ssh", sshd, side)
+            else:
+                robot = Robot("local", None)
+            bench = ScaleBench(workdir, ws, robot)
             stack.callback(bench.close)
             log("initial push")
             res["initial"] = bench.push("initial")
