@@ -14,6 +14,7 @@ import dataclasses
 import errno
 import gc
 import hashlib
+import itertools
 import logging
 import os
 import queue
@@ -1337,7 +1338,13 @@ class Syncer:
         for n in range(MAX_ROUNDS):
             planned = rnd.plan()
             if n == 0 and not dry_run:
-                self._check_deletions(planned, rnd.remote, synced, confirmed=confirm_deletions)
+                self._check_deletions(
+                    planned,
+                    rnd.remote,
+                    synced,
+                    confirmed=confirm_deletions,
+                    scoped=scope is not None,
+                )
             if dry_run:
                 rnd.report_ahead(planned)
                 break
@@ -1368,6 +1375,7 @@ class Syncer:
         synced: dict[str, Synced],
         *,
         confirmed: bool,
+        scoped: bool = False,
     ) -> int:
         """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files this
         Syncer deleted in the chain of pushes just before too: the watch agent sees an
@@ -1380,7 +1388,7 @@ class Syncer:
         if confirmed:
             self._deleted = 0
             return 0
-        doomed = refuse_mass_deletion(planned, remote, synced, recent=self._deleted)
+        doomed = refuse_mass_deletion(planned, remote, synced, recent=self._deleted, scoped=scoped)
         self._deleted += doomed
         self._deleting = doomed
         return doomed
@@ -2314,6 +2322,7 @@ def refuse_mass_deletion(
     synced: dict[str, Synced],
     *,
     recent: int = 0,
+    scoped: bool = False,
 ) -> int:
     """Raise :class:`MassDeletionError` if ``planned`` deletes more than MASS_MIN of the
     robot's files (and links), and more than half of them, counting ``recent`` files
@@ -2321,16 +2330,38 @@ def refuse_mass_deletion(
 
     A ``src/`` emptied by mistake (an ``rm -rf src/*``, a checkout of the wrong branch,
     a workspace path that points elsewhere) would otherwise empty the robot's, and its
-    trash is bounded. ``remote`` may be a push's scope only: the whole is then the
-    state's count.
+    trash is bounded. What is counted is every file the robot holds at or below a path
+    the plan deletes or replaces a directory at (with a file or a link). ``scoped``:
+    ``remote`` is a push's scope only (the watch agent's push of touched paths): the
+    robot's files outside it, and the whole, are the state's. A watcher on a busy
+    machine reports an ``rm -rf`` in pieces, and a batch naming a few of its files
+    finds their directory gone: the push deletes the directory, with every file the
+    robot holds below it, named or not.
     """
-    gone = {p.op.path for p in planned if p.op.kind == M.DELETE}
+
+    def held(path: str) -> M.Listed | Synced | None:
+        r = remote.get(path)
+        return synced.get(path) if r is None and scoped else r
+
+    gone: set[str] = set()
+    for p in planned:
+        if p.op.kind == M.DELETE:
+            gone.add(p.op.path)
+        elif p.op.kind in (M.WRITE, M.SYMLINK):
+            there = held(p.op.path)
+            if there is not None and there.kind == "d":
+                gone.add(p.op.path)
     if not gone:
         return 0
+    entries: Iterable[tuple[str, M.Listed | Synced]] = remote.items()
+    if scoped:
+        entries = itertools.chain(
+            remote.items(), ((p, s) for p, s in synced.items() if p not in remote)
+        )
     doomed = sum(
         1
-        for path, r in remote.items()
-        if r.kind != "d" and (path in gone or any(a in gone for a in ancestors(path)))
+        for path, e in entries
+        if e.kind != "d" and (path in gone or any(a in gone for a in ancestors(path)))
     )
     if doomed + recent <= MASS_MIN:
         return doomed
