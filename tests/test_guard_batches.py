@@ -20,6 +20,7 @@ from helpers import make_workspace
 
 from fetchsync.agent import service
 from fetchsync.config import Target
+from fetchsync.errors import TransportError
 from fetchsync.link.connection import Connection
 from fetchsync.link.transport import LocalTransport
 from fetchsync.sync import engine as sync
@@ -148,3 +149,25 @@ def test_the_agent_pauses_when_the_batches_name_one_file_each(agent):
         assert not done and why.startswith("paused:"), why
     assert a.status()["state"] == "paused"
     assert left(robot) == N
+
+
+def test_the_count_goes_on_across_a_reconnection(agent):
+    """Half an rm -rf pushed, the link lost and back (a new connection, a new Syncer), the
+    other half: one deletion still, so the agent pauses before the second half."""
+    a, src, robot = agent
+    half = N // 2  # not more than MASS_MIN: alone, each half goes without a question
+    assert half <= sync.MASS_MIN
+    for i in range(half):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    assert a.wait_for(a.request(paths={f"my_pkg/many/f{i}.txt" for i in range(half)}), 60) == (
+        True,
+        "",
+    )
+    assert left(robot) == N - half
+    a._went_offline(None, TransportError("the link was lost"))
+    for i in range(half, N):
+        (src / f"my_pkg/many/f{i}.txt").unlink()
+    done, why = a.wait_for(a.request(paths={f"my_pkg/many/f{i}.txt" for i in range(half, N)}), 60)
+    assert not done and why.startswith("paused:"), why
+    assert f"{half} of them deleted by the pushes just before" in why
+    assert left(robot) == N - half

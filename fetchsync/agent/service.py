@@ -145,6 +145,7 @@ class Agent:
         self._transport: Any = None
         self._syncer: Any = None
         self._state: Any = None
+        self._deletions: Any = None  # the mass-deletion guard's count, across connections
         self._lock_fd = -1
         self._last_activity = time.monotonic()  # the last change or request of the user's
         self._link_lock = threading.Lock()  # the monitor closes only the connection it probed
@@ -431,6 +432,10 @@ class Agent:
             rules=self.rules,
             policy=self.policy,
         )
+        # an rm -rf's batches on either side of a reconnection are still one deletion
+        if self._deletions is None:
+            self._deletions = syncer.deletions
+        syncer.deletions = self._deletions
         with self._link_lock:
             self._transport, self._conn, self._syncer = transport, conn, syncer
         if self.offline_since is not None:

@@ -1086,8 +1086,7 @@ class Syncer:
         # at least as long overwrites one instead of leaving it on the robot until the
         # session ends (the watch agent's sessions last hours)
         self._spare_uploads: dict[str, int] = {}
-        self._deleted = 0  # files deleted by the chain of pushes just before: see _check_deletions
-        self._deleted_at = 0.0  # when the last push of that chain ended
+        self.deletions = Deletions()  # the chain of deleting pushes just before this one
         self._deleting = 0  # files the push under way deletes
         self.packs: SharedPacks | None = None  # a fleet push's streams, shared by its robots
 
@@ -1322,7 +1321,7 @@ class Syncer:
             )
         finally:
             if self._deleting:  # a chain of deletions goes on from the end of this push
-                self._deleted_at = time.monotonic()
+                self.deletions.ended = time.monotonic()
 
     def _rounds(
         self,
@@ -1377,19 +1376,20 @@ class Syncer:
         confirmed: bool,
         scoped: bool = False,
     ) -> int:
-        """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files this
-        Syncer deleted in the chain of pushes just before too: the watch agent sees an
-        ``rm -rf`` as several batches, each of which may be small. A push joins the chain
-        when it starts within RECENT seconds of the end of the chain's last push, however
-        long that push took (a slow link, a busy machine). Returns the files this push
-        deletes."""
-        if time.monotonic() - self._deleted_at >= RECENT:
-            self._deleted = 0
+        """The mass-deletion guard (:func:`refuse_mass_deletion`), counting the files
+        deleted in the chain of pushes just before too (:attr:`deletions`): the watch
+        agent sees an ``rm -rf`` as several batches, each of which may be small. A push
+        joins the chain when it starts within RECENT seconds of the end of the chain's
+        last push, however long that push took (a slow link, a busy machine). Returns the
+        files this push deletes."""
+        chain = self.deletions
+        if time.monotonic() - chain.ended >= RECENT:
+            chain.files = 0
         if confirmed:
-            self._deleted = 0
+            chain.files = 0
             return 0
-        doomed = refuse_mass_deletion(planned, remote, synced, recent=self._deleted, scoped=scoped)
-        self._deleted += doomed
+        doomed = refuse_mass_deletion(planned, remote, synced, recent=chain.files, scoped=scoped)
+        chain.files += doomed
         self._deleting = doomed
         return doomed
 
@@ -2308,6 +2308,17 @@ def _conflicts_ahead(
             ):
                 conflict(op.path)
     return out
+
+
+@dataclass
+class Deletions:
+    """The files a chain of deleting pushes removed from the robot, and when its last push
+    ended (see :meth:`Syncer._check_deletions`). The watch agent hands the same one to
+    each Syncer it makes, so a reconnection between two batches of an ``rm -rf`` does not
+    start the count again."""
+
+    files: int = 0
+    ended: float = 0.0
 
 
 MASS_MIN = (
