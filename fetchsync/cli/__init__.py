@@ -459,20 +459,31 @@ def push(
     mark("push: asked for an agent")
     if report is None:
         progress = _Progress(not as_json)
-        state = _open_state(target)
-        mark("push: state open")
-        scanned: list[Any] = []  # the local scan, made while the robot's endpoint starts
+        opened: list[Any] = []  # the state, opened while the robot's endpoint starts
+        scanned: list[Any] = []  # the local scan, if made then
 
-        def prepare(_answered: Callable[[], bool]) -> None:
-            from fetchsync.sync.engine import scan_tree  # imported once the robot's command is sent
+        def prepare(started: Callable[[], bool]) -> None:
+            """The local work done while the endpoint's command is on its way: open the
+            state, import the engine; scan the tree too if the endpoint is not up yet (a
+            direct connection's takes tenths of a second to start). A connection master's
+            warm endpoint has answered by then: the push then scans while the robot lists
+            its tree (Syncer.push), under that request's round trip and the robot's work
+            instead of before it."""
+            opened.append(_open_state(target))
+            mark("push: state open")
+            from fetchsync.sync.engine import scan_tree
 
-            scanned.append(scan_tree(str(src), rules))
+            if not started():
+                scanned.append(scan_tree(str(src), rules))
 
         try:
             with connect(target, accept_fingerprint=accept_host_key, meanwhile=prepare) as conn:
                 from fetchsync.sync.engine import Syncer
 
                 mark("push: connected")
+                if not opened:  # the endpoint's start was retried without the local work
+                    opened.append(_open_state(target))
+                state = opened[0]
                 syncer = Syncer(
                     conn,
                     state,
@@ -491,7 +502,8 @@ def push(
                 mark("push: done")
         finally:
             progress.close()
-            state.close()
+            for each in opened:
+                each.close()
         if force and not dry_run:
             _resume_agent(target)
     report.robot, report.local, report.remote = (

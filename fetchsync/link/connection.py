@@ -190,8 +190,10 @@ class Connection:
         ``meanwhile`` runs once the endpoint's command is sent, while the robot
         starts its shell and Python (a few tenths of a second on a direct
         connection): work that needs no answer from the robot. It is given a
-        function that tells whether the robot has said something yet (its hello,
-        or that it needs the endpoint sent), for work worth stopping then.
+        function that tells whether the start-up is over (the endpoint's hello is
+        in and ours sent, or the start failed): work that can as well be done
+        later, under a request's round trip, is better left then (a connection
+        master's warm endpoint says hello within milliseconds).
         Meanwhile a thread of ours answers the robot as soon as it speaks: sends
         the endpoint when its loader asks, and our hello when its hello comes, so
         the start-up's round trips run under the local work instead of after it.
@@ -245,7 +247,7 @@ class Connection:
             helper = threading.Thread(target=start, name="fetchsync-start", daemon=True)
             helper.start()
             try:
-                meanwhile(channel.ready)
+                meanwhile(lambda: not starting.is_set())
                 mark("connection: the local work meanwhile done")
             except BaseException:
                 watchdog.stop()
