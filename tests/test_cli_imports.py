@@ -35,6 +35,13 @@ NOT_ON_THE_PUSH_PATH = {
     "fetchsync.protocol.heap",
     "ctypes",
     "tempfile",
+    # other verbs' work: loaded by their commands only (LAZY_COMMANDS)
+    "fetchsync.chores.snapshot",
+    "fetchsync.chores.lint",
+    "fetchsync.chores.workspace_status",
+    "fetchsync.chores.build",
+    "fetchsync.cli.snapshot",
+    "fetchsync.cli.watch",
 }
 
 
