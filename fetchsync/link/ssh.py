@@ -49,6 +49,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
+from fetchsync.link.channels import SessionSlots, send_eof
 from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 
@@ -202,7 +203,7 @@ class SSHChannel:
 
     def shutdown_write(self) -> None:
         try:
-            self._chan.shutdown_write()
+            send_eof(self._chan)  # never after our CLOSE: sshd would drop the connection
         except (OSError, EOFError, SSHException):
             pass
 
@@ -256,6 +257,7 @@ class SSHTransport:
         self._keepalive = keepalive
         self._timeout = timeout
         self._probe_lock = threading.Lock()
+        self._sessions = SessionSlots(transport)  # within the robot's MaxSessions
         self.on_close: Callable[[], None] | None = None
         """Called once when this connection is closed, just before it goes (say, to leave
         a master behind)."""
@@ -328,7 +330,7 @@ class SSHTransport:
         if env:
             command = env_prefix(env) + command
         try:
-            chan = self._transport.open_session(timeout=self._timeout)
+            chan = self._sessions.open(timeout=self._timeout)
         except (OSError, EOFError, SSHException) as exc:
             raise self._failure("open a session", exc) from exc
         try:

@@ -1,0 +1,142 @@
+"""Session channels on one SSH connection: how many are open at once, and their EOF.
+
+Two ways paramiko (5.1) and OpenSSH's sshd lose commands that run side by side on one
+connection (a debug snapshot's 8 collectors, a connection master's calls):
+
+- **Sessions past the server's limit.** sshd refuses a session channel past its
+  ``MaxSessions`` (10 by default), and a session stays counted there until both ends'
+  CLOSE messages have crossed, so channels just closed still take room. paramiko
+  raises ``ChannelException`` ("administratively prohibited", "open failed"), or, when
+  two opens are refused at once, ``SSHException("Unable to open channel.")`` for the
+  second (it keeps one refusal per connection). :class:`SessionSlots` opens at most
+  ``limit`` session channels at once on a connection, counting those not yet
+  confirmed closed by the robot; a refusal lowers the limit to what the robot took,
+  waits for one of ours to close (or backs off when none is open) and tries again a
+  few times. A refusal is not a lost link: only a dead transport is.
+- **An EOF after our CLOSE.** paramiko builds a channel's EOF under the channel's lock
+  and sends it once that is released (paramiko#1115, #1705, open). When the robot's
+  CLOSE arrives in between (a command that exits at once), paramiko's reader thread
+  answers with our CLOSE first; the EOF follows for a channel sshd has freed, and sshd
+  drops the whole connection ("ieof packet referred to nonexistent channel"), with
+  every other command on it. :func:`send_eof` sends the EOF only while no CLOSE of
+  ours can be on its way, in the order the robot must see them. Seen: 2 of 16 debug
+  snapshots lost their link this way on this 2-CPU VM under load (sshd's log said so).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import paramiko
+from paramiko.common import cMSG_CHANNEL_EOF
+from paramiko.message import Message
+from paramiko.ssh_exception import ChannelException, SSHException
+
+__all__ = ["MAX_SESSIONS", "REFUSALS", "SessionSlots", "send_eof"]
+
+MAX_SESSIONS = 10  # sshd's default MaxSessions
+REFUSALS = 6  # refused opens in a row before the refusal is the answer
+BACKOFF = 0.05  # seconds after the first refusal while none of ours is open; doubles
+_POLL = 0.02  # how often a wait looks for one of ours confirmed closed
+WAIT = 10.0  # seconds an open waits for a slot when the caller gives no timeout
+
+
+def refused(exc: BaseException, transport: paramiko.Transport) -> bool:
+    """Whether ``exc`` from ``open_session`` is the robot refusing the channel (the
+    connection lives on), not a lost link."""
+    if not transport.is_active():
+        return False
+    return isinstance(exc, ChannelException) or (
+        isinstance(exc, SSHException) and "Unable to open channel" in str(exc)
+    )
+
+
+class SessionSlots:
+    """The session channels open on one paramiko connection, bounded (see the module)."""
+
+    def __init__(self, transport: paramiko.Transport, *, limit: int = MAX_SESSIONS) -> None:
+        self._transport = transport
+        self.limit = limit
+        self._held: list[paramiko.Channel] = []
+        self._opening = 0
+        self._cond = threading.Condition()
+
+    def open(self, *, timeout: float | None) -> paramiko.Channel:
+        """A new session channel; raises what ``open_session`` raises, a refusal only
+        after REFUSALS of them in a row."""
+        refusals = 0
+        while True:
+            with self._cond:
+                # our channels end as their commands do; one held for hours (a watch
+                # agent's endpoint) must not hold the others forever: past the wait,
+                # the robot's answer decides
+                give_up = time.monotonic() + (timeout if timeout is not None else WAIT)
+                while self._count() >= self.limit and time.monotonic() < give_up:
+                    self._cond.wait(_POLL)
+                self._opening += 1
+            try:
+                chan = self._transport.open_session(timeout=timeout)
+            except (SSHException, EOFError, OSError) as exc:
+                with self._cond:
+                    self._opening -= 1
+                    ours = self._count()
+                    if not refused(exc, self._transport) or refusals + 1 >= REFUSALS:
+                        raise
+                    refusals += 1
+                    if ours:
+                        # the robot holds at most this many of ours: the next open waits
+                        # for one of them to close
+                        self.limit = max(1, min(self.limit, ours))
+                if not ours:
+                    time.sleep(BACKOFF * 2 ** (refusals - 1))
+                continue
+            with self._cond:
+                self._opening -= 1
+                self._held.append(chan)
+            return chan
+
+    def _count(self) -> int:
+        """Channels open or opening, and closed but not yet confirmed by the robot (under
+        the condition's lock)."""
+        if not self._transport.is_active():
+            self._held.clear()
+        else:
+            live: Any = self._transport._channels  # paramiko's ChannelMap, until the robot's CLOSE
+            self._held = [c for c in self._held if live.get(c.get_id()) is c]
+        return len(self._held) + self._opening
+
+
+def send_eof(chan: paramiko.Channel) -> None:
+    """``chan.shutdown_write()`` without paramiko's race: the EOF goes out before our
+    CLOSE, or not at all once a CLOSE of ours is on its way (see the module)."""
+    transport: Any = chan.transport
+    if transport is None or not all(
+        hasattr(transport, a)
+        for a in ("clear_to_send", "clear_to_send_lock", "clear_to_send_timeout", "_send_message")
+    ):
+        chan.shutdown_write()  # another paramiko: its own way
+        return
+    with chan.lock:
+        if chan.eof_sent or chan.closed or not chan.active:
+            return
+        chan.eof_sent = True  # a close from now on sends its CLOSE alone
+        m = Message()
+        m.add_byte(cMSG_CHANNEL_EOF)
+        m.add_int(chan.remote_chanid)
+    start = time.monotonic()
+    while True:
+        # as paramiko's _send_user_message: not during a key exchange
+        transport.clear_to_send.wait(0.1)
+        if not transport.active:
+            return
+        with transport.clear_to_send_lock:
+            if transport.clear_to_send.is_set():
+                # a CLOSE of ours is sent under this lock too, after its channel was
+                # marked closed: not closed now, the EOF goes first
+                if not chan.closed:
+                    transport._send_message(m)
+                return
+        if time.monotonic() > start + transport.clear_to_send_timeout:
+            raise SSHException("Key-exchange timed out waiting for key negotiation")

@@ -1,0 +1,183 @@
+"""Commands side by side on one SSH connection, against the real sshd: a robot that
+refuses sessions past its MaxSessions, and a command that ends while we send its EOF,
+lose no command and not the connection (fetchsync/link/channels.py)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import sshd as sshd_module
+from click.testing import CliRunner
+from sshd import SSHHome, make_ssh_home, running_sshd
+from test_snapshot import _why, by_name, only_archive, read_archive
+
+from fetchsync.cli import cli
+from fetchsync.errors import LinkLostError, TransportError
+from fetchsync.link import channels
+from fetchsync.link.ssh import SSHTransport
+
+pytestmark = pytest.mark.ssh
+
+
+@pytest.fixture
+def robot_transport(ssh_home: SSHHome) -> Iterator[SSHTransport]:
+    transport = SSHTransport.connect("robot", connect_timeout=10.0)
+    yield transport
+    transport.close()
+
+
+def run(transport: SSHTransport, command: str) -> tuple[int | None, bytes]:
+    chan = transport.exec(command)
+    chan.shutdown_write()
+    out = b""
+    while data := chan.recv(1 << 16):
+        out += data
+    status = chan.exit_status(30)
+    chan.close()
+    return status, out
+
+
+class _HeldBack(threading.Event):
+    """paramiko's clear_to_send, holding back one thread's next message until ``release``
+    is set: the moment a busy machine preempts a sender between building and sending."""
+
+    def __init__(self, held: threading.Thread, release: threading.Event) -> None:
+        super().__init__()
+        self.held, self.release = held, release
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if threading.current_thread() is self.held and not self.release.is_set():
+            assert self.release.wait(30)
+        return super().wait(timeout)
+
+
+def test_an_eof_sent_as_the_command_ends_keeps_the_connection(robot_transport: SSHTransport):
+    """The EOF of a command that has already ended, built before the robot's CLOSE came
+    and sent after paramiko answered it with ours: sshd would drop the connection
+    ("ieof packet referred to nonexistent channel") with every command on it."""
+    t: Any = robot_transport._transport
+    chan = robot_transport.exec("true")
+    raw = chan._chan  # type: ignore[attr-defined]
+    release = threading.Event()
+    real = t.clear_to_send
+    held = _HeldBack(threading.current_thread(), release)
+    if real.is_set():
+        held.set()
+    t.clear_to_send = held
+    try:
+
+        def when_closed() -> None:
+            # the robot's CLOSE handled: paramiko's reader thread sent ours
+            while t._channels.get(raw.get_id()) is raw:
+                threading.Event().wait(0.01)
+            release.set()
+
+        threading.Thread(target=when_closed, daemon=True).start()
+        chan.shutdown_write()
+    finally:
+        release.set()
+    assert chan.exit_status(10) == 0
+    chan.close()
+    assert run(robot_transport, "echo still here") == (0, b"still here\n")
+    assert robot_transport.is_alive(10)
+
+
+def test_commands_past_the_robots_max_sessions_wait_for_a_session(limited_home):
+    """A robot whose sshd allows 2 sessions per connection, 8 commands at once on one
+    connection: each gets its session in turn (none fails, the link stays)."""
+    limited_home(sessions=2)
+    transport = SSHTransport.connect("robot", connect_timeout=10.0)
+    try:
+        results: dict[int, Any] = {}
+
+        def one(i: int) -> None:
+            try:
+                results[i] = run(transport, f"sleep 0.2; echo {i}")
+            except Exception as exc:  # noqa: BLE001 - the assertion shows it
+                results[i] = exc
+
+        threads = [threading.Thread(target=one, args=(i,)) for i in range(8)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(120)
+        assert results == {i: (0, f"{i}\n".encode()) for i in range(8)}
+        assert transport.is_alive(10)
+    finally:
+        transport.close()
+
+
+def test_a_snapshot_on_a_robot_allowing_two_sessions_collects_everything(
+    limited_home, clean_process_env, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The debug snapshot runs 8 collectors at once on one connection; a robot allowing 2
+    sessions per connection still gives every one of them its output."""
+    limited_home(sessions=2)
+    monkeypatch.setenv("FETCHSYNC_ROBOT", "robot")
+    config = tmp_path / "many.json"
+    names = [f"c{i}" for i in range(12)]
+    config.write_text(
+        json.dumps(
+            {
+                "defaults": False,
+                "collectors": [{"name": n, "command": f"sleep 0.1; echo {n}"} for n in names],
+            }
+        )
+    )
+    out = tmp_path / "out"
+    out.mkdir()
+    result = CliRunner().invoke(cli, ["snapshot", "--output", str(out), "--config", str(config)])
+    assert result.exit_code == 0, _why(result)
+    manifest, files = read_archive(only_archive(out))
+    entries = by_name(manifest)
+    assert {n: entries[n]["status"] for n in names} == {n: "ok" for n in names}
+    assert {n: files[f"{n}.txt"] for n in names} == {n: f"{n}\n".encode() for n in names}
+
+
+def test_a_robot_refusing_every_session_is_a_refusal_not_a_lost_link(
+    limited_home, monkeypatch: pytest.MonkeyPatch
+):
+    """MaxSessions 0: the opens are refused a few times, then that is the answer; the
+    connection itself was never lost."""
+    limited_home(sessions=0)
+    monkeypatch.setattr(channels, "BACKOFF", 0.01)
+    transport = SSHTransport.connect("robot", connect_timeout=10.0)
+    try:
+        with pytest.raises(TransportError) as caught:
+            transport.exec("true")
+        assert not isinstance(caught.value, LinkLostError)
+        assert "refused" in str(caught.value)
+        assert transport.is_alive(10)
+    finally:
+        transport.close()
+
+
+@pytest.fixture
+def limited_home(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[Callable[..., SSHHome]]:
+    """make(sessions=N): a HOME reaching, as ``robot``, an sshd of its own that allows N
+    session channels per connection (sshd takes a keyword's first value: the line goes
+    first)."""
+    real = sshd_module._sshd_config
+    stack = contextlib.ExitStack()
+
+    def make(*, sessions: int) -> SSHHome:
+        def config(*args: Any, **kwargs: Any) -> str:
+            return f"MaxSessions {sessions}\n" + real(*args, **kwargs)
+
+        monkeypatch.setattr(sshd_module, "_sshd_config", config)
+        server = stack.enter_context(running_sshd(tmp_path / f"sshd-{sessions}"))
+        home = make_ssh_home(tmp_path / "home", sshd=server)
+        monkeypatch.setenv("HOME", str(home.home))
+        monkeypatch.delenv("SSH_AUTH_SOCK", raising=False)
+        return home
+
+    with stack:
+        yield make
