@@ -88,6 +88,34 @@ def test_an_eof_sent_as_the_command_ends_keeps_the_connection(robot_transport: S
     assert robot_transport.is_alive(10)
 
 
+def test_data_sent_as_the_command_ends_keeps_the_connection(robot_transport: SSHTransport):
+    """The same race with data (a password written to a command that ended at once, a
+    master forwarding bytes to an endpoint that just exited): built before the robot's
+    CLOSE came, it must not follow ours."""
+    t: Any = robot_transport._transport
+    chan = robot_transport.exec("true")
+    raw = chan._chan  # type: ignore[attr-defined]
+    release = threading.Event()
+    held = _HeldBack(threading.current_thread(), release)
+    if t.clear_to_send.is_set():
+        held.set()
+    t.clear_to_send = held
+    try:
+
+        def when_closed() -> None:
+            while t._channels.get(raw.get_id()) is raw:
+                threading.Event().wait(0.01)
+            release.set()
+
+        threading.Thread(target=when_closed, daemon=True).start()
+        chan.send_all(b"a password\n")
+    finally:
+        release.set()
+    chan.close()
+    assert run(robot_transport, "echo still here") == (0, b"still here\n")
+    assert robot_transport.is_alive(10)
+
+
 def test_commands_past_the_robots_max_sessions_wait_for_a_session(limited_home):
     """A robot whose sshd allows 2 sessions per connection, 8 commands at once on one
     connection: each gets its session in turn (none fails, the link stays)."""

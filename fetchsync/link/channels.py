@@ -21,6 +21,9 @@ connection (a debug snapshot's 8 collectors, a connection master's calls):
   every other command on it. :func:`send_eof` sends the EOF only while no CLOSE of
   ours can be on its way, in the order the robot must see them. Seen: 2 of 16 debug
   snapshots lost their link this way on this 2-CPU VM under load (sshd's log said so).
+  Data has the same race (the sudo password written to a command that ended at once,
+  a master forwarding a call's bytes to an endpoint that just exited):
+  :func:`send_data`.
 """
 
 from __future__ import annotations
@@ -30,11 +33,11 @@ import time
 from typing import Any
 
 import paramiko
-from paramiko.common import cMSG_CHANNEL_EOF
+from paramiko.common import cMSG_CHANNEL_DATA, cMSG_CHANNEL_EOF
 from paramiko.message import Message
 from paramiko.ssh_exception import ChannelException, SSHException
 
-__all__ = ["MAX_SESSIONS", "REFUSALS", "SessionSlots", "send_eof"]
+__all__ = ["MAX_SESSIONS", "REFUSALS", "SessionSlots", "send_data", "send_eof"]
 
 MAX_SESSIONS = 10  # sshd's default MaxSessions
 REFUSALS = 6  # refused opens in a row before the refusal is the answer
@@ -112,10 +115,7 @@ def send_eof(chan: paramiko.Channel) -> None:
     """``chan.shutdown_write()`` without paramiko's race: the EOF goes out before our
     CLOSE, or not at all once a CLOSE of ours is on its way (see the module)."""
     transport: Any = chan.transport
-    if transport is None or not all(
-        hasattr(transport, a)
-        for a in ("clear_to_send", "clear_to_send_lock", "clear_to_send_timeout", "_send_message")
-    ):
+    if not _ours(transport):
         chan.shutdown_write()  # another paramiko: its own way
         return
     with chan.lock:
@@ -125,16 +125,49 @@ def send_eof(chan: paramiko.Channel) -> None:
         m = Message()
         m.add_byte(cMSG_CHANNEL_EOF)
         m.add_int(chan.remote_chanid)
+    _send_while_open(transport, chan, m)
+
+
+def send_data(chan: paramiko.Channel, data: bytes | memoryview) -> int:
+    """``chan.send(data)`` without paramiko's race: the data goes out before our CLOSE,
+    or not at all once a CLOSE of ours is on its way (the command has ended: sshd would
+    have dropped it, and the connection with it). Returns how much of ``data`` was taken."""
+    transport: Any = chan.transport
+    if not _ours(transport) or not hasattr(chan, "_wait_for_send_window"):
+        return int(chan.send(data))
+    m = Message()
+    m.add_byte(cMSG_CHANNEL_DATA)
+    m.add_int(chan.remote_chanid)
+    with chan.lock:  # as paramiko's Channel._send
+        if chan.closed:
+            raise OSError("Socket is closed")
+        size = int(chan._wait_for_send_window(len(data)))
+        if size == 0:
+            return 0
+        m.add_string(data[:size])
+    _send_while_open(transport, chan, m)
+    return size
+
+
+def _ours(transport: Any) -> bool:
+    """Whether ``transport`` has the paramiko internals :func:`_send_while_open` uses."""
+    return transport is not None and all(
+        hasattr(transport, a)
+        for a in ("clear_to_send", "clear_to_send_lock", "clear_to_send_timeout", "_send_message")
+    )
+
+
+def _send_while_open(transport: Any, chan: paramiko.Channel, m: Message) -> None:
+    """Send ``m`` unless ``chan`` is closed by the time it can go: as paramiko's
+    _send_user_message (not during a key exchange), with the check under the same lock
+    our CLOSE is sent under, after its channel was marked closed."""
     start = time.monotonic()
     while True:
-        # as paramiko's _send_user_message: not during a key exchange
         transport.clear_to_send.wait(0.1)
         if not transport.active:
             return
         with transport.clear_to_send_lock:
             if transport.clear_to_send.is_set():
-                # a CLOSE of ours is sent under this lock too, after its channel was
-                # marked closed: not closed now, the EOF goes first
                 if not chan.closed:
                     transport._send_message(m)
                 return

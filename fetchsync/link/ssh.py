@@ -49,7 +49,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.link.channels import SessionSlots, send_eof
+from fetchsync.link.channels import SessionSlots, send_data, send_eof
 from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 
@@ -178,7 +178,7 @@ class SSHChannel:
         view = memoryview(data)
         try:
             while view:
-                view = view[self._chan.send(view) :]
+                view = view[send_data(self._chan, view) :]  # never after our CLOSE
         except (OSError, EOFError, SSHException) as exc:
             raise self._lost("while sending") from exc
 
