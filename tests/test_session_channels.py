@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 import sshd as sshd_module
 from click.testing import CliRunner
+from paramiko.ssh_exception import ChannelException
 from sshd import SSHHome, make_ssh_home, running_sshd
 from test_snapshot import _why, by_name, only_archive, read_archive
 
@@ -209,3 +210,60 @@ def limited_home(
 
     with stack:
         yield make
+
+
+class _FakeChannel:
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def get_id(self) -> int:
+        return self.n
+
+
+class _Sshd:
+    """A paramiko transport's channel bookkeeping, over a server allowing ``cap`` sessions
+    (a unit test of SessionSlots' arithmetic; the real sshd's tests are above)."""
+
+    def __init__(self, cap: int) -> None:
+        self.cap, self._channels_d, self.n = cap, {}, 0
+        self.refused = 0
+        self._channels = self  # SessionSlots reads transport._channels.get(id)
+
+    def get(self, n: int) -> Any:
+        return self._channels_d.get(n)
+
+    def is_active(self) -> bool:
+        return True
+
+    def open_session(self, timeout: float | None = None) -> _FakeChannel:
+        if len(self._channels_d) >= self.cap:
+            self.refused += 1
+            raise ChannelException(1, "open failed")
+        self.n += 1
+        chan = self._channels_d[self.n] = _FakeChannel(self.n)
+        return chan
+
+    def close(self, chan: _FakeChannel) -> None:
+        del self._channels_d[chan.n]
+
+
+def test_a_lowered_session_limit_recovers(monkeypatch: pytest.MonkeyPatch):
+    """A refusal lowers the limit to what the robot held; one channel held for hours (a
+    watch agent's endpoint) does not make every later open wait: past the wait the open
+    is tried, and once it succeeds the limit follows; RELEARN after the refusal it is
+    forgotten."""
+    server = _Sshd(cap=1)
+    slots = channels.SessionSlots(server)  # type: ignore[arg-type]
+    long_lived = slots.open(timeout=1.0)
+    monkeypatch.setattr(channels, "BACKOFF", 0.001)
+    with pytest.raises(ChannelException):
+        slots.open(timeout=0.05)  # the robot allows one: refused, a few times
+    assert slots.limit == 1 and server.refused == channels.REFUSALS
+    server.cap = 3  # its sessions freed
+    second = slots.open(timeout=0.2)  # waits 0.2 s for a slot, then the robot's answer
+    assert slots.limit == 2
+    monkeypatch.setattr(channels, "RELEARN", 0.0)
+    third = slots.open(timeout=30.0)  # the refusal forgotten: no wait
+    assert slots.limit == channels.MAX_SESSIONS
+    for chan in (long_lived, second, third):
+        server.close(chan)

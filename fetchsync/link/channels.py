@@ -10,9 +10,10 @@ connection (a debug snapshot's 8 collectors, a connection master's calls):
   two opens are refused at once, ``SSHException("Unable to open channel.")`` for the
   second (it keeps one refusal per connection). :class:`SessionSlots` opens at most
   ``limit`` session channels at once on a connection, counting those not yet
-  confirmed closed by the robot; a refusal lowers the limit to what the robot took,
-  waits for one of ours to close (or backs off when none is open) and tries again a
-  few times. A refusal is not a lost link: only a dead transport is.
+  confirmed closed by the robot; a refusal lowers the limit to what the robot took
+  (for RELEARN seconds, or until an open past it succeeds), waits for one of ours to
+  close (or backs off when none is open) and tries again a few times. A refusal is
+  not a lost link: only a dead transport is.
 - **An EOF after our CLOSE.** paramiko builds a channel's EOF under the channel's lock
   and sends it once that is released (paramiko#1115, #1705, open). When the robot's
   CLOSE arrives in between (a command that exits at once), paramiko's reader thread
@@ -44,6 +45,7 @@ REFUSALS = 6  # refused opens in a row before the refusal is the answer
 BACKOFF = 0.05  # seconds after the first refusal while none of ours is open; doubles
 _POLL = 0.02  # how often a wait looks for one of ours confirmed closed
 WAIT = 10.0  # seconds an open waits for a slot when the caller gives no timeout
+RELEARN = 30.0  # seconds after the last refusal that a lowered limit is forgotten
 
 
 def refused(exc: BaseException, transport: paramiko.Transport) -> bool:
@@ -61,7 +63,8 @@ class SessionSlots:
 
     def __init__(self, transport: paramiko.Transport, *, limit: int = MAX_SESSIONS) -> None:
         self._transport = transport
-        self.limit = limit
+        self.ceiling = self.limit = limit
+        self._refused_at = 0.0  # when the robot last refused a session
         self._held: list[paramiko.Channel] = []
         self._opening = 0
         self._cond = threading.Condition()
@@ -75,7 +78,12 @@ class SessionSlots:
                 # our channels end as their commands do; one held for hours (a watch
                 # agent's endpoint) must not hold the others forever: past the wait,
                 # the robot's answer decides
-                give_up = time.monotonic() + (timeout if timeout is not None else WAIT)
+                now = time.monotonic()
+                if self.limit < self.ceiling and now - self._refused_at > RELEARN:
+                    # what the robot refused then (sessions of ours it had not yet
+                    # freed, commands still running): maybe not any more
+                    self.limit = self.ceiling
+                give_up = now + (timeout if timeout is not None else WAIT)
                 while self._count() >= self.limit and time.monotonic() < give_up:
                     self._cond.wait(_POLL)
                 self._opening += 1
@@ -88,6 +96,7 @@ class SessionSlots:
                     if not refused(exc, self._transport) or refusals + 1 >= REFUSALS:
                         raise
                     refusals += 1
+                    self._refused_at = time.monotonic()
                     if ours:
                         # the robot holds at most this many of ours: the next open waits
                         # for one of them to close
@@ -98,6 +107,8 @@ class SessionSlots:
             with self._cond:
                 self._opening -= 1
                 self._held.append(chan)
+                # opened past the limit (the wait ran out): the robot takes that many
+                self.limit = min(self.ceiling, max(self.limit, len(self._held)))
             return chan
 
     def _count(self) -> int:
