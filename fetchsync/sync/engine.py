@@ -14,7 +14,6 @@ import dataclasses
 import errno
 import gc
 import hashlib
-import itertools
 import logging
 import os
 import queue
@@ -2364,16 +2363,29 @@ def refuse_mass_deletion(
                 gone.add(p.op.path)
     if not gone:
         return 0
-    entries: Iterable[tuple[str, M.Listed | Synced]] = remote.items()
-    if scoped:
-        entries = itertools.chain(
-            remote.items(), ((p, s) for p, s in synced.items() if p not in remote)
+    # a file or link counts itself, a directory what is below it: one pass over the
+    # entries, and only for a directory (a watch agent's state may hold 100,000 files:
+    # ~0.25 s in Python for each deleting push, with every entry's ancestors tried)
+    doomed_paths = set()
+    below: list[str] = []
+    for path in gone:
+        there = held(path)
+        if there is not None and there.kind == "d":
+            below.append(path + "/")
+        elif there is not None:
+            doomed_paths.add(path)
+    if below:
+        prefixes = tuple(below)
+        doomed_paths.update(
+            p for p, e in remote.items() if p.startswith(prefixes) and e.kind != "d"
         )
-    doomed = sum(
-        1
-        for path, e in entries
-        if e.kind != "d" and (path in gone or any(a in gone for a in ancestors(path)))
-    )
+        if scoped:  # the robot's files outside the push's view: the state's
+            doomed_paths.update(
+                p
+                for p in synced
+                if p.startswith(prefixes) and p not in remote and synced[p].kind != "d"
+            )
+    doomed = len(doomed_paths)
     if doomed + recent <= MASS_MIN:
         return doomed
     total = max(_files(remote.values()), _files(synced.values())) + recent
