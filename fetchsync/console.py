@@ -85,7 +85,7 @@ def resizer(channel: Channel) -> Callable[[int, int], None] | None:
     """How to pass a new window size to ``channel``'s PTY, if its transport can."""
     resize = getattr(channel, "resize_pty", None)
     if resize is None:
-        # fetchsync.link.ssh.SSHChannel has no resize of its own yet: use paramiko's channel.
+        # a channel without a resize of its own: its paramiko channel's, if any
         inner = getattr(channel, "_chan", None)
         resize = getattr(inner, "resize_pty", None)
     if resize is None:

@@ -24,7 +24,9 @@ connection (a debug snapshot's 8 collectors, a connection master's calls):
   snapshots lost their link this way on this 2-CPU VM under load (sshd's log said so).
   Data has the same race (the sudo password written to a command that ended at once,
   a master forwarding a call's bytes to an endpoint that just exited):
-  :func:`send_data`.
+  :func:`send_data`. A channel request is dropped for the same reason: the PTY's
+  window-change (a terminal resized as a build step ends; sshd disconnects for any
+  request to a freed channel, a window adjust it only logs): :func:`send_window_change`.
 """
 
 from __future__ import annotations
@@ -34,11 +36,18 @@ import time
 from typing import Any
 
 import paramiko
-from paramiko.common import cMSG_CHANNEL_DATA, cMSG_CHANNEL_EOF
+from paramiko.common import cMSG_CHANNEL_DATA, cMSG_CHANNEL_EOF, cMSG_CHANNEL_REQUEST
 from paramiko.message import Message
 from paramiko.ssh_exception import ChannelException, SSHException
 
-__all__ = ["MAX_SESSIONS", "REFUSALS", "SessionSlots", "send_data", "send_eof"]
+__all__ = [
+    "MAX_SESSIONS",
+    "REFUSALS",
+    "SessionSlots",
+    "send_data",
+    "send_eof",
+    "send_window_change",
+]
 
 MAX_SESSIONS = 10  # sshd's default MaxSessions
 REFUSALS = 6  # refused opens in a row before the refusal is the answer
@@ -158,6 +167,26 @@ def send_data(chan: paramiko.Channel, data: bytes | memoryview) -> int:
         m.add_string(data[:size])
     _send_while_open(transport, chan, m)
     return size
+
+
+def send_window_change(chan: paramiko.Channel, *, width: int, height: int) -> None:
+    """``chan.resize_pty(width, height)`` without paramiko's race: the request goes out
+    before our CLOSE, or not at all (the command has ended; see the module)."""
+    transport: Any = chan.transport
+    if not _ours(transport):
+        chan.resize_pty(width=width, height=height)
+        return
+    with chan.lock:
+        if chan.closed or not chan.active:
+            return
+        m = Message()
+        m.add_byte(cMSG_CHANNEL_REQUEST)
+        m.add_int(chan.remote_chanid)
+        m.add_string("window-change")
+        m.add_boolean(False)
+        for n in (width, height, 0, 0):
+            m.add_int(n)
+    _send_while_open(transport, chan, m)
 
 
 def _ours(transport: Any) -> bool:

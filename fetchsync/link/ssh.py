@@ -49,7 +49,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.link.channels import SessionSlots, send_data, send_eof
+from fetchsync.link.channels import SessionSlots, send_data, send_eof, send_window_change
 from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 
@@ -181,6 +181,10 @@ class SSHChannel:
                 view = view[send_data(self._chan, view) :]  # never after our CLOSE
         except (OSError, EOFError, SSHException) as exc:
             raise self._lost("while sending") from exc
+
+    def resize_pty(self, *, width: int, height: int) -> None:
+        """The robot's PTY to the terminal's new size (never after our CLOSE: channels)."""
+        send_window_change(self._chan, width=width, height=height)
 
     def recv(self, n: int) -> bytes:
         try:
