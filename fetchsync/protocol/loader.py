@@ -120,12 +120,16 @@ if os.path.isdir("/proc/self/fd/%d" % fd):
 def put(p, b):
     t = p + ".%d.tmp" % os.getpid()
     f = os.open(t, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
-    os.fchmod(f, 0o600)
-    with open(f, "wb") as f:
-        f.write(b)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(t, p)
+    try:  # a full disk leaves no partial file
+        os.fchmod(f, 0o600)
+        with open(f, "wb") as f:
+            f.write(b)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(t, p)
+    except BaseException:
+        os.unlink(t)
+        raise
 if globals().get("NEW"):  # the stub received this loader: cache it for the next starts
     try:
         put(os.path.join(d, "loader-" + LH[:32] + ".py"), NEW)
