@@ -99,3 +99,22 @@ def test_most_of_the_tree_deleted_here_is_refused_before_anything_goes(env):
     assert tree_of(ws / "src") == before  # not even the edit went ahead
     _fresh(s).push(confirm_deletions=True)
     assert tree_of(src) == tree_of(ws / "src")
+
+
+def test_a_robot_whose_workspace_was_made_anew_keeps_its_edits(env):
+    """The robot's workspace made again (its .fetchsync gone: a reinstalled robot, or
+    another robot now at that address) with its own versions of the files: a push planned
+    from this laptop's state must not take them for what it synced."""
+    s, src, ws = env
+    shutil.rmtree(ws / ".fetchsync")
+    (ws / "src/pkg/f2.txt").write_text("this robot's own\n")
+    (src / "pkg/f2.txt").write_text("edited on the laptop\n")
+    (src / "pkg/f3.txt").unlink()
+    (ws / "src/pkg/f3.txt").write_text("this robot's f3\n")
+    r = _fresh(s).push()
+    assert r.errors == []
+    assert (ws / "src/pkg/f2.txt").read_text() == "edited on the laptop\n"
+    kept = _kept(ws)
+    assert kept.get("f2.txt") == "this robot's own\n"
+    assert kept.get("f3.txt") == "this robot's f3\n"
+    assert tree_of(src) == tree_of(ws / "src")
