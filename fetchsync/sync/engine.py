@@ -22,7 +22,7 @@ import threading
 import time
 import types
 import zlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Callable, Iterable, Mapping
 
 from fetchsync.errors import ConflictError, MassDeletionError, RemoteError, SyncError
@@ -135,6 +135,13 @@ class Report:
         out = asdict(self)
         out["ok"] = not self.errors
         return out
+
+    def add(self, other: Report) -> None:
+        """Count ``other``'s work (a push made after this one, as part of it) in this one."""
+        for f in fields(self):
+            mine = getattr(self, f.name)
+            if f.name not in ("seconds", "dry_run") and isinstance(mine, (int, list)):
+                setattr(self, f.name, mine + getattr(other, f.name))
 
     def count(self, p: Planned) -> None:
         kind = p.op.kind
@@ -1138,6 +1145,7 @@ class Syncer:
         progress: Progress | None = None,
         scanned: ScanResult | None = None,
         confirm_deletions: bool = False,
+        ahead_ok: bool = True,
     ) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
@@ -1145,20 +1153,54 @@ class Syncer:
         such as the CLI's scan made while the robot's endpoint starts.
         ``confirm_deletions``: delete most of the robot's files if that is what the
         plan says (else :class:`MassDeletionError`, see :func:`refuse_mass_deletion`).
+        ``ahead_ok``: the local changes may go before the robot's answer (see
+        :meth:`_push_ahead`).
         """
         t0 = time.monotonic()
         report = Report("push", dry_run=dry_run)
         b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         self._synced = self._signed = None  # reread: another process may have pushed since
-        synced = self._load_synced()
         epoch, gen = self.state.epoch, self.state.gen
-        scanned, listing = self._open_and_list(synced, scanned, dry_run=dry_run)
-        differing = (
-            None
-            if dry_run
-            else _local_changes(
-                scanned, synced, listing, epoch, gen, LocalRules(self.local_root, self.rules)
+        open_req, list_req = self._send_open_and_list(dry_run=dry_run)
+        synced = self._load_synced()  # while the robot answers
+        if scanned is None:
+            scanned = scan_tree(self.local_root, self.rules)
+        excluded = LocalRules(self.local_root, self.rules)
+        ahead = None
+        if (
+            ahead_ok
+            and open_req is not None
+            and not dry_run
+            and self.policy == "preserve"
+            and synced
+            and epoch
+        ):
+            ahead = self._push_ahead(
+                scanned, synced, open_req, epoch, gen, excluded, progress, confirm_deletions
             )
+        if open_req is not None and self.opened is None:  # not waited for ahead
+            self.opened = open_req.wait()
+        listing = list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
+        if ahead is not None:
+            report, stale = ahead
+            if stale or listing.drifted or (listing.epoch, listing.gen) != (epoch, gen):
+                # another writer, or the robot changed while it was away from this
+                # laptop: push over what it holds now (each write sent ahead checked
+                # its own path there; the ones after a stale batch may have applied)
+                report.add(
+                    self.push(
+                        progress=progress, confirm_deletions=confirm_deletions, ahead_ok=False
+                    )
+                )
+                report.seconds = time.monotonic() - t0
+                return report
+            else:
+                report.bytes_sent = self.conn.bytes_out - b_out
+                report.bytes_received = self.conn.bytes_in - b_in
+                report.seconds = time.monotonic() - t0
+                return report
+        differing = (
+            None if dry_run else _local_changes(scanned, synced, listing, epoch, gen, excluded)
         )
         if differing is None:
             self._push_listed(
@@ -1183,23 +1225,58 @@ class Syncer:
         report.seconds = time.monotonic() - t0
         return report
 
-    def _open_and_list(
-        self, synced: dict[str, Synced], scanned: ScanResult | None, *, dry_run: bool
-    ) -> tuple[ScanResult, Listing]:
+    def _send_open_and_list(
+        self, *, dry_run: bool
+    ) -> tuple[Pending[Opened] | None, Pending[Listing] | None]:
         """Open the workspace (unless open) and ask for the robot's changes since the state's
-        generation (its whole tree if the state is empty), then scan the local tree (unless
-        ``scanned``) while the robot answers. A dry run's missing workspace lists empty."""
-        fresh = bool(synced) and self.state.epoch != ""
+        generation (its whole tree if the state is empty). Returns the answers on their
+        way (no listing: a dry run's workspace does not exist, it lists empty)."""
+        fresh = (
+            self.state.epoch != ""
+            and self.state.get("algorithm") in ("", self.algorithm)
+            and self.state.has_entries()
+        )
         exists = self._open_readonly() if dry_run else True
         open_req = self._send_open() if self.opened is None and not dry_run else None
         since = (self.state.epoch, self.state.gen) if fresh else None
         list_req = self.endpoint.send_listing(since=since) if exists else None
-        if scanned is None:
-            scanned = scan_tree(self.local_root, self.rules)
-        if open_req is not None:
-            self.opened = open_req.wait()
-        listing = list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
-        return scanned, listing
+        return open_req, list_req
+
+    def _push_ahead(
+        self,
+        scanned: ScanResult,
+        synced: dict[str, Synced],
+        open_req: Pending[Opened],
+        epoch: str,
+        gen: int,
+        excluded: LocalRules,
+        progress: Progress | None,
+        confirm_deletions: bool,
+    ) -> tuple[Report, bool] | None:
+        """Push the paths changed here since the state's generation while the robot still
+        works out its own changes (its listing): the writes queue behind the listing on
+        the robot, which needs ~30 ms for 2,000 files, instead of the laptop's planning,
+        reading and delta starting only once it arrived. Only when the robot's open
+        answered the state's generation (no other writer since); each write still checks
+        on the robot that its path holds what the state says was last synced there (a
+        robot-side edit is kept aside, never lost). The caller pushes again if the
+        listing then says the robot changed, or a batch was refused as stale. Wifi,
+        2,000-file tree, load 3-5, medians of 5 interleaved: the robot idle between its
+        listing's answer and the sync request 51.7 -> 0.3 ms (a line inserted atop a 2
+        MiB file; push in-process 167 -> 110 ms), 31.3 -> 0.2 ms (one small edit; 123 ->
+        82 ms). None (nothing sent) unless a few local changes; else (the report,
+        whether a batch was refused as stale)."""
+        differing = _local_changes(
+            scanned, synced, Listing(epoch=epoch, gen=gen, full=False), epoch, gen, excluded
+        )
+        if not differing:
+            return None
+        self.opened = opened = open_req.wait()
+        if (opened.epoch, opened.gen) != (epoch, gen):
+            return None  # another writer: the listing will say what the robot holds
+        return self._push_touched(
+            differing, set(), synced, progress=progress, confirm_deletions=confirm_deletions
+        )
 
     def _push_listed(
         self,
@@ -1247,9 +1324,6 @@ class Syncer:
         and each operation's expectation is checked there. If another writer
         is detected, this falls back to a full :meth:`push`.
         """
-        t0 = time.monotonic()
-        report = Report("push")
-        b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         synced = self._load_synced()
         if not synced or self.state.epoch == "":
             return self.push(progress=progress, confirm_deletions=confirm_deletions)
@@ -1258,9 +1332,30 @@ class Syncer:
         paths, dirs = set(paths), set(dirs)
         if "" in dirs:
             return self.push(progress=progress, confirm_deletions=confirm_deletions)
+        report, stale = self._push_touched(
+            paths, dirs, synced, progress=progress, confirm_deletions=confirm_deletions
+        )
+        if stale:
+            return self.push(progress=progress, confirm_deletions=confirm_deletions)
+        return report
+
+    def _push_touched(
+        self,
+        paths: set[str],
+        dirs: set[str],
+        synced: dict[str, Synced],
+        *,
+        progress: Progress | None,
+        confirm_deletions: bool,
+    ) -> tuple[Report, bool]:
+        """:meth:`push_paths` once the workspace is open: the report, and whether the
+        robot refused the push as stale (another writer: nothing was written)."""
+        t0 = time.monotonic()
+        report = Report("push")
+        b_out, b_in = self.conn.bytes_out, self.conn.bytes_in
         paths.discard("")
         if not paths and not dirs:
-            return report
+            return report, False
         local, scope, only = scan_touched(
             self.local_root, self.rules, synced, self.algorithm, paths, dirs
         )
@@ -1282,12 +1377,10 @@ class Syncer:
             progress=progress,
             confirm_deletions=confirm_deletions,
         )
-        if stale:
-            return self.push(progress=progress, confirm_deletions=confirm_deletions)
         report.bytes_sent = self.conn.bytes_out - b_out
         report.bytes_received = self.conn.bytes_in - b_in
         report.seconds = time.monotonic() - t0
-        return report
+        return report, stale
 
     def _converge(
         self,
