@@ -2434,7 +2434,8 @@ def refuse_mass_deletion(
     A ``src/`` emptied by mistake (an ``rm -rf src/*``, a checkout of the wrong branch,
     a workspace path that points elsewhere) would otherwise empty the robot's, and its
     trash is bounded. What is counted is every file the robot holds at or below a path
-    the plan deletes or replaces a directory at (with a file or a link). ``scoped``:
+    the plan deletes or replaces a directory at (with a file or a link), less those whose
+    content it writes again elsewhere (a directory renamed here). ``scoped``:
     ``remote`` is a push's scope only (the watch agent's push of touched paths): the
     robot's files outside it, and the whole, are the state's. A watcher on a busy
     machine reports an ``rm -rf`` in pieces, and a batch naming a few of its files
@@ -2478,7 +2479,7 @@ def refuse_mass_deletion(
                 for p in synced
                 if p.startswith(prefixes) and p not in remote and synced[p].kind != "d"
             )
-    doomed = len(doomed_paths)
+    doomed = len(doomed_paths) - _written_again(planned, doomed_paths, remote, synced)
     if doomed + recent <= MASS_MIN:
         return doomed
     total = max(_files(remote.values()), _files(synced.values())) + recent
@@ -2491,6 +2492,25 @@ def refuse_mass_deletion(
             "(deleted files go to the robot's .fetchsync/trash/)",
         )
     return doomed
+
+
+def _written_again(
+    planned: list[Planned],
+    doomed: set[str],
+    remote: dict[str, M.Listed],
+    synced: dict[str, Synced],
+) -> int:
+    """How many of the ``doomed`` files ``planned`` writes again elsewhere: a directory
+    renamed here has its files written at the new path (by hash), so nothing of the
+    robot's is lost. Each write covers one doomed file holding its content."""
+    again = collections.Counter(p.op.hash for p in planned if p.op.kind == M.WRITE)
+    covered = 0
+    for path in doomed:
+        e = remote.get(path) or synced.get(path)
+        if e is not None and e.kind == "f" and e.hash and again[e.hash] > 0:
+            again[e.hash] -= 1
+            covered += 1
+    return covered
 
 
 def _files(entries: Iterable[M.Listed | Synced]) -> int:
