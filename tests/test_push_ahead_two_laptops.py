@@ -80,3 +80,48 @@ def test_another_laptops_push_between_open_and_the_early_writes(tmp_path: Path):
         b_conn.close()
         a_state.close()
         b_state.close()
+
+
+def test_deletions_refused_as_stale_are_not_counted_twice(tmp_path: Path):
+    """18 of 40 files deleted here (allowed: at most MASS_MIN), the early push refused as
+    stale by the other laptop's push: the push over it plans the same 18 again; counted
+    once, not as 36 (a refusal naming "18 deleted by the pushes just before" that were
+    not deleted)."""
+    a_src = tmp_path / "a" / "src"
+    make_workspace(tmp_path / "a")
+    (a_src / "many").mkdir()
+    for i in range(40):
+        (a_src / f"many/f{i}.txt").write_text(f"{i}\n")
+    b_src = tmp_path / "b" / "src"
+    shutil.copytree(a_src, b_src, symlinks=True)
+    home = tmp_path / "robot-home"
+    a_conn = Connection.open(LocalTransport(home))
+    b_conn = Connection.open(LocalTransport(home))
+    a_state, b_state = State(tmp_path / "a.sqlite"), State(tmp_path / "b.sqlite")
+    try:
+        _syncer(a_conn, a_state, a_src).push()
+        _syncer(b_conn, b_state, b_src).push()
+        _syncer(a_conn, a_state, a_src).push()
+        for i in range(18):
+            (a_src / f"many/f{i}.txt").unlink()
+        (b_src / "my_pkg/package.xml").write_text("<edited on laptop B/>\n")
+        a = _syncer(a_conn, a_state, a_src)
+        real = a._push_touched
+        seen: list[Any] = []
+
+        def b_first(*args: Any, **kwargs: Any) -> Any:
+            if not seen:
+                seen.append(_syncer(b_conn, b_state, b_src).push())
+            return real(*args, **kwargs)
+
+        a._push_touched = b_first  # type: ignore[method-assign]
+        r = a.push()
+        assert seen, "the push did not send ahead"
+        assert r.errors == []
+        assert tree_of(home / "ws" / "src") == tree_of(a_src)
+        assert a.deletions.files == 18
+    finally:
+        a_conn.close()
+        b_conn.close()
+        a_state.close()
+        b_state.close()

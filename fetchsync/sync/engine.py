@@ -1187,6 +1187,8 @@ class Syncer:
                 # another writer, or the robot changed while it was away from this
                 # laptop: push over what it holds now (each write sent ahead checked
                 # its own path there; the ones after a stale batch may have applied)
+                if stale:  # refused: what it would delete is planned and counted again
+                    self.deletions.files = max(0, self.deletions.files - self._deleting)
                 report.add(
                     self.push(
                         progress=progress, confirm_deletions=confirm_deletions, ahead_ok=False
