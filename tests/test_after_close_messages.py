@@ -18,7 +18,11 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from paramiko.common import cMSG_CHANNEL_REQUEST, cMSG_CHANNEL_WINDOW_ADJUST
+from paramiko.common import (
+    cMSG_CHANNEL_CLOSE,
+    cMSG_CHANNEL_REQUEST,
+    cMSG_CHANNEL_WINDOW_ADJUST,
+)
 from paramiko.message import Message
 from sshd import SSHHome
 from test_session_channels import _HeldBack, run
@@ -46,12 +50,33 @@ def _wait_unlinked(t: Any, raw: Any) -> None:
 
 
 def _freed(transport: SSHTransport) -> Any:
-    """A channel whose command ended, with both ends' CLOSE sent."""
-    chan = transport.exec("true")
-    assert chan.exit_status(30) == 0
-    raw = chan._chan  # type: ignore[attr-defined]
-    _wait_unlinked(transport._transport, raw)  # type: ignore[attr-defined]
-    threading.Event().wait(0.2)  # our CLOSE reaches sshd, which frees the channel
+    """A channel whose command ended, with both ends' CLOSE sent and sshd past ours."""
+    t: Any = transport._transport  # type: ignore[attr-defined]
+    closes: list[int] = []
+    real_send = t._send_message
+
+    def send(m: Message) -> None:
+        data = m.asbytes()
+        if data[:1] == cMSG_CHANNEL_CLOSE:
+            closes.append(int.from_bytes(data[1:5], "big"))
+        real_send(m)
+
+    t._send_message = send
+    try:
+        chan = transport.exec("true")
+        assert chan.exit_status(30) == 0
+        raw = chan._chan  # type: ignore[attr-defined]
+        _wait_unlinked(t, raw)
+        for _ in range(3000):  # paramiko's reader unlinks the channel, then sends our CLOSE
+            if raw.remote_chanid in closes:
+                break
+            threading.Event().wait(0.01)
+        else:
+            raise AssertionError("our CLOSE never went out")
+    finally:
+        t._send_message = real_send
+    # a round trip behind our CLOSE: sshd has handled it and freed the channel
+    t.global_request("keepalive@openssh.com", wait=True)
     return raw
 
 
