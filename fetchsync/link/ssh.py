@@ -52,6 +52,7 @@ from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostEr
 from fetchsync.link.channels import SessionSlots, send_data, send_eof, send_window_change
 from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
+from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
 # paramiko logs a dropped link as an ERROR ("Socket exception: ...") before we
@@ -337,6 +338,7 @@ class SSHTransport:
             chan = self._sessions.open(timeout=self._timeout)
         except (OSError, EOFError, SSHException) as exc:
             raise self._failure("open a session", exc) from exc
+        mark("ssh: session open")
         try:
             if pty:
                 size = shutil.get_terminal_size()
@@ -516,6 +518,7 @@ class _Opener:
             settings, accept_fingerprint=self.accept_fingerprint, confirm=self.confirm_callback
         )
         sock = self._sock(settings, depth)
+        mark("ssh: socket made")
         try:
             transport = _Transport(sock)
         except Exception:
@@ -523,8 +526,11 @@ class _Opener:
             raise
         try:
             self._handshake(transport, settings, sock, host_keys.preferred_key_types())
+            mark("ssh: key exchange done")
             host_keys.verify(transport.get_remote_server_key())
+            mark("ssh: host key checked")
             _Auth(transport, settings, password_callback=self.password_callback).run()
+            mark("ssh: authenticated")
         except BaseException:
             transport.close()
             sock.close()
