@@ -41,11 +41,11 @@ def start(home: Path) -> tuple[list[bytes], subprocess.CompletedProcess]:
         if not chunk:
             break
         said += chunk
-        for need, data in ((loader.NEED_LOADER, loader.LOADER_BYTES), (loader.NEED, None)):
+        for need, data in ((loader.NEED_LOADER, loader.LOADER_BYTES), (loader.NEED, b"")):
             if need in said:
                 said = said.replace(need, b"", 1)
                 asked.append(need)
-                proc.stdin.write(data if data is not None else archive())
+                proc.stdin.write(data + archive())  # the endpoint follows the loader unasked
                 proc.stdin.flush()
     out, err = proc.communicate(b"", timeout=60)
     return asked, subprocess.CompletedProcess(proc.args, proc.returncode, said + out, err)
@@ -67,7 +67,7 @@ def test_the_loader_is_sent_once_then_run_from_the_cache(tmp_path):
     home.mkdir()
     asked, got = start(home)
     assert got.returncode == 0 and wire.MAGIC in got.stdout, got.stderr
-    assert asked == [loader.NEED_LOADER, loader.NEED]
+    assert asked == [loader.NEED_LOADER]  # one round trip: the endpoint came with the loader
     path = cached_loader(home)
     assert path.read_bytes() == loader.LOADER_BYTES
     assert path.stat().st_mode & 0o777 == 0o600
@@ -142,3 +142,34 @@ def test_a_loader_damaged_in_transit_is_refused(tmp_path):
     assert proc.returncode != 0 and b"damaged in transit" in proc.stderr
     assert hashlib.sha256(loader.LOADER_BYTES).hexdigest()[:32] in cmd
     assert not list((home / ".cache" / "fetchsync").glob("loader-*"))
+
+
+def test_a_robot_with_the_endpoint_but_not_this_loader_takes_the_endpoint_sent_with_it(tmp_path):
+    """The client sends the endpoint right after the loader, unasked: the loader reads it
+    (and checks it) even when its cache holds it already, so none of it is left on stdin
+    to be taken for the client's hello."""
+    home = tmp_path / "home"
+    home.mkdir()
+    assert start(home)[1].returncode == 0
+    cached_loader(home).unlink()
+    asked, got = start(home)
+    assert asked == [loader.NEED_LOADER]
+    assert got.returncode == 0 and wire.MAGIC in got.stdout, got.stderr
+
+
+def test_an_endpoint_damaged_after_the_loader_is_refused(tmp_path):
+    home = tmp_path / "home"
+    home.mkdir()
+    cmd, archive = loader.loader_spec(sys.executable)
+    data = bytearray(archive())
+    data[len(data) // 2] ^= 0xFF
+    proc = subprocess.run(
+        ["sh", "-c", f"exec {cmd}"],
+        input=loader.LOADER_BYTES + bytes(data),
+        capture_output=True,
+        env={"HOME": str(home), "PATH": "/usr/bin:/bin", "PYTHONPATH": ROOT},
+        timeout=60,
+    )
+    assert proc.returncode != 0 and b"endpoint was damaged in transit" in proc.stderr
+    assert wire.MAGIC not in proc.stdout
+    assert not list((home / ".cache" / "fetchsync").glob("endpoint-*"))

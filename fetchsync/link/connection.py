@@ -321,8 +321,8 @@ class Connection:
 
     @staticmethod
     def _deliver(channel: Channel, reader: wire.Reader, archive: Callable[[], bytes]) -> int:
-        """Send the loader if the stub says NEED_LOADER, the endpoint if the loader says
-        NEED; stop at the hello's magic. The bytes sent."""
+        """Send the loader and the endpoint if the stub says NEED_LOADER, the endpoint if
+        the loader says NEED; stop at the hello's magic. The bytes sent."""
         buf = reader._buf
         sent = 0
         while True:
@@ -333,12 +333,16 @@ class Connection:
                 if first == wire.MAGIC:
                     return sent
                 del buf[: i + len(first)]
-                data = LOADER_BYTES if first == NEED_LOADER else archive()
+                mark(
+                    "connection: the robot asked for the "
+                    + ("loader" if first == NEED_LOADER else "endpoint")
+                )
+                # a robot without this loader lacks this endpoint too (both change with
+                # fetchsync's version): the loader reads it right after itself, unasked,
+                # one round trip instead of two (the loader checks its hash either way)
+                data = LOADER_BYTES + archive() if first == NEED_LOADER else archive()
                 channel.send_all(data)
-                sent += len(data)
-                if first == NEED:
-                    return sent
-                continue
+                return sent + len(data)
             if len(buf) > wire.MAX_NOISE:
                 raise ProtocolError("the robot printed too much before the endpoint started")
             if not reader._fill(len(buf) + 1):

@@ -13,6 +13,10 @@ has checked the directory as below. The loader looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
 reads exactly that many bytes from stdin, checks their hash and caches them.
+A loader the stub had to receive reads the endpoint right after itself without
+asking (the client sends both on ``NEED_LOADER``: a robot without this loader
+lacks this endpoint too, as both change with fetchsync's version), checked the
+same way: one round trip for a new robot or a new version, not two.
 It runs the endpoint from a directory beside the zip, extracted and compiled
 once per Python version (a zip's modules are compiled again at every start:
 ~50 ms of each connection), synced before it is renamed into place.
@@ -145,14 +149,18 @@ try:
             b = None
 except OSError:
     b = None
-if b is None:
-    o = sys.stdout.buffer
-    o.write(b"FSYNC-NEED\n")
-    o.flush()
-    b = sys.stdin.buffer.read(n)
-    if hashlib.sha256(b).hexdigest() != h:
+if b is None or globals().get("NEW"):
+    # a client that had to send this loader sent the endpoint right after it, unasked
+    if not globals().get("NEW"):
+        o = sys.stdout.buffer
+        o.write(b"FSYNC-NEED\n")
+        o.flush()
+    e = sys.stdin.buffer.read(n)
+    if hashlib.sha256(e).hexdigest() != h:
         sys.exit("fetchsync: the endpoint was damaged in transit")
-    put(p, b)
+    if b is None:
+        put(p, e)
+    b = e
 x = p[:-4] + "-" + str(sys.implementation.cache_tag)
 def whole(x):
     if not os.path.isdir(x) or not mine(x, True):
