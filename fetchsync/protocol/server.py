@@ -468,18 +468,29 @@ def main() -> None:
     # stdout carries frames only: anything else printed would corrupt the stream
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
+    code = 0
     try:
         Server(sys.stdin.buffer, out).serve()
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     except ProtocolError as exc:
         sys.stderr.write("fetchsync endpoint: %s\n" % exc)
-        sys.exit(3)
+        code = 3
     except Exception:
         import traceback  # only here: it costs every start ~2 ms to import
 
         traceback.print_exc()
-        sys.exit(4)
+        code = 4
+    # after a bye the read-ahead thread may still be blocked reading stdin: finalizing
+    # the interpreter under it aborts the process ("Fatal Python error:
+    # _enter_buffered_busy", SIGABRT, on the robot's stderr). The store is closed
+    # (serve's finally) and what is left to do is flushing: then exit at once.
+    for stream in (out, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 if __name__ == "__main__":
