@@ -26,13 +26,53 @@ import posixpath
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Union
+from typing import TYPE_CHECKING, Any, Union
 from urllib.parse import urlsplit
 
 from fetchsync.errors import ConfigError
 
 if TYPE_CHECKING:
     import paramiko
+
+
+def import_paramiko() -> Any:
+    """paramiko, imported without invoke, which ``paramiko.config`` imports only for an
+    ssh config's ``Match exec`` lines: invoke brings asyncio, yaml and unittest.mock,
+    ~90 of paramiko's ~330 ms of CPU here, paid by every connection that is not made
+    through a connection master (a first push, the master itself). A config that has
+    such a line gets invoke at its parsing (:func:`allow_match_exec`)."""
+    import sys
+
+    if "paramiko" not in sys.modules and "invoke" not in sys.modules:
+        sys.modules["invoke"] = None  # type: ignore[assignment]  # import of invoke fails
+        try:
+            import paramiko
+        finally:
+            if sys.modules.get("invoke", 0) is None:
+                del sys.modules["invoke"]
+    import paramiko
+
+    return paramiko
+
+
+def allow_match_exec(config: paramiko.SSHConfig) -> paramiko.SSHConfig:
+    """``config``, able to run its ``Match exec`` lines: invoke imported if it has any
+    (see :func:`import_paramiko`); paramiko looks for it only when it runs one."""
+    import paramiko.config
+
+    if paramiko.config.invoke is None and any(
+        match.get("type") == "exec"
+        for entry in getattr(config, "_config", ())
+        for match in entry.get("matches", ())
+    ):
+        try:
+            import invoke
+        except ImportError as exc:  # paramiko raises it when it runs the line, as without us
+            paramiko.config.invoke_import_error = exc
+        else:
+            paramiko.config.invoke = invoke
+    return config
+
 
 LOCAL_ROBOT = "local"
 """The built-in robot: this machine, as the user who runs fetchsync (no SSH server)."""
@@ -209,14 +249,14 @@ def ssh_config_user(
     ``ssh_config`` is a path or a parsed ``paramiko.SSHConfig``; by default
     ``~/.ssh/config`` when it exists.
     """
-    import paramiko  # only now: an explicit --user never pays for its import
+    paramiko = import_paramiko()  # only now: an explicit --user never pays for its import
 
     if ssh_config is None or isinstance(ssh_config, (str, os.PathLike)):
         path = Path(ssh_config) if ssh_config is not None else _home(environ) / ".ssh" / "config"
         if ssh_config is None and not path.is_file():
             return None
         try:
-            config = paramiko.SSHConfig.from_path(str(path))
+            config = allow_match_exec(paramiko.SSHConfig.from_path(str(path)))
         except OSError as exc:
             raise ConfigError(f"cannot read the ssh config {path}: {exc.strerror}") from exc
         except paramiko.SSHException as exc:

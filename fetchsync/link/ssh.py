@@ -17,6 +17,7 @@ connecting, and to :class:`~fetchsync.errors.LinkLostError` once connected.
 Passwords and passphrases come from a callback and are never logged.
 """
 
+# ruff: noqa: E402  (paramiko is imported through import_paramiko, before the modules that use it)
 from __future__ import annotations
 
 import contextlib
@@ -36,6 +37,10 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
+
+from fetchsync.config import allow_match_exec, import_paramiko
+
+import_paramiko()  # without invoke: only an ssh config's Match exec needs it (allow_match_exec)
 
 import paramiko
 from paramiko.pkey import UnknownKeyType
@@ -116,7 +121,7 @@ def load_ssh_config(path: str | os.PathLike[str] | None = None) -> paramiko.SSHC
             return paramiko.SSHConfig()
         path = default
     try:
-        return paramiko.SSHConfig.from_path(os.fspath(path))
+        return allow_match_exec(paramiko.SSHConfig.from_path(os.fspath(path)))
     except OSError as exc:
         raise ConfigError(f"cannot read the ssh config {os.fspath(path)}: {exc.strerror}") from exc
     except SSHException as exc:
