@@ -52,6 +52,9 @@ class Server:
         self.compress = False
         self.algorithm = ""
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
+        # after a sync refused as stale: (epoch, the generation the store was at), until
+        # this client lists or opens again (see _chained)
+        self._refused = None  # type: Optional[Tuple[str, int]]
         # one writer at a time on ``out``: the serving thread's frames and the keepalives
         self._out_lock = threading.Lock()
         self._working = None  # type: Optional[int]  # the id of the request being served
@@ -195,6 +198,7 @@ class Server:
         (``push --dry-run``, ``pull``, status reads), and refuse every change."""
         from fetchsync.protocol.ignore import IgnoreRules
 
+        self._refused = None
         workspace = expand_workspace(h.get("workspace", ""))
         readonly = h.get("readonly", False) is True
         if self.store is not None:
@@ -220,7 +224,25 @@ class Server:
     def _fresh(self, store: "Store", h: "Dict[str, Any]") -> bool:
         return h.get("epoch") == store.epoch and h.get("gen") == store.gen
 
+    def _chained(self, h: "Dict[str, Any]") -> bool:
+        """Whether a sync request was sent behind one this session refused as stale: a
+        client pipelines a round's batches as generations gen, gen+1, ..., so with the
+        robot k generations ahead (another writer, a killed push's last batches) batch k
+        would find its generation current and apply after batches 0..k-1 were refused
+        (an upload's later pieces without its first). A client lists (or opens) before
+        it plans again, so until then a generation up to the one refused at is part of
+        the refused chain."""
+        refused = self._refused
+        gen = h.get("gen")
+        return (
+            refused is not None
+            and h.get("epoch") == refused[0]
+            and isinstance(gen, int)
+            and gen <= refused[1]
+        )
+
     def do_list(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
+        self._refused = None
         store = self._store()
         _test_pause("FETCHSYNC_TEST_SLOW_LIST")
         out = {"epoch": store.epoch, "gen": store.gen}  # type: Dict[str, Any]
@@ -236,7 +258,8 @@ class Server:
     def _sync_request(self, h: "Dict[str, Any]") -> "Optional[Tuple[Store, List[M.Op], str]]":
         """A sync request's store (locked), operations and policy; None if it is stale."""
         store = self._writable()
-        if h.get("require_fresh") and not self._fresh(store, h):
+        if h.get("require_fresh") and (not self._fresh(store, h) or self._chained(h)):
+            self._refused = (store.epoch, store.gen)
             return None
         raw = h.get("ops")
         if not isinstance(raw, list):

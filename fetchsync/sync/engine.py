@@ -1186,7 +1186,7 @@ class Syncer:
             if stale or listing.drifted or (listing.epoch, listing.gen) != (epoch, gen):
                 # another writer, or the robot changed while it was away from this
                 # laptop: push over what it holds now (each write sent ahead checked
-                # its own path there; the ones after a stale batch may have applied)
+                # its own path there; none after a stale one applies: Server._chained)
                 if stale:  # refused: what it would delete is planned and counted again
                     self.deletions.files = max(0, self.deletions.files - self._deleting)
                 report.add(
