@@ -14,7 +14,6 @@ while the channel is open and sends them after, so one can follow our CLOSE:
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -25,19 +24,13 @@ from paramiko.common import (
 )
 from paramiko.message import Message
 from sshd import SSHHome
-from test_session_channels import _HeldBack, run
+from test_session_channels import held_until_closed, run
+from test_session_channels import robot_transport as robot_transport  # the fixture
 
 from fetchsync.console import resizer
 from fetchsync.link.ssh import SSHTransport
 
 pytestmark = pytest.mark.ssh
-
-
-@pytest.fixture
-def robot_transport(ssh_home: SSHHome) -> Iterator[SSHTransport]:
-    transport = SSHTransport.connect("robot", connect_timeout=10.0)
-    yield transport
-    transport.close()
 
 
 def _wait_unlinked(t: Any, raw: Any) -> None:
@@ -122,26 +115,15 @@ def test_a_resize_as_the_command_ends_keeps_the_connection(robot_transport: SSHT
     """The terminal resized (SIGWINCH, or attach's first sizing) as a command under a
     PTY ends: the window-change built while the channel was open must not follow our
     CLOSE (a build's next step runs on the same connection)."""
-    t: Any = robot_transport._transport
     chan = robot_transport.exec("true", pty=True)
-    raw = chan._chan  # type: ignore[attr-defined]
     resize = resizer(chan)
     assert resize is not None
-    release = threading.Event()
-    held = _HeldBack(threading.current_thread(), release)
-    if t.clear_to_send.is_set():
-        held.set()
-    t.clear_to_send = held
-    try:
 
-        def when_closed() -> None:
-            _wait_unlinked(t, raw)
-            threading.Event().wait(0.2)  # sshd has our CLOSE: the channel is freed there
-            release.set()
+    def closed(t: Any, raw: Any) -> None:
+        _wait_unlinked(t, raw)
+        threading.Event().wait(0.2)  # sshd has our CLOSE: the channel is freed there
 
-        threading.Thread(target=when_closed, daemon=True).start()
+    with held_until_closed(robot_transport, chan, closed):
         resize(100, 30)
-    finally:
-        release.set()
     chan.close()
     _still_there(robot_transport)

@@ -58,31 +58,45 @@ class _HeldBack(threading.Event):
         return super().wait(timeout)
 
 
+@contextlib.contextmanager
+def held_until_closed(
+    transport: SSHTransport,
+    chan: Any,
+    closed: Callable[[Any, Any], None] | None = None,
+) -> Iterator[None]:
+    """This thread's next message (built inside the block) is sent only once the robot's
+    CLOSE of ``chan`` was handled and ours sent (``closed(t, raw)`` waits for that; by
+    default until paramiko unlinks the channel): the order a busy machine can make."""
+    t: Any = transport._transport
+    raw = chan._chan
+    release = threading.Event()
+    held = _HeldBack(threading.current_thread(), release)
+    if t.clear_to_send.is_set():
+        held.set()
+    t.clear_to_send = held
+
+    def when_closed() -> None:
+        if closed is None:
+            while t._channels.get(raw.get_id()) is raw:
+                threading.Event().wait(0.01)
+        else:
+            closed(t, raw)
+        release.set()
+
+    try:
+        threading.Thread(target=when_closed, daemon=True).start()
+        yield
+    finally:
+        release.set()
+
+
 def test_an_eof_sent_as_the_command_ends_keeps_the_connection(robot_transport: SSHTransport):
     """The EOF of a command that has already ended, built before the robot's CLOSE came
     and sent after paramiko answered it with ours: sshd would drop the connection
     ("ieof packet referred to nonexistent channel") with every command on it."""
-    t: Any = robot_transport._transport
     chan = robot_transport.exec("true")
-    raw = chan._chan  # type: ignore[attr-defined]
-    release = threading.Event()
-    real = t.clear_to_send
-    held = _HeldBack(threading.current_thread(), release)
-    if real.is_set():
-        held.set()
-    t.clear_to_send = held
-    try:
-
-        def when_closed() -> None:
-            # the robot's CLOSE handled: paramiko's reader thread sent ours
-            while t._channels.get(raw.get_id()) is raw:
-                threading.Event().wait(0.01)
-            release.set()
-
-        threading.Thread(target=when_closed, daemon=True).start()
+    with held_until_closed(robot_transport, chan):
         chan.shutdown_write()
-    finally:
-        release.set()
     assert chan.exit_status(10) == 0
     chan.close()
     assert run(robot_transport, "echo still here") == (0, b"still here\n")
@@ -93,25 +107,9 @@ def test_data_sent_as_the_command_ends_keeps_the_connection(robot_transport: SSH
     """The same race with data (a password written to a command that ended at once, a
     master forwarding bytes to an endpoint that just exited): built before the robot's
     CLOSE came, it must not follow ours."""
-    t: Any = robot_transport._transport
     chan = robot_transport.exec("true")
-    raw = chan._chan  # type: ignore[attr-defined]
-    release = threading.Event()
-    held = _HeldBack(threading.current_thread(), release)
-    if t.clear_to_send.is_set():
-        held.set()
-    t.clear_to_send = held
-    try:
-
-        def when_closed() -> None:
-            while t._channels.get(raw.get_id()) is raw:
-                threading.Event().wait(0.01)
-            release.set()
-
-        threading.Thread(target=when_closed, daemon=True).start()
+    with held_until_closed(robot_transport, chan):
         chan.send_all(b"a password\n")
-    finally:
-        release.set()
     chan.close()
     assert run(robot_transport, "echo still here") == (0, b"still here\n")
     assert robot_transport.is_alive(10)
