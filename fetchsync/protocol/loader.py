@@ -19,7 +19,11 @@ lacks this endpoint too, as both change with fetchsync's version), checked the
 same way: one round trip for a new robot or a new version, not two.
 It runs the endpoint from a directory beside the zip, extracted and compiled
 once per Python version (a zip's modules are compiled again at every start:
-~50 ms of each connection), synced before it is renamed into place.
+~50 ms of each connection), synced before it is renamed into place. Starts at
+once (two laptops, two pushes to a robot new to this version) extract one at a time
+under a lock on the cache directory, and each looks again once it holds it: an
+extracted tree another start runs from (importing from it lazily) is never moved
+away; a start whose lock another holds over 5 s runs from the checked zip.
 
 The cache is the robot user's alone: its directory is made ``0700``, opened
 without following a symlink and checked to be owned by the user (another
@@ -108,17 +112,42 @@ except OSError as e:
 s = os.fstat(fd)
 if s.st_uid != u:
     bad("%s belongs to another user" % d)
+def lock():
+    # one start at a time changes what is cached: another may be extracting, or running
+    # from what it extracted; one that holds the lock over 5 s (stopped, a hung disk) is
+    # not waited for (the caller then changes nothing)
+    import fcntl, time
+    for i in range(100):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            time.sleep(0.05)
+        except OSError:
+            return True  # no locks here (some NFS): as without them
+    return False
+def unlock():
+    import fcntl
+    try:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    except OSError:
+        pass
 if s.st_mode & 0o077:
-    # once open to others (a cache made under umask 000): what it holds may be theirs
-    for e in os.listdir(fd):
-        if e.startswith("endpoint-") and not e.endswith(".note"):
-            t = os.path.join(d, ".stale-%d-%s" % (os.getpid(), e))
-            os.rename(os.path.join(d, e), t)
-            import shutil
-            shutil.rmtree(t, ignore_errors=True)
-            if os.path.lexists(t):
-                os.unlink(t)
-    os.fchmod(fd, 0o700)
+    lock()  # else without it, as before: this cache is not to be used open
+    try:
+        # once open to others (a cache made under umask 000): what it holds may be theirs
+        if os.fstat(fd).st_mode & 0o077:
+            for e in os.listdir(fd):
+                if e.startswith("endpoint-") and not e.endswith(".note"):
+                    t = os.path.join(d, ".stale-%d-%s" % (os.getpid(), e))
+                    os.rename(os.path.join(d, e), t)
+                    import shutil
+                    shutil.rmtree(t, ignore_errors=True)
+                    if os.path.lexists(t):
+                        os.unlink(t)
+            os.fchmod(fd, 0o700)
+    finally:
+        unlock()
 if os.path.isdir("/proc/self/fd/%d" % fd):
     d = "/proc/self/fd/%d" % fd  # this very directory, whatever is renamed meanwhile
 def put(p, b):
@@ -170,8 +199,12 @@ def whole(x):
             if not mine(os.path.join(r, e), e in ds):
                 return False
     return True
-if not whole(x):
+def extract():
     import shutil
+    # what an extraction killed midway left (one extracts at a time: none is under way)
+    for e in os.listdir(fd):
+        if e.startswith("endpoint-") and e.endswith((".tmp", ".old")) and mine(os.path.join(d, e), True):
+            shutil.rmtree(os.path.join(d, e), ignore_errors=True)
     if os.path.lexists(x):
         t = x + ".%d.old" % os.getpid()
         os.rename(x, t)
@@ -200,6 +233,12 @@ if not whole(x):
         shutil.rmtree(t, ignore_errors=True)
     finally:
         os.umask(m)
+if not whole(x) and lock():
+    try:
+        if not whole(x):  # another start may have extracted it meanwhile, and run from it
+            extract()
+    finally:
+        unlock()
 sys.dont_write_bytecode = True
 sys.path.insert(0, x if whole(x) else p)
 from fetchsync.protocol.server import main
