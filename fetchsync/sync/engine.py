@@ -10,6 +10,7 @@ other end reports it now holds. The watch agent uses the same :class:`Syncer`.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import errno
 import gc
@@ -23,7 +24,7 @@ import time
 import types
 import zlib
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping
 
 from fetchsync.errors import ConflictError, MassDeletionError, RemoteError, SyncError
 from fetchsync.link.client import Applied, Content, Endpoint, Failed, Listing, Opened, Pending
@@ -251,9 +252,14 @@ def _gone(exc: OSError) -> bool:
 
 
 def _hash_file(full: str, algorithm: str) -> str:
+    """The content hash of the regular file at ``full``, opened as :func:`read_stable`
+    opens it: a FIFO put in its place since the scan made a plain open() wait for a
+    writer forever (the push, or the watch agent, hung), a symlink was followed."""
     if read_hook is not None:
         read_hook(full, "open")
-    with open(full, "rb") as fh:
+    with open(os.open(full, OPEN_FLAGS), "rb") as fh:
+        if not stat_mod.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            raise _not_regular(full)
         return hashing.file_digest(algorithm, fh).hex()
 
 
@@ -506,6 +512,25 @@ def _kept_changing(full: str, tries: int) -> OSError:
         f"it kept changing while it was read ({tries} tries); the robot keeps its previous version",
         full,
     )
+
+
+class _ReadFailed(Exception):
+    """Reading a laptop file failed with ``error``: told apart from the OSErrors of the
+    batcher it is read into (a failure of its sender or packer thread, re-raised by its
+    ``add``), which end the push as they are instead of being reported as the file's."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+@contextlib.contextmanager
+def _reading() -> Iterator[None]:
+    """Raise the OSErrors of the block as :class:`_ReadFailed`."""
+    try:
+        yield
+    except OSError as exc:
+        raise _ReadFailed(exc) from exc
 
 
 @dataclass
@@ -1564,10 +1589,13 @@ class Syncer:
             batcher.add(op, tag=(p, sig))
             return False
         full = os.path.join(self.local_root, op.path)
-        try:
-            if op.size > BIG:
+        if op.size > BIG:
+            try:
                 self._send_big(batcher, p, full, report, local)
-                return False
+            except _ReadFailed as failed:  # not the batcher's: its failures are the push's
+                return _unread(failed.error, op.path, local, report)
+            return False
+        try:
             data, entry = read_stable(full) if self.packs is None else self.packs.read(full)
         except OSError as exc:
             return _unread(exc, op.path, local, report)
@@ -1701,40 +1729,46 @@ class Syncer:
         is read and uploaded again, up to READ_TRIES times; the pieces of an attempt
         overwrite the last one's in the same upload, and a part left by a file that kept
         changing or vanished is reused by a later upload of this session (see
-        ``_spare_uploads``). Raises OSError as :func:`read_stable`.
+        ``_spare_uploads``). A read that fails raises :class:`_ReadFailed` (the OSError
+        :func:`read_stable` would raise); the batcher's own failures (the link's, its
+        threads') go up as they are, not as this file's.
         """
         part = _Part()
         done = False
         try:
             for attempt in range(READ_TRIES):
                 _pause(attempt)
-                if read_hook is not None:
-                    read_hook(full, "open")
-                fd = os.open(full, OPEN_FLAGS)
+                with _reading():
+                    if read_hook is not None:
+                        read_hook(full, "open")
+                    fd = os.open(full, OPEN_FLAGS)
                 try:
-                    before = os.fstat(fd)
-                    if not stat_mod.S_ISREG(before.st_mode):
-                        raise _not_regular(full)
+                    with _reading():
+                        before = os.fstat(fd)
+                        if not stat_mod.S_ISREG(before.st_mode):
+                            raise _not_regular(full)
                     if not part.upload or before.st_size < part.extent:
                         # a longer part's tail would stay past the end: use another one
                         self._spare(part.upload, part.extent)
                         part = _Part(*self._take_upload(before.st_size))
                     h, offset = self._send_pieces(batcher, fd, full, before, part)
-                    after = os.fstat(fd)
+                    with _reading():
+                        after = os.fstat(fd)
                 finally:
                     os.close(fd)
-                done = (
-                    offset == after.st_size
-                    and _same_file(before, after)
-                    and _still_there(full, after)
-                )
+                with _reading():
+                    done = (
+                        offset == after.st_size
+                        and _same_file(before, after)
+                        and _still_there(full, after)
+                    )
                 if done:
                     break
         finally:
             if not done:
                 self._spare(part.upload, part.extent)
         if not done:
-            raise _kept_changing(full, READ_TRIES)
+            raise _ReadFailed(_kept_changing(full, READ_TRIES))
         op = p.op.but(
             source=M.SRC_UPLOAD, upload=part.upload, base="", hash=h.digest().hex(), size=offset
         )
@@ -1753,13 +1787,14 @@ class Syncer:
         h = hashing.new(self.algorithm)
         offset = 0
         while offset < before.st_size:
-            piece = os.read(fd, min(PIECE, before.st_size - offset))
-            if not piece:
-                break
-            if read_hook is not None:
-                read_hook(full, "read")
-            if not _same_file(before, os.fstat(fd)):
-                break  # changed under us: stop sending this attempt now
+            with _reading():
+                piece = os.read(fd, min(PIECE, before.st_size - offset))
+                if not piece:
+                    break
+                if read_hook is not None:
+                    read_hook(full, "read")
+                if not _same_file(before, os.fstat(fd)):
+                    break  # changed under us: stop sending this attempt now
             h.update(piece)
             batcher.add(M.Op(M.UPLOAD, "", upload=part.upload, size=offset), piece, tag=None)
             offset += len(piece)
