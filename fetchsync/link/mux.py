@@ -9,6 +9,11 @@ exits after ``FETCHSYNC_PERSIST`` idle seconds (default 600; 0 disables it) or
 as soon as its link dies. While a master connects it holds a lock beside the
 socket (``mux-*.sock.starting``): a call that comes meanwhile waits for it
 rather than connecting on its own, and a second master leaves it to the first.
+The master stamps the lock (its mtime) at each step of its start (its Python up,
+paramiko imported, the socket made, the key exchange, the host key, the login):
+a call waits only while those steps come, so a master stuck in its handshake (a
+robot whose TCP accepts but whose sshd never speaks) costs a call at most
+``MASTER_STALL`` seconds, and none once its last step is older than that.
 
 The master also keeps one *spare* robot endpoint started: the endpoint's
 command (the loader line a push runs) is run ahead of the call and
@@ -48,6 +53,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from fetchsync.errors import ConnectError, LinkLostError
 from fetchsync.link.transport import Capabilities
+from fetchsync.trace import mark
 
 if TYPE_CHECKING:
     from fetchsync.link.ssh import SSHTransport
@@ -154,6 +160,10 @@ def _connect(path: Path) -> socket.socket:
 
 
 MASTER_WAIT = 5.0  # seconds a call waits for a master that is connecting before going direct
+# seconds without a step of a connecting master after which calls stop waiting for it: a
+# step is at most the master's Python start or paramiko's import (~0.3 s of CPU quiet) or
+# one round trip of its handshake; a master stuck in its handshake holds no call longer
+MASTER_STALL = 2.0
 
 
 def _lock_path(path: Path) -> Path:
@@ -175,16 +185,30 @@ def _starting(path: Path) -> int | None:
     except OSError:
         os.close(fd)
         return None
+    stamp(fd)
     return fd
 
 
+def stamp(fd: int) -> None:
+    """Say, on the connecting lock ``fd`` (its mtime), that the master made a step."""
+    if fd >= 0:
+        try:
+            os.utime(fd)
+        except OSError:
+            pass
+
+
 def wait_while_starting(path: Path, timeout: float = MASTER_WAIT) -> None:
-    """Return once no master for ``path`` is connecting (or after ``timeout`` seconds).
+    """Return once no master for ``path`` is connecting, once the one connecting has
+    made no step for ``MASTER_STALL`` seconds, or after ``timeout`` seconds.
 
     A call that comes while the master left by the call before it is still connecting
     (the push right after a first one: the master's Python, paramiko and handshake take
     ~0.5-1 s) waits for it instead of connecting on its own: the master's handshake
-    started first, so it ends first, and no second master is started beside it.
+    started first, so it ends first, and no second master is started beside it. A
+    master stuck in its handshake (the robot's TCP accepts, its sshd never answers)
+    stamps no step: the call goes direct (it leaves no second master: the stuck one
+    still holds the lock).
     """
     import fcntl
 
@@ -200,6 +224,14 @@ def wait_while_starting(path: Path, timeout: float = MASTER_WAIT) -> None:
                 return
             except BlockingIOError:
                 if time.monotonic() > deadline:
+                    return
+                try:
+                    still = time.time() - os.fstat(fd).st_mtime
+                except OSError:
+                    return
+                if still > MASTER_STALL:
+                    mark(f"session: the master connecting made no step for {still:.1f} s")
+                    log.info("the connection master connecting made no step for %.1f s", still)
                     return
                 time.sleep(0.01)
             except OSError:
@@ -743,13 +775,20 @@ def main(argv: list[str] | None = None) -> int:
     if starting is None:
         log.info("another connection master for %s is starting: leaving it to that one", args.host)
         return 0
+    stamp(starting)  # our Python is up
     slow = os.environ.get("FETCHSYNC_TEST_MASTER_SLOW")  # tests only: a slow handshake
-    if slow:
-        time.sleep(float(slow))
+    if slow:  # ... that makes its steps: one every half second
+        end = time.monotonic() + float(slow)
+        while time.monotonic() < end:
+            time.sleep(min(0.5, max(0.0, end - time.monotonic())))
+            stamp(starting)
     from fetchsync.link.ssh import SSHTransport  # paramiko: while the lock tells calls to wait
 
+    stamp(starting)
     try:
-        transport = SSHTransport.connect(args.host, user=args.user)
+        transport = SSHTransport.connect(
+            args.host, user=args.user, progress=lambda: stamp(starting)
+        )
     except Exception as exc:
         log.error("cannot connect to %s: %s", args.host, exc)
         return 1

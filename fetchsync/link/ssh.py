@@ -285,6 +285,7 @@ class SSHTransport:
         accept_fingerprint: str | None = None,
         password_callback: PasswordCallback | None = None,
         confirm_callback: PasswordCallback | None = None,
+        progress: Callable[[], None] | None = None,
     ) -> SSHTransport:
         """Connect and authenticate to ``host`` (an ssh config alias, a name or an address).
 
@@ -292,6 +293,8 @@ class SSHTransport:
         host key with that fingerprint. ``confirm_callback(prompt)`` (a terminal's
         answer, echoed) is asked, as ssh asks, whether to accept an unknown one. ``password_callback(prompt)`` is asked
         for key passphrases and, when keys fail, the login password.
+        ``progress()`` is called after each step (the socket, the key exchange, the host
+        key, the login): a connection master says so to the calls waiting for it.
         ``user`` and ``port`` win over the config's User and Port (a config
         ProxyCommand's ``%p`` still stands for the config's Port).
         """
@@ -304,6 +307,7 @@ class SSHTransport:
             accept_fingerprint=accept_fingerprint,
             password_callback=password_callback,
             confirm_callback=confirm_callback,
+            progress=progress,
         )
         transport = opener.open(settings)
         return cls(
@@ -494,6 +498,7 @@ class _Opener:
         accept_fingerprint: str | None,
         password_callback: PasswordCallback | None,
         confirm_callback: PasswordCallback | None = None,
+        progress: Callable[[], None] | None = None,
     ) -> None:
         self.config = config
         self.timeout = timeout
@@ -501,6 +506,7 @@ class _Opener:
         self.accept_fingerprint = accept_fingerprint
         self.password_callback = password_callback
         self.confirm_callback = confirm_callback
+        self.progress = progress or (lambda: None)
         self.hops: list[paramiko.Transport] = []
 
     def open(self, settings: HostSettings, *, depth: int = 0) -> paramiko.Transport:
@@ -524,6 +530,7 @@ class _Opener:
         )
         sock = self._sock(settings, depth)
         mark("ssh: socket made")
+        self.progress()
         try:
             transport = _Transport(sock)
         except Exception:
@@ -532,10 +539,13 @@ class _Opener:
         try:
             self._handshake(transport, settings, sock, host_keys.preferred_key_types())
             mark("ssh: key exchange done")
+            self.progress()
             host_keys.verify(transport.get_remote_server_key())
             mark("ssh: host key checked")
+            self.progress()
             _Auth(transport, settings, password_callback=self.password_callback).run()
             mark("ssh: authenticated")
+            self.progress()
         except BaseException:
             transport.close()
             sock.close()
