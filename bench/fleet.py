@@ -136,6 +136,7 @@ class Fleet:
         )
         self.state = 0
         self.trace: Path | None = None  # --trace: the fleet pushes run under fleettrace.py
+        self.wrap: list[str] = []  # an interpreter + profiler the fleet pushes run under
 
     def close(self) -> None:
         """Stop the links' shapers (ours, by their pids)."""
@@ -199,6 +200,8 @@ class Fleet:
                     / f"{self.link}-{len(list(self.trace.glob(f'{self.link}-*.json')))}.json"
                 )
                 argv[1:1] = [str(BENCH / "fleettrace.py"), str(out)]
+            if self.wrap:
+                argv[:1] = self.wrap
         links0, robots0 = self.links_cpu(robots), self.robots_cpu(robots)
         proxies0 = self.proxies_cpu(robots)
         cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
