@@ -416,7 +416,7 @@ class Agent:
     def _ensure_connected(self) -> None:
         if self._syncer is not None:
             return
-        from fetchsync.sync.engine import Syncer
+        from fetchsync.sync.engine import Deletions, Syncer
         from fetchsync.sync.state import open_state
 
         transport, conn = self._open_link()
@@ -432,9 +432,12 @@ class Agent:
             rules=self.rules,
             policy=self.policy,
         )
-        # an rm -rf's batches on either side of a reconnection are still one deletion
+        # an rm -rf's batches on either side of a reconnection are still one deletion,
+        # however long the robot was away (the time offline does not count)
         if self._deletions is None:
-            self._deletions = syncer.deletions
+            self._deletions = Deletions.kept(self._state)  # this agent restarted mid rm -rf
+        elif self.offline_since is not None:
+            self._deletions.ended += time.monotonic() - self._offline_mono
         syncer.deletions = self._deletions
         with self._link_lock:
             self._transport, self._conn, self._syncer = transport, conn, syncer

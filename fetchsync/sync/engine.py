@@ -1499,17 +1499,27 @@ class Syncer:
         deleted in the chain of pushes just before too (:attr:`deletions`): the watch
         agent sees an ``rm -rf`` as several batches, each of which may be small. A push
         joins the chain when it starts within RECENT seconds of the end of the chain's
-        last push, however long that push took (a slow link, a busy machine). Returns the
-        files this push deletes."""
+        last push, however long that push took (a slow link, a busy machine). The chain
+        is recorded in the state before its files go, for the next process (the watch
+        agent restarted between two pieces of an rm -rf: each new count let half of what
+        was left go). Returns the files this push deletes."""
         chain = self.deletions
-        if time.monotonic() - chain.ended >= RECENT:
+        window = KEPT if chain.resumed else RECENT
+        chain.resumed = False
+        before = chain.files
+        if time.monotonic() - chain.ended >= window:
             chain.files = 0
         if confirmed:
             chain.files = 0
-            return 0
-        doomed = refuse_mass_deletion(planned, remote, synced, recent=chain.files, scoped=scoped)
-        chain.files += doomed
-        self._deleting = doomed
+            doomed = 0
+        else:
+            doomed = refuse_mass_deletion(
+                planned, remote, synced, recent=chain.files, scoped=scoped
+            )
+            chain.files += doomed
+            self._deleting = doomed
+        if doomed or chain.files != before:
+            self.state.commit(meta={"deletions": f"{chain.files} {time.time()}"})
         return doomed
 
     def _commit(
@@ -2448,12 +2458,30 @@ class Deletions:
 
     files: int = 0
     ended: float = 0.0
+    # taken over from the state by a watch agent (restarted in the middle of an rm -rf):
+    # its first push joins the chain within KEPT seconds, as the time between the two
+    # processes is not known
+    resumed: bool = False
+
+    @classmethod
+    def kept(cls, state: State) -> Deletions:
+        """The chain the state recorded (see :meth:`Syncer._check_deletions`), if its last
+        push started within KEPT seconds; else a new one."""
+        try:
+            files, wall = state.get("deletions").split()
+            n, age = int(files), time.time() - float(wall)
+        except ValueError:
+            return cls()
+        if n <= 0 or not 0 <= age < KEPT:
+            return cls()
+        return cls(n, time.monotonic() - age, True)
 
 
 MASS_MIN = (
     20  # deleting more of the robot's files than this, and more than half, needs a confirmation
 )
 RECENT = 10.0  # seconds between one deleting push's end and the next's start: one deletion
+KEPT = 600.0  # the same, for a restarted watch agent's first push (the chain kept in the state)
 
 
 def refuse_mass_deletion(
