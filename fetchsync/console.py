@@ -240,3 +240,35 @@ def attach(
         errors.join()
     status = channel.exit_status()
     return NO_STATUS if status is None or status < 0 else status
+
+
+# the line that says where an answer goes (here: the fast path of a push prints it too)
+ARROW = "\u2192"
+BOTH = "\u2194"
+
+
+def robot_place(target: Any, remote: str | None) -> str:
+    """``user@robot:remote`` as the user would type it for scp (``local:...`` for the local
+    robot; without ``:remote`` when there is no remote path)."""
+    from fetchsync.config import login_name
+
+    login = login_name(target)
+    who = f"{login}@{target.robot}" if login else target.robot
+    return f"{who}:{remote}" if remote else who
+
+
+def where_line(
+    verb: str, target: Any, *, local: Any = None, remote: str | None = None, direction: str = "to"
+) -> str:
+    """``push ~/noetic/src → fetch@freight0:~/noetic/src``: the verb, the local place (``~``
+    for home), the robot's place with its user; ``direction`` is ``to`` the robot, ``from``
+    it, or ``both`` (a comparison)."""
+    from fetchsync.config import home_relative
+
+    there = printable(robot_place(target, remote))  # a name may hold escape sequences
+    if local is None:
+        return f"{verb} {there}"
+    here = printable(home_relative(local))
+    if direction == "from":
+        return f"{verb} {there} {ARROW} {here}"
+    return f"{verb} {here} {BOTH if direction == 'both' else ARROW} {there}"

@@ -110,7 +110,7 @@ _DEVELOPER_VARS = ("SSH_AUTH_SOCK", "XDG_CONFIG_HOME", "XDG_DATA_HOME")
 def clean_env(**values: str) -> dict[str, str]:
     """This process's environment without the developer's own settings, plus ``values``: no
     ``FETCH_*``, ``FETCHSYNC_*`` or ``ROS_*`` variable (a robot, a workspace, a remote Python,
-    a ROS master or distribution), no ``SSH_AUTH_SOCK`` (an agent would offer the
+    a ROS master or distribution; residents off unless asked for), no ``SSH_AUTH_SOCK`` (an agent would offer the
     developer's keys), no ``XDG_CONFIG_HOME`` or ``XDG_DATA_HOME`` (their robots.toml, their
     local robot), so a CLI run sees only what its test gives it."""
     env = {
@@ -121,6 +121,7 @@ def clean_env(**values: str) -> dict[str, str]:
             k.startswith(("FETCH_", "FETCHSYNC_", "_FETCHSYNC_", "ROS_")) or k in _DEVELOPER_VARS
         )
     }
+    env["FETCHSYNC_RESIDENT"] = "0"  # no resident outliving a test (tests/test_resident.py)
     env.update(values)
     return env
 

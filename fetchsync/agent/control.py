@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:
     from fetchsync.config import Target
@@ -29,9 +29,19 @@ OFFLINE_CHECK = 1.0  # seconds between looks at whether the robot went offline d
 
 
 class ControlServer:
-    def __init__(self, path: Path, agent: Any) -> None:
+    def __init__(
+        self,
+        path: Path,
+        agent: Any,
+        *,
+        handler: Callable[[dict[str, Any]], dict[str, Any] | None] | None = None,
+    ) -> None:
+        """``handler``: answers the requests instead of :meth:`handle` (the resident's);
+        None from it closes the connection without an answer."""
         self.path = path
         self.agent = agent
+        self.handler = handler
+        self.clients: list[threading.Thread] = []  # the requests' threads, for a clean exit
         self.sock: socket.socket | None = None
         self.thread: threading.Thread | None = None
 
@@ -73,7 +83,9 @@ class ControlServer:
             if not _ours(conn):
                 conn.close()
                 continue
-            threading.Thread(target=self._client, args=(conn,), daemon=True).start()
+            client = threading.Thread(target=self._client, args=(conn,), daemon=True)
+            self.clients = [t for t in self.clients if t.is_alive()] + [client]
+            client.start()
 
     def _client(self, conn: socket.socket) -> None:
         try:
@@ -83,9 +95,11 @@ class ControlServer:
                     req = json.loads(line)
                     if not isinstance(req, dict):
                         raise ValueError("not an object")
-                    reply = self.handle(req)
+                    reply = (self.handler or self.handle)(req)
                 except (ValueError, TypeError, KeyError) as exc:
                     reply = {"ok": False, "error": f"bad request: {exc}"}
+                if reply is None:
+                    return
                 f.write(json.dumps(reply).encode() + b"\n")
                 f.flush()
         except OSError:
@@ -111,6 +125,10 @@ class ControlServer:
                 ok, why = self.agent.wait_for(seq, timeout)
             return {"ok": ok, "error": why, "status": self.agent.status()}
         if cmd == "push":
+            if req.get("resident_only"):
+                # the console entry's fast path (fetchsync.agent.quick) handles only a
+                # resident's answers: the CLI asks again, the way it always did
+                return {"declined": "a watch agent", "watch": True}
             if self.agent.status().get("offline_since"):
                 return self._offline()
             seq = self.agent.request(full=True)

@@ -82,9 +82,10 @@ class Pending:
         return len(self.paths) + len(self.dirs) + (1 if self.full else 0)
 
 
-def take_lock(path: Path, busy: Callable[[str], Exception]) -> int:
-    """A descriptor holding ``path``'s exclusive lock, our pid written in it; when another
-    process holds it, ``busy(what it wrote)`` is raised (one watch per target or workspace)."""
+def take_lock(path: Path, busy: Callable[[str], Exception], *, words: str = "pid") -> int:
+    """A descriptor holding ``path``'s exclusive lock, ``words`` and our pid written in it;
+    when another process holds it, ``busy(what it wrote)`` is raised (one watch per target
+    or workspace)."""
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -95,8 +96,37 @@ def take_lock(path: Path, busy: Callable[[str], Exception]) -> int:
             os.close(fd)
         raise busy(owner or "pid unknown") from None
     os.ftruncate(fd, 0)
-    os.write(fd, f"pid {os.getpid()}".encode())
+    os.write(fd, f"{words} {os.getpid()}".encode())
     return fd
+
+
+TAKE_OVER_WAIT = 10.0  # seconds a watch waits for a resident to finish its push and exit
+
+
+def _take_over(lock: Path, sock: Path) -> bool:
+    """Ask the resident holding ``lock`` to exit and wait until it has; False when the
+    holder is not a resident (a watch agent) or does not let go in time."""
+    from fetchsync.agent.control import call
+    from fetchsync.agent.quick import LOCK_WORDS
+
+    try:
+        owner = lock.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False
+    if not owner.startswith(LOCK_WORDS):
+        return False
+    call(sock, {"cmd": "quit"}, timeout=5)
+    deadline = time.monotonic() + TAKE_OVER_WAIT
+    while time.monotonic() < deadline:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True  # free now (released again at once: acquire takes it)
+        except OSError:
+            time.sleep(0.05)
+        finally:
+            os.close(fd)
+    return False
 
 
 class Agent:
@@ -161,14 +191,21 @@ class Agent:
     def acquire(self) -> None:
         """Take the one-agent-per-target lock, or say where the running one is."""
         lock, sock = agent_paths(self.target)
-        self._lock_fd = take_lock(
-            lock,
-            lambda owner: UsageError(
+
+        def busy(owner: str) -> Exception:
+            return UsageError(
                 f"an agent is already watching {self.src} for {self.target.robot} "
                 f"({owner}; socket {sock})",
                 hint="stop it first, or use fetchsync status / flush",
-            ),
-        )
+            )
+
+        try:
+            self._lock_fd = take_lock(lock, busy)
+        except UsageError:
+            # a resident (fetchsync.agent.resident) serving one-shot pushes: it steps aside
+            if not _take_over(lock, sock):
+                raise
+            self._lock_fd = take_lock(lock, busy)
         self.socket_path = sock
 
     def release(self) -> None:

@@ -7,22 +7,21 @@ that ``fetchsync --help`` and a no-op push start fast.
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import click
 
 from fetchsync import __version__
+from fetchsync.agent.quick import human, pushable
 from fetchsync.cli.build_flags import BuildCommand, build_options, build_request
 from fetchsync.cli.common import resolve as _resolve
 from fetchsync.cli.common import say_where, target_options
 from fetchsync.cli.fleet import fleet_options, robots_for
-from fetchsync.errors import ConfigError, FetchsyncError
+from fetchsync.errors import FetchsyncError
 from fetchsync.trace import mark
 
 # verb -> "module:attribute" of its click command, imported only when used
@@ -61,14 +60,6 @@ LAZY_HELP: dict[str, str] = {
 }
 
 
-def _human(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} GiB"
-
-
 def sync_options(func: Callable[..., Any]) -> Callable[..., Any]:
     opts = [
         click.option(
@@ -103,7 +94,7 @@ class _Progress:
             return
         frac = min(done / total, 1.0)
         bar = "#" * int(frac * 30)
-        sys.stderr.write(f"\r[{bar:<30}] {frac * 100:5.1f}% {_human(done)} of {_human(total)}")
+        sys.stderr.write(f"\r[{bar:<30}] {frac * 100:5.1f}% {human(done)} of {human(total)}")
         sys.stderr.flush()
         self.shown = True
 
@@ -114,26 +105,49 @@ class _Progress:
 
 
 def _push_via_agent(target: Any) -> Any:
-    """The report of a full push made by the running agent, or None if none runs."""
-    from fetchsync.agent.control import agent_paths, push
-    from fetchsync.errors import ConnectError, SyncError
+    """The report of a full push made by the running watch agent or resident, or None if
+    none runs (or it declined: another install's, busy, gone mid-request)."""
+    from fetchsync.agent.control import agent_paths
+    from fetchsync.agent.quick import Asked, answered_report, ask
+    from fetchsync.errors import ConnectError
 
     try:
         sock = agent_paths(target)[1]
     except ConnectError:
         return None  # no private socket directory: no agent can be listening
-    reply = push(sock, timeout=3600)
+    if str(sock) in Asked.asked:
+        return None  # the fast path asked already (fetchsync.__main__), and fell back
+    if not sock.exists():
+        return None
+    reply = ask(sock, target)
     if reply is None:
+        return None
+    data = answered_report(reply)
+    if data is None:
         return None
     from fetchsync.sync.engine import Report
 
-    if not reply.get("ok"):
-        raise SyncError(f"the watch agent could not push: {reply.get('error') or 'unknown error'}")
-    data = reply.get("report") or {}
     fields = Report.__dataclass_fields__
-    report = Report(**{k: v for k, v in data.items() if k in fields})
-    report.connection = "agent"
-    return report
+    return Report(**{k: v for k, v in data.items() if k in fields})
+
+
+def _start_resident(target: Any) -> None:
+    """Leave a resident behind for the next plain push (fetchsync.agent.resident), unless
+    turned off or something already answers at the agent's socket."""
+    from fetchsync.agent.control import agent_paths
+    from fetchsync.agent.quick import Asked, idle_seconds, start_resident
+    from fetchsync.errors import ConnectError
+
+    if idle_seconds() <= 0:
+        return
+    try:
+        sock = agent_paths(target)[1]
+    except ConnectError:
+        return
+    if str(sock) in Asked.answered:
+        return
+    start_resident(target, sock)
+    mark("push: resident started")
 
 
 def _open_state(target: Any) -> Any:
@@ -154,96 +168,15 @@ def _resume_agent(target: Any) -> None:
     call(agent_paths(target)[1], {"cmd": "push"}, timeout=60)
 
 
-# What a src/ may hold and still count as empty: catkin's, colcon's and ament's markers
-EMPTY_MARKERS = frozenset({"CATKIN_IGNORE", "COLCON_IGNORE", "AMENT_IGNORE"})
-
-
-def _pushable(src: Path, *, force: bool, whose: str) -> Path:
-    """``src``, if a push may make the robot's src/ like it: it exists (most often a
-    missing one is the wrong workspace) and holds files; with ``force``, made if need be."""
-    from fetchsync.errors import SyncError
-
-    if force:
-        src.mkdir(parents=True, exist_ok=True)
-        return src
-    if not src.is_dir():
-        raise ConfigError(
-            f"{src} does not exist; nothing to push",
-            hint="check --workspace; fetchsync config shows where it came from",
-        )
-    if not _holds_files(src):
-        raise SyncError(
-            f"{src} holds no files (only directories or ignore markers, if "
-            f"anything); pushing it would empty {whose} src/",
-            hint="pass --force if that is what you want",
-        )
-    return src
-
-
-def _holds_files(src: Any) -> bool:
-    """Whether ``src`` holds a file or link other than package markers (an empty
-    directory, or one of empty directories and a CATKIN_IGNORE, is an emptied src/)."""
-    from fetchsync.errors import SyncError
-
-    unlisted: list[OSError] = []
-    for dirpath, dirnames, filenames in os.walk(src, onerror=unlisted.append):
-        if any(name not in EMPTY_MARKERS for name in filenames):
-            return True
-        # os.walk lists a symlink to a directory among the directories
-        if any(os.path.islink(os.path.join(dirpath, d)) for d in dirnames):
-            return True
-    if unlisted and unlisted[0].filename == str(src):
-        exc = unlisted[0]
-        raise SyncError(f"cannot list {src}: {exc.strerror or exc}", hint="check its permissions")
-    return bool(unlisted)  # a directory it could not list may hold files: the push says
-
-
 def _connection_kind(conn: Any) -> str:
     name = type(conn.transport).__name__
     return {"MuxTransport": "master", "LocalTransport": "local"}.get(name, "ssh")
 
 
 def _print_report(report: Any, as_json: bool) -> None:
-    from fetchsync.console import printable as p_
+    from fetchsync.agent.quick import print_report
 
-    if as_json:
-        click.echo(json.dumps(report.to_json(), indent=None, sort_keys=True))
-        return
-    verb = "would change" if report.dry_run else ("pushed" if report.verb == "push" else "pulled")
-    if report.dry_run:
-        for p in report.planned:
-            click.echo(
-                f"  {p['op']:<7} {p_(p['path'])}" + (f"  ({p_(p['how'])})" if p.get("how") else "")
-            )
-    parts = [f"{report.files} files", f"{report.dirs} dirs"]
-    if report.links:
-        parts.append(f"{report.links} links")
-    parts.append(f"{report.deleted} deleted")
-    if report.reused:
-        parts.append(f"{report.reused} reused")
-    if report.deltas:
-        parts.append(f"{report.deltas} by delta")
-    line = (
-        f"{report.verb}: {verb} {', '.join(parts)}; sent {_human(report.bytes_sent)}, "
-        f"received {_human(report.bytes_received)}; {len(report.conflicts)} conflicts; "
-        f"{report.seconds:.2f}s"
-    )
-    click.echo(line)
-    for c in report.conflicts:
-        if c.get("refused"):
-            click.echo(f"  conflict: {p_(c['path'])} changed on the robot; left as it is", err=True)
-        else:
-            side = "on the robot" if report.verb == "push" else "locally"
-            kept = "would be kept in" if report.dry_run else "is kept in"
-            click.echo(
-                f"  conflict: {p_(c['path'])} was changed {side} since the last sync; "
-                f"that version {kept} {p_(c['kept'])}",
-                err=True,
-            )
-    for s in report.skipped:
-        click.echo(f"  skipped: {p_(s['path'])}: {p_(s['reason'])}", err=True)
-    for e in report.errors:
-        click.echo(f"  error: {p_(e['path'])}: {p_(e['error'])}", err=True)
+    print_report(report.to_json(), as_json)
 
 
 # another name for a command, kept for fetch_tools' users: named on its command's
@@ -492,14 +425,17 @@ def push(
             )
         )
     target = _resolve(robot, user, workspace, remote_workspace)
-    src = _pushable(target.workspace / "src", force=force, whose="the robot's")
+    src = pushable(target.workspace / "src", force=force, whose="the robot's")
     say_where("push", target, local=src, remote=target.remote_workspace + "/src")
     rules = build_rules(excludes)
     # a running watch agent for this robot and workspace already holds the
     # connection and the state: a plain push goes through it
     mark("push: target resolved")
+    request = build_request(builds, build_type, build_tool, install_deps)
+    plain = not (dry_run or strict or excludes or force or request)
     report = None if (dry_run or strict or excludes or force) else _push_via_agent(target)
     mark("push: asked for an agent")
+    start_resident = False
     if report is None:
         progress = _Progress(not as_json)
         opened: list[Any] = []  # the state, opened while the robot's endpoint starts
@@ -543,6 +479,7 @@ def push(
                 )
                 report.connection = _connection_kind(conn)
                 mark("push: done")
+                start_resident = plain and report.connection == "master"
         finally:
             progress.close()
             for each in opened:
@@ -556,10 +493,11 @@ def push(
     )
     mark("push: connection closed")
     _print_report(report, as_json)
+    if start_resident:
+        _start_resident(target)
     from fetchsync.sync.engine import raise_for
 
     raise_for(report, strict=strict)
-    request = build_request(builds, build_type, build_tool, install_deps)
     if request and not dry_run:
         from fetchsync.chores.build import build_on_robot
 
@@ -689,7 +627,7 @@ def _fleet_push(
     from fetchsync.sync.engine import SharedPacks, Syncer, raise_for, scan_tree
     from fetchsync.sync.state import open_state
 
-    src = _pushable(resolve_workspace(workspace) / "src", force=force, whose="the robots'")
+    src = pushable(resolve_workspace(workspace) / "src", force=force, whose="the robots'")
     rules = build_rules(tuple(excludes))
     scanned = scan_tree(str(src), rules)  # once for all robots: it is only read
     packs = SharedPacks()  # each batch compressed once for the robots that send it
@@ -810,6 +748,12 @@ def _collect_less() -> None:
 
 def main() -> None:
     mark("cli: imported")
+    from fetchsync.agent.quick import fast_main
+
+    # a console script made before the entry moved to fetchsync.__main__ comes here
+    fast = fast_main(sys.argv[1:])
+    if fast is not None:
+        _exit(fast)
     try:
         cli(prog_name="fetchsync")
         code: Any = 0

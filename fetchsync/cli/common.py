@@ -8,6 +8,10 @@ from typing import Any, Callable
 
 import click
 
+from fetchsync.console import ARROW, BOTH, robot_place, where_line
+
+__all__ = ["ARROW", "BOTH", "robot_place", "where_line"]
+
 
 def complete_robot(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[Any]:
     """``--robot`` completion (ssh config, known_hosts, fetchN): :func:`fetchsync.chores.shell.complete_robot`."""
@@ -85,38 +89,6 @@ def resolve(
         remote_workspace=remote_workspace,
         defer_ssh_user=True,
     )
-
-
-ARROW = "\u2192"
-BOTH = "\u2194"
-
-
-def robot_place(target: Any, remote: str | None) -> str:
-    """``user@robot:remote`` as the user would type it for scp (``local:...`` for the local
-    robot; without ``:remote`` when there is no remote path)."""
-    from fetchsync.config import login_name
-
-    login = login_name(target)
-    who = f"{login}@{target.robot}" if login else target.robot
-    return f"{who}:{remote}" if remote else who
-
-
-def where_line(
-    verb: str, target: Any, *, local: Any = None, remote: str | None = None, direction: str = "to"
-) -> str:
-    """``push ~/noetic/src → fetch@freight0:~/noetic/src``: the verb, the local place (``~``
-    for home), the robot's place with its user; ``direction`` is ``to`` the robot, ``from``
-    it, or ``both`` (a comparison)."""
-    from fetchsync.config import home_relative
-    from fetchsync.console import printable  # a directory's name may hold escape sequences
-
-    there = printable(robot_place(target, remote))
-    if local is None:
-        return f"{verb} {there}"
-    here = printable(home_relative(local))
-    if direction == "from":
-        return f"{verb} {there} {ARROW} {here}"
-    return f"{verb} {here} {BOTH if direction == 'both' else ARROW} {there}"
 
 
 def say_where(

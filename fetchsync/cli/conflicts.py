@@ -72,7 +72,7 @@ def _kept_from_wire(raw: Any, where: str) -> Kept:
 
 
 def _human(n: int) -> str:
-    from fetchsync.cli import _human as human
+    from fetchsync.agent.quick import human
 
     return human(n)
 
