@@ -1539,11 +1539,15 @@ class Syncer:
                 elif sig is not None:
                     self._signed.add(path)
             self._signed.difference_update(deletes)
-        self.state.commit(
-            upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
-            deletes=deletes,
-            meta={"epoch": epoch, "gen": str(gen), "algorithm": self.algorithm},
-        )
+        try:
+            self.state.commit(
+                upserts=((p, s, sig) for p, (s, sig) in upserts.items()),
+                deletes=deletes,
+                meta={"epoch": epoch, "gen": str(gen), "algorithm": self.algorithm},
+            )
+        except BaseException:  # the state is as it was (a full disk): read it again
+            self._synced = self._signed = None
+            raise
         self._synced = new_synced
         self._opened_at(epoch, gen)
 

@@ -250,15 +250,23 @@ class State:
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[sqlite3.Cursor]:
-        """One write transaction: committed at the end, rolled back on any exception."""
+        """One write transaction: committed at the end, rolled back on any exception.
+        SQLite's own failure (the laptop's disk full, the database busy) is a StateError:
+        the state is left as it was, behind the robot (a traceback, and the watch agent's
+        sync thread gone, before)."""
         cur = self.db.cursor()
-        cur.execute("BEGIN IMMEDIATE")
         try:
-            yield cur
-            cur.execute("COMMIT")
-        except BaseException:
-            cur.execute("ROLLBACK")
-            raise
+            cur.execute("BEGIN IMMEDIATE")
+            try:
+                yield cur
+                cur.execute("COMMIT")
+            except BaseException:
+                if self.db.in_transaction:  # a failed COMMIT may have rolled back already
+                    with contextlib.suppress(sqlite3.Error):
+                        cur.execute("ROLLBACK")
+                raise
+        except sqlite3.Error as exc:
+            raise StateError(f"cannot write the state {self.path}: {exc}") from None
 
     def reset(self) -> None:
         self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
