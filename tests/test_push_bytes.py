@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 import threading
+import time
 import zlib
 from pathlib import Path
 from typing import Any
@@ -84,9 +85,7 @@ class _FastEndpoint:
         return _Answered()
 
 
-def test_a_fast_link_is_seen_and_gets_the_fast_level(monkeypatch):
-    """Once the robot has answered for raw bytes faster than half zlib 6's own rate
-    here, large batches are deflated at level 1 and the 85% rule is back."""
+def _fast_batcher() -> tuple[_FastEndpoint, sync._Batcher]:
     endpoint = _FastEndpoint()
     batcher = sync._Batcher(
         endpoint,  # type: ignore[arg-type]
@@ -96,17 +95,74 @@ def test_a_fast_link_is_seen_and_gets_the_fast_level(monkeypatch):
         progress=None,
         total=0,
     )
+    return endpoint, batcher
+
+
+def _idle_for(batcher: sync._Batcher, seconds: float) -> None:
+    """The sender waiting ``seconds`` for the packer's next batch."""
+    waiter = threading.Thread(target=batcher._next_packed)
+    waiter.start()
+    time.sleep(seconds)
+    batcher._to_send.put(None)
+    waiter.join()
+
+
+TEXT = b"".join(b"line %d of a source file\n" % i for i in range(60000))
+
+
+def test_a_fast_link_is_seen_and_gets_the_fast_level():
+    """Once the link sat idle (every batch sent answered, the sender waiting for the
+    packer) for FAST_IDLE of the time since the first batch, large batches are deflated
+    at level 1 and the 85% rule is back."""
+    endpoint, batcher = _fast_batcher()
     assert batcher.slow
-    monkeypatch.setattr(sync, "ZLIB6_RATE", 1.0)  # any measured rate is "fast" against it
-    data = b"".join(b"line %d of a source file\n" % i for i in range(60000))
-    op = M.Op(M.WRITE, "a", expect=M.ABSENT, hash="00", size=len(data), source=M.SRC_DATA)
-    batcher._send(batcher._pack(0, [(op, data, True)], [None]))
-    assert batcher.slow  # nothing answered before the first batch went out
-    batcher._send(batcher._pack(1, [(op.but(path="b"), data, True)], [None]))
+    op = M.Op(M.WRITE, "a", expect=M.ABSENT, hash="00", size=len(TEXT), source=M.SRC_DATA)
+    batcher._send(batcher._pack(0, [(op, TEXT, True)], [None]))
+    _idle_for(batcher, 0.2)
+    batcher._send(batcher._pack(1, [(op.but(path="b"), TEXT, True)], [None]))
+    assert batcher.slow  # one batch answered: not judged yet
+    _idle_for(batcher, 0.2)
+    batcher._send(batcher._pack(2, [(op.but(path="c"), TEXT, True)], [None]))
     assert not batcher.slow
     fast = zlib.decompressobj().decompress(b"".join(endpoint.zparts))
-    assert fast == data
-    assert len(b"".join(endpoint.zparts)) > len(zlib.compress(data, 6))  # level 1's size
+    assert fast == TEXT
+    assert len(b"".join(endpoint.zparts)) > len(zlib.compress(TEXT, 6))  # level 1's size
+
+
+def test_a_link_never_idle_keeps_level_6_however_fast_its_answers():
+    """Answers all in at once (the rule before called that fast: the robot answering for
+    raw bytes faster than half zlib 6's rate), but the sender never waited on an idle
+    link: the link is the bottleneck, level 6 costs no time and saves bytes."""
+    endpoint, batcher = _fast_batcher()
+    op = M.Op(M.WRITE, "a", expect=M.ABSENT, hash="00", size=len(TEXT), source=M.SRC_DATA)
+    for k in range(5):
+        batcher._send(batcher._pack(k, [(op.but(path=f"p{k}"), TEXT, True)], [None]))
+        time.sleep(0.02)
+    assert batcher.slow
+    assert len(b"".join(endpoint.zparts)) <= len(zlib.compress(TEXT, 6)) + 64
+
+
+def test_a_batchs_text_goes_into_its_stream_grouped_by_extension():
+    endpoint, batcher = _fast_batcher()
+    names = ["a/x.cpp", "a/x.yaml", "b/y.cpp", "b/y.launch", "c/z.cpp", "c/z.yaml"]
+    items = []
+    for n in names:
+        data = (n.encode() + b"\n") * 20
+        op = M.Op(M.WRITE, n, expect=M.ABSENT, hash="00", size=len(data), source=M.SRC_DATA)
+        items.append((op, data, True))
+    packed = batcher._pack(0, items, [None] * len(items))
+    order = sorted(packed.ops, key=lambda o: o.blob[0])
+    assert [o.path for o in order] == [
+        "a/x.cpp",
+        "b/y.cpp",
+        "c/z.cpp",
+        "b/y.launch",
+        "a/x.yaml",
+        "c/z.yaml",
+    ]
+    stream = zlib.decompressobj().decompress(b"".join(packed.zparts))
+    for op, (_, data, _) in zip(packed.ops, items):
+        assert stream[op.blob[0] : op.blob[0] + op.blob[1]] == data
 
 
 def test_shared_packs_make_each_key_once_and_a_failed_maker_leaves_it_to_the_next():

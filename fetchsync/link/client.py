@@ -298,19 +298,22 @@ class KeptPiece:
 class Pending(Generic[T]):
     """An answer on its way: :meth:`wait` returns it typed (or raises)."""
 
-    __slots__ = ("_conn", "_parse", "req_id")
+    __slots__ = ("_conn", "_parse", "req_id", "_taken")
 
     def __init__(self, conn: Connection, req_id: int, parse: Callable[[wire.Frame], T]) -> None:
         self._conn = conn
         self._parse = parse
         self.req_id = req_id
+        self._taken = False  # wait() has had its answer (the connection let go of it)
 
     def answered(self) -> bool:
-        """Whether :meth:`wait` would return (or raise) at once."""
-        return self._conn.answered(self.req_id)
+        """Whether the answer came: :meth:`wait` would return (or raise) at once, or did."""
+        return self._taken or self._conn.answered(self.req_id)
 
     def wait(self) -> T:
-        return self._parse(self._conn.wait(self.req_id))
+        frame = self._conn.wait(self.req_id)
+        self._taken = True
+        return self._parse(frame)
 
 
 # ------------------------------------------------------------------------------ the client
