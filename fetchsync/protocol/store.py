@@ -1233,7 +1233,9 @@ class Store:
 
     def _prune_trash(self) -> None:
         total = sum(n for _d, n in self.trash_log)
-        while self.trash_log and (
+        # never the batch just made: its files were renamed there, not copied (no disk
+        # it did not use already), and they are the way back from this very push
+        while len(self.trash_log) > 1 and (
             len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES
         ):
             top, n = self.trash_log.pop(0)
