@@ -27,10 +27,19 @@ connection (a debug snapshot's 8 collectors, a connection master's calls):
   :func:`send_data`. A channel request is dropped for the same reason: the PTY's
   window-change (a terminal resized as a build step ends; sshd disconnects for any
   request to a freed channel, a window adjust it only logs): :func:`send_window_change`.
+
+Channel data goes out in fewer copies (:class:`Packetizer`): paramiko copies each 32 KiB
+packet's bytes six times on its way to the cipher (into a Message, out of it, into the
+packet, its padding, a slice, the ciphertext joined to the length); a DATA message built
+here is joined once and sealed by the same AES-GCM with the same nonce sequence, random
+padding and rekey counts. Issue 27: the fleet push's sender threads (one per robot) spent
+~120 us of laptop CPU per packet, ~134 packets per robot in the bench's initial push.
 """
 
 from __future__ import annotations
 
+import os
+import struct
 import threading
 import time
 from typing import Any
@@ -38,10 +47,12 @@ from typing import Any
 import paramiko
 from paramiko.common import cMSG_CHANNEL_DATA, cMSG_CHANNEL_EOF, cMSG_CHANNEL_REQUEST
 from paramiko.message import Message
+from paramiko.packet import Packetizer as _PacketizerBase
 from paramiko.ssh_exception import ChannelException, SSHException
 
 __all__ = [
     "MAX_SESSIONS",
+    "Packetizer",
     "REFUSALS",
     "SessionSlots",
     "send_data",
@@ -155,18 +166,88 @@ def send_data(chan: paramiko.Channel, data: bytes | memoryview) -> int:
     transport: Any = chan.transport
     if not _ours(transport) or not hasattr(chan, "_wait_for_send_window"):
         return int(chan.send(data))
-    m = Message()
-    m.add_byte(cMSG_CHANNEL_DATA)
-    m.add_int(chan.remote_chanid)
     with chan.lock:  # as paramiko's Channel._send
         if chan.closed:
             raise OSError("Socket is closed")
         size = int(chan._wait_for_send_window(len(data)))
         if size == 0:
             return 0
-        m.add_string(data[:size])
+        m = _Data(cMSG_CHANNEL_DATA + _HEAD.pack(chan.remote_chanid, size), data[:size])
     _send_while_open(transport, chan, m)
     return size
+
+
+_HEAD = struct.Struct(">II")  # a DATA message's channel and its string's length
+_LENGTH = struct.Struct(">I")
+
+
+class _Data:
+    """A channel DATA message: its header and its bytes, not joined yet (:class:`Packetizer`
+    joins them once, into the packet); ``asbytes`` for any other packetizer."""
+
+    __slots__ = ("body", "header")
+
+    def __init__(self, header: bytes, body: bytes | memoryview) -> None:
+        self.header = header
+        self.body = body
+
+    def asbytes(self) -> bytes:
+        return self.header + bytes(self.body)
+
+
+class Packetizer(_PacketizerBase):  # type: ignore[misc]  # paramiko ships no types
+    """paramiko's Packetizer, sealing channel data (:class:`_Data`) under AES-GCM in one
+    copy: the packet is built once and encrypted as paramiko does it (RFC 5647: the
+    length as associated data, the 12-byte nonce's counter moved on per packet, random
+    padding to the 16-byte block), under the same write lock, counting the same bytes
+    and packets towards a rekey. Anything else (other messages, other ciphers,
+    compression, packet dumps) goes paramiko's way."""
+
+    fast_packets = 0  # sent this way (tests)
+
+    def send_message(self, data: Any) -> None:
+        if type(data) is not _Data:
+            return super().send_message(data)  # type: ignore[no-any-return]
+        me: Any = self  # paramiko's private state, by its mangled names
+        header, body = data.header, data.body
+        n = len(header) + len(body)
+        with me._Packetizer__write_lock:  # the nonce sequence is the wire's order
+            engine = me._Packetizer__block_engine_out
+            if (
+                engine is None
+                or not me._Packetizer__aead_out
+                or me._Packetizer__compress_engine_out is not None
+                or me._Packetizer__dump_packets
+            ):
+                return super().send_message(data)  # type: ignore[no-any-return]
+            bsize = me._Packetizer__block_size_out
+            padding = 3 + bsize - ((n + 4) % bsize)  # as paramiko's _build_packet (AEAD)
+            plain = bytearray(1 + n + padding)
+            plain[0] = padding
+            at = 1 + len(header)
+            plain[1:at] = header
+            plain[at : at + len(body)] = body
+            plain[at + len(body) :] = os.urandom(padding)
+            length = _LENGTH.pack(len(plain))
+            iv = me._Packetizer__iv_out
+            out = length + engine.encrypt(iv, plain, length)
+            me._Packetizer__iv_out = self._inc_iv_counter(iv)
+            seq = (me._Packetizer__sequence_number_out + 1) & 0xFFFFFFFF
+            if seq == 0 and not self._initial_kex_done:
+                raise SSHException("Sequence number rolled over during initial kex!")
+            me._Packetizer__sequence_number_out = seq
+            self.write_all(out)
+            me._Packetizer__sent_bytes += len(out)
+            me._Packetizer__sent_packets += 1
+            self.fast_packets += 1
+            if (
+                me._Packetizer__sent_packets >= self.REKEY_PACKETS
+                or me._Packetizer__sent_bytes >= self.REKEY_BYTES
+            ) and not me._Packetizer__need_rekey:
+                me._Packetizer__received_bytes_overflow = 0
+                me._Packetizer__received_packets_overflow = 0
+                self._trigger_rekey()
+        return None
 
 
 def send_window_change(chan: paramiko.Channel, *, width: int, height: int) -> None:

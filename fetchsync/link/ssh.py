@@ -54,7 +54,13 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
-from fetchsync.link.channels import SessionSlots, send_data, send_eof, send_window_change
+from fetchsync.link.channels import (
+    Packetizer,
+    SessionSlots,
+    send_data,
+    send_eof,
+    send_window_change,
+)
 from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 from fetchsync.trace import mark
@@ -638,6 +644,10 @@ class _Transport(paramiko.Transport):  # type: ignore[misc]  # paramiko ships no
     peer_offer: dict[str, list[str]] | None = None
     auth_method: str | None = None
     """How we logged in: ``publickey``, ``password`` or ``none``."""
+
+    def __init__(self, sock: Any, **kwargs: Any) -> None:
+        # channel data in one copy (channels.Packetizer)
+        super().__init__(sock, packetizer_class=Packetizer, **kwargs)
 
     def _really_parse_kex_init(self, m: Any, ignore_first_byte: bool = False) -> Any:
         parsed = super()._really_parse_kex_init(m, ignore_first_byte)
