@@ -854,12 +854,7 @@ class _Batcher:
             not packed
             and bool(data)
             and self.conn.compress
-            and (
-                len(data) < SAMPLE_FROM
-                or wire.compressible(
-                    data, worth=SLOW_WORTH if self.slow else wire.WORTH_COMPRESSING
-                )
-            )
+            and (len(data) < SAMPLE_FROM or self._compressible(data))
         )
         self.items.append((op, data, z))
         self.tags.append(tag)
@@ -871,6 +866,16 @@ class _Batcher:
             or len(self.items) >= BATCH_OPS
         ):
             self.flush()
+
+    def _compressible(self, data: bytes) -> bool:
+        """wire.compressible; in a fleet push once per content for all robots (link, issue
+        27), a sample another robot is making waited for (robots go at the same pace)."""
+        worth = SLOW_WORTH if self.slow else wire.WORTH_COMPRESSING
+        if self.packs is None:
+            return wire.compressible(data, worth=worth)
+        key = b"sample %r\0" % worth + self.packs.hashed("blake2b-512", data, _blake2b)
+        said = self.packs.get(key, lambda: [b"y" if wire.compressible(data, worth=worth) else b""])
+        return said == [b"y"]
 
     def flush(self) -> None:
         if self._failure is not None:
