@@ -23,6 +23,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import posixpath
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,19 +41,97 @@ def import_paramiko() -> Any:
     ssh config's ``Match exec`` lines: invoke brings asyncio, yaml and unittest.mock,
     ~90 of paramiko's ~330 ms of CPU here, paid by every connection that is not made
     through a connection master (a first push, the master itself). A config that has
-    such a line gets invoke at its parsing (:func:`allow_match_exec`)."""
+    such a line gets invoke at its parsing (:func:`allow_match_exec`). One thread at a
+    time: a fleet's robots connect at once."""
     import sys
 
-    if "paramiko" not in sys.modules and "invoke" not in sys.modules:
-        sys.modules["invoke"] = None  # type: ignore[assignment]  # import of invoke fails
-        try:
-            import paramiko
-        finally:
-            if sys.modules.get("invoke", 0) is None:
-                del sys.modules["invoke"]
+    with _PARAMIKO_LOCK:
+        if "paramiko" not in sys.modules and "invoke" not in sys.modules:
+            sys.modules["invoke"] = None  # type: ignore[assignment]  # import of invoke fails
+            try:
+                _load_paramiko()
+            finally:
+                if sys.modules.get("invoke", 0) is None:
+                    del sys.modules["invoke"]
     import paramiko
 
     return paramiko
+
+
+_PARAMIKO_LOCK = threading.Lock()
+
+
+def _load_paramiko() -> None:
+    """Import paramiko; its ``__init__``'s ``from importlib import metadata`` (for its
+    ``__version__``, the only use) gets :func:`_metadata_stand_in`: its own code's
+    imports go through an ``__import__`` of its own (its module's ``__builtins__``), so
+    no other thread ever sees the stand-in."""
+    import builtins
+    import importlib.util
+    import sys
+    import types
+
+    stand_in = _metadata_stand_in()
+    spec = importlib.util.find_spec("paramiko") if stand_in is not None else None
+    if spec is None or spec.loader is None:
+        import paramiko  # noqa: F401  # as it comes
+
+        return
+    real = builtins.__import__
+
+    def importer(
+        name: str, globals: Any = None, locals: Any = None, fromlist: Any = (), level: int = 0
+    ) -> Any:
+        if name == "importlib" and level == 0 and tuple(fromlist or ()) == ("metadata",):
+            return types.SimpleNamespace(metadata=stand_in)
+        return real(name, globals, locals, fromlist, level)
+
+    module = importlib.util.module_from_spec(spec)
+    module.__dict__["__builtins__"] = dict(builtins.__dict__, __import__=importer)
+    sys.modules["paramiko"] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop("paramiko", None)
+        raise
+    finally:
+        module.__dict__["__builtins__"] = builtins.__dict__
+
+
+def _metadata_stand_in() -> Any:
+    """For paramiko's ``__version__ = importlib.metadata.version("paramiko")``, the one
+    use of importlib.metadata at its import: the version from the name of paramiko's
+    own ``paramiko-VERSION.dist-info`` beside it, as importlib.metadata finds it for an
+    installed paramiko. importlib.metadata itself (with email, zipfile, csv) and its
+    scan of every sys.path entry cost ~30 ms of CPU of each first push here (issue 24).
+    None (paramiko is imported as it comes) unless exactly one such directory is there."""
+    import importlib.util
+    import types
+
+    try:
+        spec = importlib.util.find_spec("paramiko")
+        if spec is None or spec.origin is None:
+            return None
+        site = os.path.dirname(os.path.dirname(spec.origin))
+        found = [
+            n[len("paramiko-") : -len(".dist-info")]
+            for n in os.listdir(site)
+            if n.startswith("paramiko-") and n.endswith(".dist-info")
+        ]
+    except (ImportError, OSError, ValueError):
+        return None
+    if len(found) != 1:
+        return None
+    version = found[0]
+
+    def paramiko_version(name: str) -> str:
+        if name != "paramiko":
+            raise LookupError(name)  # only paramiko's import asks this stand-in
+        return version
+
+    stand_in = types.ModuleType("importlib.metadata")
+    stand_in.version = paramiko_version  # type: ignore[attr-defined]
+    return stand_in
 
 
 def allow_match_exec(config: paramiko.SSHConfig) -> paramiko.SSHConfig:
