@@ -208,8 +208,11 @@ def test_watch_takes_over_from_the_resident_and_a_push_then_uses_the_watch(
         assert pid not in residents(runtime)
         ws = Path(env["FETCHSYNC_WORKSPACE"])
         (ws / "src/my_pkg/package.xml").write_text("while watching\n")
+        Path(env["FETCHSYNC_TRACE"]).write_text("")
         got = push_json(env)
         assert got["connection"] == "agent"
+        marks = Path(env["FETCHSYNC_TRACE"]).read_text()
+        assert "agent: pushed" in marks and "push: start" not in marks  # no click, no engine
         assert tree_of(ws / "src") == tree_of(remote_dir / "src")
         assert not residents(runtime)  # a push through the watch starts none
     finally:

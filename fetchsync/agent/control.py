@@ -8,7 +8,6 @@ it returns None when no agent is running for the target.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -17,10 +16,12 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
-if TYPE_CHECKING:
-    from fetchsync.config import Target
+from fetchsync.agent.quick import agent_paths, runtime_paths
+from fetchsync.trace import mark
+
+__all__ = ["agent_paths", "runtime_paths"]  # kept light in quick.py (a push's fast path)
 
 log = logging.getLogger(__name__)
 
@@ -125,17 +126,16 @@ class ControlServer:
                 ok, why = self.agent.wait_for(seq, timeout)
             return {"ok": ok, "error": why, "status": self.agent.status()}
         if cmd == "push":
-            if req.get("resident_only"):
-                # the console entry's fast path (fetchsync.agent.quick) handles only a
-                # resident's answers: the CLI asks again, the way it always did
-                return {"declined": "a watch agent", "watch": True}
+            mark("agent: push asked")
             if self.agent.status().get("offline_since"):
                 return self._offline()
             seq = self.agent.request(full=True)
             ok, why, offline = self._wait(seq, timeout)
             if offline:
                 return self._offline()
-            return {"ok": ok, "error": why, "report": self.agent.status().get("last_report")}
+            report = self.agent.status().get("last_report")
+            mark("agent: pushed")
+            return {"ok": ok, "error": why, "report": report, "raise": _raised(report)}
         raise ValueError(f"unknown command {cmd!r}")
 
     def _wait(self, seq: int, timeout: float) -> tuple[bool, str, bool]:
@@ -155,6 +155,22 @@ class ControlServer:
         since = self.agent.status().get("offline_since")
         when = time.strftime("%H:%M:%S", time.localtime(since)) if since else "now"
         return {"ok": False, "offline": True, "error": f"the robot is offline since {when}"}
+
+
+def _raised(report: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The error a push here raises for ``report`` (engine.raise_for), said for the
+    client: a push's fast path (fetchsync.agent.quick) prints it without the engine."""
+    if not report:
+        return None
+    from fetchsync.errors import FetchsyncError
+    from fetchsync.sync.engine import Report, raise_for
+
+    fields = Report.__dataclass_fields__
+    try:
+        raise_for(Report(**{k: v for k, v in report.items() if k in fields}), strict=False)
+    except FetchsyncError as exc:
+        return {"error": exc.message, "hint": exc.hint, "exit_code": exc.exit_code}
+    return None
 
 
 def _ours(sock: socket.socket) -> bool:
@@ -209,30 +225,3 @@ def push(path: Path, *, timeout: float = 3600.0) -> dict[str, Any] | None:
         )
         return None
     return reply
-
-
-def agent_paths(target: Target) -> tuple[Path, Path]:
-    """The lock file and the control socket of the agent for this target.
-
-    Here, not in service.py: every one-shot push asks whether an agent runs, and
-    this module is the light one (service.py's imports cost a push ~2 ms of CPU)."""
-    from fetchsync.link.session import robot_id
-
-    return runtime_paths(
-        "agent",
-        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape"),
-    )
-
-
-def runtime_paths(kind: str, identity: bytes) -> tuple[Path, Path]:
-    """``KIND-KEY.lock`` and ``KIND-KEY.sock`` in the private runtime directory, KEY from
-    ``identity``; in the short one when the socket's path would be too long for a socket."""
-    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
-
-    key = hashlib.sha256(identity).hexdigest()[:20]
-    base = runtime_dir()
-    sock = base / f"{kind}-{key}.sock"
-    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
-        base = runtime_dir(short=True)
-        sock = base / f"{kind}-{key}.sock"
-    return base / f"{kind}-{key}.lock", sock

@@ -126,11 +126,12 @@ class Asked:
 
 
 def ask(
-    sock: Path, target: Target, *, timeout: float = 3600.0, resident_only: bool = False
+    sock: Path, target: Target, *, timeout: float = 3600.0, leave_offline: bool = False
 ) -> dict[str, Any] | None:
     """The answer of the agent or resident at ``sock`` to a plain push of ``target``, or
     None when there is none, or it declined (another install's, busy, gone mid-request).
-    ``resident_only``: a watch agent declines (it is asked again by the CLI's push)."""
+    ``leave_offline``: the fast path leaves a watch agent whose robot is
+    offline to the CLI's push (it asks again, and says so in its order)."""
     Asked.asked.add(str(sock))
     try:
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -143,7 +144,7 @@ def ask(
             return None  # not ours: never trust, never send to it
         Asked.answered.add(str(sock))
         s.settimeout(timeout + 5)
-        payload = dict(request(target), timeout=timeout, resident_only=resident_only)
+        payload = dict(request(target), timeout=timeout)
         s.sendall(json.dumps(payload).encode() + b"\n")
         data = bytearray()
         while not data.endswith(b"\n") and len(data) < MAX_ANSWER:
@@ -163,8 +164,9 @@ def ask(
         return None
     if not isinstance(reply, dict):
         return None
-    if reply.get("watch"):
-        Asked.asked.discard(str(sock))  # a watch agent: the CLI's push asks it again
+    if reply.get("offline") and leave_offline:
+        Asked.asked.discard(str(sock))  # the CLI's push asks again and says it in order
+        return None
     if reply.get("declined") or reply.get("busy"):
         return None
     if reply.get("fallback"):
@@ -291,6 +293,34 @@ def holds_files(src: Any) -> bool:
     return bool(unlisted)  # a directory it could not list may hold files: the push says
 
 
+def agent_paths(target: Target) -> tuple[Path, Path]:
+    """The lock file and the control socket of the agent (or resident) for this target.
+
+    Here, not in service.py or control.py: every one-shot push asks whether an agent
+    runs, and this module is the light one (a fast path imports neither logging nor
+    the link's connection code)."""
+    from fetchsync.link.transport import robot_id
+
+    return runtime_paths(
+        "agent",
+        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape"),
+    )
+
+
+def runtime_paths(kind: str, identity: bytes) -> tuple[Path, Path]:
+    """``KIND-KEY.lock`` and ``KIND-KEY.sock`` in the private runtime directory, KEY from
+    ``identity``; in the short one when the socket's path would be too long for a socket."""
+    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
+
+    key = hashlib.sha256(identity).hexdigest()[:20]
+    base = runtime_dir()
+    sock = base / f"{kind}-{key}.sock"
+    if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
+        base = runtime_dir(short=True)
+        sock = base / f"{kind}-{key}.sock"
+    return base / f"{kind}-{key}.lock", sock
+
+
 # --------------------------------------------------------------------------- printing
 def human(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
@@ -351,6 +381,13 @@ def print_report(report: dict[str, Any], as_json: bool) -> None:
 
 
 # --------------------------------------------------------------------------- the fast path
+def _raise_for(data: dict[str, Any]) -> None:
+    from fetchsync.sync.engine import Report, raise_for
+
+    fields = Report.__dataclass_fields__
+    raise_for(Report(**{k: v for k, v in data.items() if k in fields}), strict=False)
+
+
 def plain_push(argv: list[str]) -> dict[str, Any] | None:
     """``argv`` as a plain push this module can make exactly, or None: ``push`` with at
     most ``--robot NAME`` (one robot), ``--workspace DIR`` and ``--json``; anything else
@@ -397,7 +434,6 @@ def fast_main(argv: list[str]) -> int | None:
     given = plain_push(argv)
     if given is None or idle_seconds() <= 0:
         return None
-    from fetchsync.agent.control import agent_paths
     from fetchsync.config import resolve_target
     from fetchsync.errors import FetchsyncError
 
@@ -416,12 +452,12 @@ def fast_main(argv: list[str]) -> int | None:
         return None
     mark("quick: asking the resident")
     try:
-        reply = ask(sock, target, resident_only=True)
+        reply = ask(sock, target, leave_offline=True)
     except KeyboardInterrupt:
         _out("fetchsync: interrupted", err=True)
         return 130
     mark("quick: answered")
-    if reply is None or not reply.get("resident"):
+    if reply is None:
         return None
     from fetchsync.console import printable, where_line
 
@@ -433,6 +469,8 @@ def fast_main(argv: list[str]) -> int | None:
         assert data is not None
         data.update(robot=target.robot, local=str(src), remote=remote)
         print_report(data, given["as_json"])
+        if "raise" not in reply:  # a watch agent of an older fetchsync: as the CLI does
+            _raise_for(data)
         if reply.get("raise"):
             raise rebuilt(reply["raise"])
     except FetchsyncError as exc:

@@ -233,9 +233,10 @@ class Resident:
                 if req["cmd"] == "connect":
                     try:
                         self._connect()
-                    except Exception as exc:  # noqa: BLE001 - the first push connects again
+                    except Exception as exc:  # noqa: BLE001 - no master, no robot: not needed
                         log.info("could not connect: %s", exc)
                         self._drop()
+                        self.stop()
                     continue
                 answer.append(self._push())
             except BaseException as exc:  # noqa: BLE001 - never leave a client waiting
@@ -249,7 +250,21 @@ class Resident:
         self._drop()
         from fetchsync.link.session import open_connection, open_transport
 
-        transport = open_transport(self.target)
+        if self.target.is_local:
+            transport = open_transport(self.target)
+        else:
+            # through the connection master only: without one (a password login leaves
+            # none), a resident would connect with no terminal to ask on, and its pushes
+            # would each pay that before the normal path
+            from fetchsync.errors import ConnectError
+            from fetchsync.link import mux
+
+            path = mux.socket_path(self.target.host, self.target.user)
+            mux.wait_while_starting(path)
+            attached = mux.MuxTransport.attach(path, self.target.robot)
+            if attached is None:
+                raise ConnectError("no connection master")
+            transport = attached
         try:
             transport, conn = open_connection(self.target, transport)
         except BaseException:
@@ -335,7 +350,13 @@ class Resident:
         data = report.to_json()
         self.last_report = data
         self.last_sync = time.time()
-        answer: dict[str, Any] = {"resident": True, "ok": True, "report": data, "note": note}
+        answer: dict[str, Any] = {
+            "resident": True,
+            "ok": True,
+            "report": data,
+            "note": note,
+            "raise": None,
+        }
         try:
             raise_for(report, strict=False)
         except FetchsyncError as exc:

@@ -479,7 +479,9 @@ def push(
                 )
                 report.connection = _connection_kind(conn)
                 mark("push: done")
-                start_resident = plain and report.connection == "master"
+                # a direct connection leaves a master behind as it closes (not after a
+                # password login): the resident connects through it, or exits
+                start_resident = plain and report.connection in ("master", "ssh")
         finally:
             progress.close()
             for each in opened:

@@ -16,16 +16,12 @@ from typing import Any, Callable, Iterator
 from fetchsync.config import Target
 from fetchsync.errors import ConfigError, ConnectError, LinkLostError
 from fetchsync.link.connection import Connection, remote_python
-from fetchsync.link.transport import LocalTransport, Transport, local_robot_home
+from fetchsync.link.transport import LocalTransport, Transport, local_robot_home, robot_id
 from fetchsync.trace import mark
 
+__all__ = ["robot_id"]  # its home is link/transport.py (light: the fast path of a push)
+
 log = logging.getLogger(__name__)
-
-
-def robot_id(target: Target) -> str:
-    if target.is_local:
-        return f"local:{local_robot_home()}"
-    return f"{target.user or ''}@{target.host}"
 
 
 def terminal_prompt() -> Callable[[str], str | None] | None:

@@ -23,6 +23,8 @@ from fetchsync.errors import ConnectError, LinkLostError
 if TYPE_CHECKING:
     import subprocess
 
+    from fetchsync.config import Target
+
 # subprocess, signal and shlex are imported where the local robot uses them: a push
 # through SSH or a connection master needs none (subprocess is ~3-5 ms of its start)
 
@@ -82,6 +84,13 @@ class Transport(Protocol):
 
     def close(self) -> None:
         """Drop the connection."""
+
+
+def robot_id(target: Target) -> str:
+    """Which robot (and login) a target's state and agent belong to."""
+    if target.is_local:
+        return f"local:{local_robot_home()}"
+    return f"{target.user or ''}@{target.host}"
 
 
 def local_robot_home() -> Path:
