@@ -432,7 +432,7 @@ def fast_main(argv: list[str]) -> int | None:
     from fetchsync.trace import mark
 
     given = plain_push(argv)
-    if given is None or idle_seconds() <= 0:
+    if given is None:
         return None
     from fetchsync.config import resolve_target
     from fetchsync.errors import FetchsyncError
