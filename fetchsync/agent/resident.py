@@ -89,6 +89,7 @@ class Resident:
         self._state: Any = None
         self._state_id: tuple[int, int] | None = None
         self._socket_id: tuple[int, int] | None = None
+        self._release = False  # hand memory back after answering (a large push)
 
     # ------------------------------------------------------------------ lifecycle
     def acquire(self) -> bool:
@@ -243,6 +244,11 @@ class Resident:
                 answer.append({"resident": True, "fallback": f"{type(exc).__name__}: {exc}"})
             finally:
                 done.set()
+            if self._release:
+                from fetchsync.agent.service import release_memory
+
+                self._release = False
+                release_memory()
 
     def _connect(self) -> None:
         if self._conn is not None and not self._link_dead():
@@ -308,6 +314,7 @@ class Resident:
     def _push(self) -> dict[str, Any]:
         mark("resident: push asked")
         from fetchsync.agent.quick import pushable
+        from fetchsync.agent.service import RELEASE_AFTER
         from fetchsync.protocol.ignore import build_rules
         from fetchsync.sync.engine import Syncer, raise_for
 
@@ -345,6 +352,8 @@ class Resident:
             self.last_error = str(exc)
             return {"resident": True, "ok": False, **_error(exc), "note": note}
         mark("resident: pushed")
+        # a large push's pages go back once it is answered: it may idle for minutes
+        self._release = report.changed >= RELEASE_AFTER
         self.pushes += 1
         report.connection = "resident"
         data = report.to_json()
