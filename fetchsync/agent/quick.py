@@ -26,6 +26,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from fetchsync.environ import inheritable, is_secret
+
 if TYPE_CHECKING:
     from fetchsync.config import Target
 
@@ -76,7 +78,9 @@ def env_key(environ: Any = os.environ) -> str:
     names = sorted(
         k
         for k in environ
-        if (k.startswith(_ENV_PREFIXES) or k in _ENV_NAMES) and k not in _ENV_IGNORED
+        if (k.startswith(_ENV_PREFIXES) or k in _ENV_NAMES)
+        and k not in _ENV_IGNORED
+        and not is_secret(k)  # the resident is not given them (fetchsync.environ)
     )
     text = "\0".join(f"{k}={environ[k]}" for k in names)
     return hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()
@@ -244,7 +248,8 @@ def start_resident(target: Target, sock: Path) -> None:
         (os.POSIX_SPAWN_OPEN, 2, null, os.O_WRONLY, 0),
     ]
     try:
-        os.posix_spawn(sys.executable, argv, dict(os.environ), file_actions=actions, setsid=True)
+        env = inheritable(os.environ)  # no password lingers in it (fetchsync.environ)
+        os.posix_spawn(sys.executable, argv, env, file_actions=actions, setsid=True)
     except OSError:
         pass  # no resident: the next push is made the normal way
 

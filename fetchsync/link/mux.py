@@ -51,6 +51,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
+from fetchsync.environ import inheritable
 from fetchsync.errors import ConnectError, LinkLostError
 from fetchsync.link.transport import Capabilities
 from fetchsync.trace import mark
@@ -443,6 +444,7 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
                 start_new_session=True,
                 close_fds=True,
                 pass_fds=(lock,) if lock >= 0 else (),
+                env=inheritable(os.environ),  # no password lingers in it (fetchsync.environ)
             )
     finally:
         if lock >= 0:
