@@ -35,7 +35,7 @@ class ControlServer:
         path: Path,
         agent: Any,
         *,
-        handler: Callable[[dict[str, Any]], dict[str, Any] | None] | None = None,
+        handler: Callable[[dict[str, Any], socket.socket], dict[str, Any] | None] | None = None,
     ) -> None:
         """``handler``: answers the requests instead of :meth:`handle` (the resident's);
         None from it closes the connection without an answer."""
@@ -96,7 +96,9 @@ class ControlServer:
                     req = json.loads(line)
                     if not isinstance(req, dict):
                         raise ValueError("not an object")
-                    reply = (self.handler or self.handle)(req)
+                    # the resident's handler sees the caller's socket: a caller gone
+                    # (Ctrl-C) stops the push it asked for
+                    reply = self.handler(req, conn) if self.handler else self.handle(req)
                 except (ValueError, TypeError, KeyError) as exc:
                     reply = {"ok": False, "error": f"bad request: {exc}"}
                 if reply is None:

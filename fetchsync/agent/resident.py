@@ -159,7 +159,7 @@ class Resident:
         return conn is not None and conn.answered(0)  # request 0 is never sent: failed
 
     # ------------------------------------------------------------------ requests
-    def handle(self, req: dict[str, Any]) -> dict[str, Any] | None:
+    def handle(self, req: dict[str, Any], caller: Any = None) -> dict[str, Any] | None:
         """A request from the control socket; None: close without an answer (a push
         from a client that does not say who it is: an older fetchsync, which then
         pushes the normal way, as with no agent)."""
@@ -189,7 +189,12 @@ class Resident:
             answer: list[dict[str, Any]] = []
             done = threading.Event()
             self._jobs.put((req, answer, done))
-            done.wait()
+            while not done.wait(LOOK_EVERY):
+                if caller is not None and _hung_up(caller):
+                    # Ctrl-C, or the caller killed: the push stops, as its own would
+                    mark("resident: the caller hung up: push stopped")
+                    self._abandon()
+                    done.wait()
             self.last_used = time.monotonic()
             return answer[0] if answer else {"resident": True, "fallback": "no answer"}
         finally:
@@ -278,6 +283,16 @@ class Resident:
             raise
         self._transport, self._conn = transport, conn
         mark("resident: connected")
+
+    def _abandon(self) -> None:
+        """End the push under way from another thread: its connection closed at once,
+        the push fails as a killed one does (nothing torn, the state behind)."""
+        conn = self._conn
+        if conn is not None:
+            try:
+                conn.close()
+            except Exception:  # noqa: BLE001 - the link is gone already
+                pass
 
     def _drop(self) -> None:
         conn, transport = self._conn, self._transport
@@ -379,6 +394,18 @@ class Resident:
                 self._state.close()
             except Exception:  # noqa: BLE001 - closing at exit
                 pass
+
+
+def _hung_up(sock: Any) -> bool:
+    """Whether the caller on ``sock`` has gone (it sends one request, then waits)."""
+    import socket
+
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
 
 
 def _error(exc: FetchsyncError) -> dict[str, Any]:
