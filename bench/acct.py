@@ -75,8 +75,8 @@ def _install() -> None:
             FRAMES["<" + op] += 1
         return frame
 
-    def _open(cls, transport, python, meanwhile):  # type: ignore[no-untyped-def]
-        c = opened(cls, transport, python, meanwhile)
+    def _open(cls, transport, python, meanwhile, *rest):  # type: ignore[no-untyped-def]
+        c = opened(cls, transport, python, meanwhile, *rest)
         OUT["hello"] += c.bytes_out
         IN["hello"] += c.reader.bytes_in - len(c.reader._buf)
         return c

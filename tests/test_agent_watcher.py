@@ -624,9 +624,12 @@ def test_latency_is_measured(src: Path, feed: Feed) -> None:
 
 
 def test_stops_promptly(src: Path) -> None:
+    """The watcher's thread ends when asked (close() joins it: a hang fails the test);
+    no wall-time bound: under a loaded CI machine that would measure the machine."""
     f = Feed(src)
     time.sleep(0.05)
-    assert f.close() < 1.0
+    f.close()
+    assert not f.thread.is_alive()
 
 
 def test_closing_the_generator_stops_the_watcher(src: Path) -> None:
