@@ -1249,15 +1249,22 @@ def write_archive(
 
     Everything lies under one directory named like the archive. Adds the
     per-command entries (``commands``) and the ``summary`` to ``manifest``.
+    The ``.part`` is a new file of a name nobody could guess (``mkstemp``:
+    ``O_EXCL``, mode 0600: the robot's logs are private until the user shares
+    them): a fixed ``NAME.part`` was opened by name, so in a shared directory
+    another local user's symlink of that name made the snapshot truncate and
+    overwrite a file of the user's it pointed at.
     """
     top = path.name
     for suffix in (".gz", ".tgz", ".tar", ".zip"):
         top = top.removesuffix(suffix)
     top = top or "snapshot"
-    part = path.with_name(path.name + ".part")
     now = time.time()
+    part: Path | None = None
     try:
-        with _writer(part, archive_format) as add:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+        part = Path(name)
+        with os.fdopen(fd, "wb") as raw, _writer(raw, archive_format) as add:
             files: list[tuple[str, Path]] = []
             streams: list[tuple[str, Path]] = []
             for r in results:
@@ -1286,7 +1293,8 @@ def write_archive(
         os.replace(part, path)
     except OSError as exc:
         try:
-            part.unlink()
+            if part is not None:
+                part.unlink()
         except OSError:
             pass
         raise ConfigError(
@@ -1300,14 +1308,14 @@ _Add = Callable[[str, IO[bytes], int, float], None]
 
 
 @contextlib.contextmanager
-def _writer(path: Path, archive_format: str) -> Iterator[_Add]:
-    """An archive being written, ``tar`` (gzip) or ``zip`` (deflate), file by file."""
+def _writer(out: IO[bytes], archive_format: str) -> Iterator[_Add]:
+    """An archive written into ``out``, ``tar`` (gzip) or ``zip`` (deflate), file by file."""
     if archive_format != "zip":
-        with tarfile.open(path, "w:gz") as tar:
+        with tarfile.open(fileobj=out, mode="w:gz") as tar:
             yield lambda name, f, size, mtime: _add(tar, name, f, size, mtime)
         return
 
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as archive:
 
         def add(name: str, f: IO[bytes], size: int, mtime: float) -> None:
             when = time.localtime(max(mtime, 315532800))[:6]  # zip dates start in 1980
