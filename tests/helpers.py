@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 # a minimal catkin package.xml, for the build tests
 CATKIN_PACKAGE_XML = """<?xml version="1.0"?>
@@ -222,3 +225,36 @@ def check_ready(chan) -> None:
         assert chan.recv(10) == b"" and chan.ready()
     finally:
         chan.close()
+
+
+@contextlib.contextmanager
+def local_sync_loop(tmp_path: Path, monkeypatch: Any) -> Iterator[tuple[Any, Path]]:
+    """The watch agent's sync loop against the local robot (its own watcher off: the
+    test feeds it batches), after its first full sync of ``tmp_path/ws``: yields the
+    agent and the robot's ``src``; stopped and disconnected after."""
+    import threading
+
+    from fetchsync.agent import service
+    from fetchsync.config import Target
+    from fetchsync.sync import engine as sync
+
+    monkeypatch.setenv("FETCHSYNC_LOCAL_ROBOT_HOME", str(tmp_path / "robot-home"))
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    target = Target(
+        robot="local",
+        host="local",
+        user=None,
+        workspace=tmp_path / "ws",
+        remote_workspace="~/robot_ws",
+        is_local=True,
+    )
+    a = service.Agent(target, rules=sync.build_rules(), own_watcher=False)
+    loop = threading.Thread(target=a._sync_loop, daemon=True)
+    loop.start()
+    try:
+        assert a.wait_for(a.request(full=True), 60) == (True, "")
+        yield a, tmp_path / "robot-home" / "robot_ws" / "src"
+    finally:
+        a.stop()
+        loop.join(10)
+        a._disconnect()  # the state closes with its thread's objects

@@ -66,7 +66,22 @@ class Terminal:
                     self.output += os.read(self.master, 4096)
                 except OSError:
                     pass
-        return self.proc.wait(timeout=1)
+        code = self.proc.wait(timeout=1)
+        self._drain()
+        return code
+
+    def _drain(self) -> None:
+        """What the process wrote before it exited: a process that writes its last line
+        and exits at once (os._exit) is seen gone by poll() before that line is read,
+        and the line was lost (test_errors_cli.py::test_wrong_password, once in CI)."""
+        while select.select([self.master], [], [], 0.2)[0]:
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:  # EIO: every writer gone and nothing left
+                return
+            if not data:
+                return
+            self.output += data
 
     def close(self) -> None:
         if self.proc.poll() is None:

@@ -12,14 +12,11 @@ the same way. And the chain of small deleting pushes outlives a reconnection.
 from __future__ import annotations
 
 import shutil
-import threading
 from pathlib import Path
 
 import pytest
-from helpers import make_workspace
+from helpers import local_sync_loop, make_workspace
 
-from fetchsync.agent import service
-from fetchsync.config import Target
 from fetchsync.errors import TransportError
 from fetchsync.link.connection import Connection
 from fetchsync.link.transport import LocalTransport
@@ -114,28 +111,9 @@ def agent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     own watcher off), after the first sync."""
     src = make_workspace(tmp_path / "ws") / "src"
     many_files(src)
-    monkeypatch.setenv("FETCHSYNC_LOCAL_ROBOT_HOME", str(tmp_path / "robot-home"))
-    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
-    target = Target(
-        robot="local",
-        host="local",
-        user=None,
-        workspace=tmp_path / "ws",
-        remote_workspace="~/robot_ws",
-        is_local=True,
-    )
-    a = service.Agent(target, rules=sync.build_rules(), own_watcher=False)
-    loop = threading.Thread(target=a._sync_loop, daemon=True)
-    loop.start()
-    try:
-        assert a.wait_for(a.request(full=True), 60) == (True, "")
-        robot = tmp_path / "robot-home" / "robot_ws" / "src"
+    with local_sync_loop(tmp_path, monkeypatch) as (a, robot):
         assert left(robot) == N
         yield a, src, robot
-    finally:
-        a.stop()
-        loop.join(10)
-        a._disconnect()  # the state closes with its thread's objects
 
 
 def test_the_agent_pauses_when_the_batches_name_one_file_each(agent):

@@ -13,16 +13,13 @@ from __future__ import annotations
 
 import shutil
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import pytest
-from helpers import make_workspace, ssh_env
+from helpers import local_sync_loop, make_workspace, ssh_env
 from test_watch import Watch, wait_for
 
-from fetchsync.agent import service
-from fetchsync.config import Target
 from fetchsync.errors import TransportError
 from fetchsync.sync import engine as sync
 
@@ -85,28 +82,9 @@ def agent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     src = make_workspace(tmp_path / "ws") / "src"
     fill(src)
     monkeypatch.setattr(sync, "RECENT", 1.0)
-    monkeypatch.setenv("FETCHSYNC_LOCAL_ROBOT_HOME", str(tmp_path / "robot-home"))
-    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
-    target = Target(
-        robot="local",
-        host="local",
-        user=None,
-        workspace=tmp_path / "ws",
-        remote_workspace="~/robot_ws",
-        is_local=True,
-    )
-    a = service.Agent(target, rules=sync.build_rules(), own_watcher=False)
-    loop = threading.Thread(target=a._sync_loop, daemon=True)
-    loop.start()
-    try:
-        assert a.wait_for(a.request(full=True), 60) == (True, "")
-        robot = tmp_path / "robot-home" / "robot_ws" / "src"
+    with local_sync_loop(tmp_path, monkeypatch) as (a, robot):
         assert left(robot) == BIG
         yield a, src, robot
-    finally:
-        a.stop()
-        loop.join(10)
-        a._disconnect()
 
 
 def test_the_time_offline_does_not_end_the_count(agent):
