@@ -17,6 +17,7 @@ import signal
 import tempfile
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -41,11 +42,12 @@ def residents(runtime: Path) -> list[int]:
     return out
 
 
-@pytest.fixture
-def env(ssh_home, remote_dir, tmp_path):
+def resident_env(home: Path, remote_dir: Path, tmp_path: Path) -> Iterator[dict[str, str]]:
+    """A push's environment with residents on (60 s) in a runtime directory of its own,
+    traced; the residents and masters started there are stopped after."""
     runtime = Path(tempfile.mkdtemp(prefix="fsres", dir="/tmp"))  # short: AF_UNIX path limit
     yield ssh_env(
-        ssh_home.home,
+        home,
         remote_dir,
         tmp_path,
         FETCHSYNC_PERSIST="60",
@@ -60,6 +62,11 @@ def env(ssh_home, remote_dir, tmp_path):
         except ProcessLookupError:
             pass
     shutil.rmtree(runtime, ignore_errors=True)
+
+
+@pytest.fixture
+def env(ssh_home, remote_dir, tmp_path):
+    yield from resident_env(ssh_home.home, remote_dir, tmp_path)
 
 
 def traced(env: dict[str, str]) -> list[str]:

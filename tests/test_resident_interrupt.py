@@ -9,44 +9,25 @@ killed push stops: nothing torn, the state behind the robot, the next push conve
 
 from __future__ import annotations
 
-import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
-import uuid
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, report, ssh_env, tree_of
+from helpers import fetchsync, report, tree_of
 from test_faults import bulky_files
 from test_mux_spare import masters, wait_for
-from test_resident import residents, traced
+from test_resident import resident_env, residents, traced
 
 pytestmark = pytest.mark.ssh
 
 
 @pytest.fixture
 def env(proxied_home, remote_dir, tmp_path):
-    runtime = Path(tempfile.mkdtemp(prefix="fsres", dir="/tmp"))  # short: AF_UNIX path limit
-    yield ssh_env(
-        proxied_home.home,
-        remote_dir,
-        tmp_path,
-        FETCHSYNC_PERSIST="60",
-        FETCHSYNC_RESIDENT="60",
-        XDG_RUNTIME_DIR=str(runtime),
-        FETCHSYNC_TRACE=str(tmp_path / "trace"),
-        FSMARK=uuid.uuid4().hex[:12],
-    )
-    for pid in residents(runtime) + masters(runtime):
-        try:
-            os.kill(pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
-    shutil.rmtree(runtime, ignore_errors=True)
+    """The robot behind the fault proxy, so the test can throttle the push."""
+    yield from resident_env(proxied_home.home, remote_dir, tmp_path)
 
 
 def test_ctrl_c_ends_the_residents_push(env, fault_proxy, remote_dir):
