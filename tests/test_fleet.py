@@ -51,6 +51,25 @@ def fleet_env(ssh_home, tmp_path: Path) -> dict[str, str]:
     return env
 
 
+def push_three_in_process(
+    env: dict[str, str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path, src: Path
+) -> None:
+    """``push --robot fetch1,fetch2,fetch3 -j 3`` in this process (so a test can count
+    what the engine does), with exactly ``env`` as the environment; every robot then
+    holds ``src``."""
+    from fetchsync.cli import cli
+
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    for key in [k for k in os.environ if k not in env]:
+        monkeypatch.delenv(key)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["push", "--robot", "fetch1,fetch2,fetch3", "-j", "3"], standalone_mode=False)
+    assert exit_.value.code == 0
+    for name in ("fetch1", "fetch2", "fetch3"):
+        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(src), name
+
+
 def _src(env: dict[str, str]) -> Path:
     return Path(env["FETCHSYNC_WORKSPACE"]) / "src"
 

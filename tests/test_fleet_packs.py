@@ -5,15 +5,13 @@ test_fleet)."""
 from __future__ import annotations
 
 import collections
-import os
 import threading
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, tree_of
-from test_fleet import fleet_env  # noqa: F401 - the fixture
+from helpers import fetchsync
+from test_fleet import fleet_env, push_three_in_process  # noqa: F401 - the fixture
 
-from fetchsync.cli import cli
 from fetchsync.sync import engine as sync
 
 pytestmark = pytest.mark.ssh
@@ -63,15 +61,7 @@ def test_a_fleet_push_compresses_each_batch_once_and_leaves_every_robot_identica
 
     monkeypatch.setattr(sync._Batcher, "_measure_link", measure)
     monkeypatch.setattr(sync._Batcher, "_deflate", deflate)
-    for key, value in fleet_env.items():
-        monkeypatch.setenv(key, value)
-    for key in [k for k in os.environ if k not in fleet_env]:
-        monkeypatch.delenv(key)
-    with pytest.raises(SystemExit) as exit_:
-        cli.main(["push", "--robot", "fetch1,fetch2,fetch3", "-j", "3"], standalone_mode=False)
-    assert exit_.value.code == 0
-    for name in ("fetch1", "fetch2", "fetch3"):
-        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(src), name
+    push_three_in_process(fleet_env, monkeypatch, tmp_path, src)
     assert sent["fetch2"] == sent["fetch3"] >= 4
     assert sent["fetch1"] >= 2
     # fetch2 and fetch3 (the same state) share every batch; fetch1's are its own

@@ -11,10 +11,9 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import fetchsync, tree_of
-from test_fleet import fleet_env  # noqa: F401 - the fixture
+from helpers import fetchsync
+from test_fleet import fleet_env, push_three_in_process  # noqa: F401 - the fixture
 
-from fetchsync.cli import cli
 from fetchsync.protocol import hashing
 from fetchsync.sync import engine as sync
 from fetchsync.sync.engine import SharedPacks
@@ -97,15 +96,7 @@ def test_a_fleet_push_reads_each_file_once_and_leaves_every_robot_identical(
         return real(full, **kw)
 
     monkeypatch.setattr(sync, "read_stable", read_stable)
-    for key, value in fleet_env.items():
-        monkeypatch.setenv(key, value)
-    for key in [k for k in os.environ if k not in fleet_env]:
-        monkeypatch.delenv(key)
-    with pytest.raises(SystemExit) as exit_:
-        cli.main(["push", "--robot", "fetch1,fetch2,fetch3", "-j", "3"], standalone_mode=False)
-    assert exit_.value.code == 0
-    for name in ("fetch1", "fetch2", "fetch3"):
-        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(src), name
+    push_three_in_process(fleet_env, monkeypatch, tmp_path, src)
     files = [str(p.relative_to(src)) for p in src.rglob("*") if p.is_file()]
     assert set(reads) <= set(files) and len(reads) >= 60
     # fetch2 and fetch3 read the whole tree between them once, fetch1 its edit: each once

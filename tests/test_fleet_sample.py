@@ -10,10 +10,8 @@ import threading
 from pathlib import Path
 
 import pytest
-from helpers import tree_of
-from test_fleet import fleet_env  # noqa: F401 - the fixture
+from test_fleet import fleet_env, push_three_in_process  # noqa: F401 - the fixture
 
-from fetchsync.cli import cli
 from fetchsync.protocol import wire
 from fetchsync.sync import engine as sync
 
@@ -39,14 +37,6 @@ def test_a_fleet_push_samples_each_file_once(fleet_env, tmp_path, monkeypatch, c
         return real(data, **kw)
 
     monkeypatch.setattr(wire, "compressible", compressible)
-    for key, value in fleet_env.items():
-        monkeypatch.setenv(key, value)
-    for key in [k for k in os.environ if k not in fleet_env]:
-        monkeypatch.delenv(key)
-    with pytest.raises(SystemExit) as exit_:
-        cli.main(["push", "--robot", "fetch1,fetch2,fetch3", "-j", "3"], standalone_mode=False)
-    assert exit_.value.code == 0
-    for name in ("fetch1", "fetch2", "fetch3"):
-        assert tree_of(tmp_path / f"robot-{name}/src") == tree_of(src), name
+    push_three_in_process(fleet_env, monkeypatch, tmp_path, src)
     assert len(sampled) == 8  # each big file sampled ...
     assert max(sampled.values()) == 1, sampled.most_common(2)  # ... once for the three robots
