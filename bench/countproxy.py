@@ -498,16 +498,25 @@ def _serve_one(
     counts = _open_counts(countdir, name)
     done = threading.Event()
     up = down = 0
+    # A direction's thread may still count a last chunk after the connection ended and
+    # the counters were closed (a TypeError from pack_into on a closed mmap once): the
+    # counts go under a lock and stop when the connection's record is final.
+    counting = threading.Lock()
+    final = False
 
     def count_up(k: int) -> None:
         nonlocal up
-        up += k
-        _U64.pack_into(counts, 0, up)
+        with counting:
+            if not final:
+                up += k
+                _U64.pack_into(counts, 0, up)
 
     def count_down(k: int) -> None:
         nonlocal down
-        down += k
-        _U64.pack_into(counts, 8, down)
+        with counting:
+            if not final:
+                down += k
+                _U64.pack_into(counts, 8, down)
 
     sock = None
     try:
@@ -558,8 +567,10 @@ def _serve_one(
                 with contextlib.suppress(OSError):
                     s.shutdown(socket.SHUT_RDWR)
                 s.close()
-        _stopped(counts, up, down, cpu=False)
-        counts.close()
+        with counting:
+            final = True
+            _stopped(counts, up, down, cpu=False)
+            counts.close()
 
 
 def _copy(
