@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import logging
 import os
 import re
 import select
@@ -31,8 +30,6 @@ from fetchsync.errors import LinkLostError
 
 if TYPE_CHECKING:
     from fetchsync.link.transport import Channel
-
-log = logging.getLogger(__name__)
 
 # C0 and C1 controls, DEL, the bidirectional overrides and isolates (they reorder
 # what a line shows), and undecodable bytes (surrogate escapes of os.fsdecode)
@@ -95,7 +92,9 @@ def resizer(channel: Channel) -> Callable[[int, int], None] | None:
         try:
             resize(width=columns, height=lines)
         except Exception as exc:  # noqa: BLE001 - a lost link shows up on the stream instead
-            log.debug("cannot resize the robot's terminal: %s", exc)
+            import logging  # not at the top: the fast path of a push prints through here
+
+            logging.getLogger(__name__).debug("cannot resize the robot's terminal: %s", exc)
 
     return apply
 

@@ -94,6 +94,13 @@ def test_the_fast_path_imports_neither_click_nor_the_engine(env):  # noqa: F811
     imported = set(json.loads(next(ln for ln in lines if ln.startswith("MODULES "))[8:]))
     heavy = {"click", "fetchsync.cli", "fetchsync.sync.engine", "fetchsync.sync.state", "paramiko"}
     assert not heavy & imported, sorted(heavy & imported)
+    # nor what only the normal way needs (issue 24: ~25 ms of the asking process's CPU):
+    # dataclasses (inspect, ast, dis), logging, socket.py, hashlib (OpenSSL), the link's
+    # modules, the ssh config's note (the resident names the login)
+    light = {"dataclasses", "inspect", "logging", "socket", "hashlib", "getpass"}
+    light.add("fetchsync.protocol.loader")
+    assert not light & imported, sorted(light & imported)
+    assert not [m for m in imported if m.startswith("fetchsync.link")], sorted(imported)
 
 
 def normalized(text: str) -> str:

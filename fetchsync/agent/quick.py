@@ -18,15 +18,23 @@ gives None: the caller then pushes the normal way. A push is safe to redo.
 
 from __future__ import annotations
 
-import hashlib
+import _socket  # socket.py's selectors, array and enum classes: none needed to ask
 import json
 import os
-import socket
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 from fetchsync.environ import inheritable, is_secret
+from fetchsync.places import MAX_SOCKET_PATH, robot_id, runtime_path
+
+try:  # hashlib loads OpenSSL's libcrypto (~4 ms) for the two digests a fast path makes
+    from _sha256 import sha256
+except ImportError:  # Python >= 3.12 names it _sha2; a build without it: hashlib's
+    try:
+        from _sha2 import sha256  # type: ignore[import-not-found,no-redef]
+    except ImportError:
+        from hashlib import sha256  # type: ignore[assignment]
 
 if TYPE_CHECKING:
     from fetchsync.config import Target
@@ -83,7 +91,7 @@ def env_key(environ: Any = os.environ) -> str:
         and not is_secret(k)  # the resident is not given them (fetchsync.environ)
     )
     text = "\0".join(f"{k}={environ[k]}" for k in names)
-    return hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()
+    return sha256(text.encode("utf-8", "surrogateescape")).hexdigest()
 
 
 def target_fields(target: Target) -> dict[str, Any]:
@@ -138,7 +146,7 @@ def ask(
     offline to the CLI's push (it asks again, and says so in its order)."""
     Asked.asked.add(str(sock))
     try:
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s = _socket.socket(_socket.AF_UNIX, _socket.SOCK_STREAM)
     except OSError:
         return None
     try:
@@ -214,10 +222,10 @@ def rebuilt(said: dict[str, Any]) -> Exception:
     return exc
 
 
-def _peer_uid(s: socket.socket) -> int:
+def _peer_uid(s: _socket.socket) -> int:
     import struct
 
-    creds = s.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    creds = s.getsockopt(_socket.SOL_SOCKET, _socket.SO_PEERCRED, struct.calcsize("3i"))
     return int(struct.unpack("3i", creds)[1])
 
 
@@ -302,29 +310,41 @@ def holds_files(src: Any) -> bool:
 
 
 def agent_paths(target: Target) -> tuple[Path, Path]:
-    """The lock file and the control socket of the agent (or resident) for this target.
+    """The lock file and the control socket of the agent (or resident) for this target,
+    in the private runtime directory (made, and checked to be ours).
 
     Here, not in service.py or control.py: every one-shot push asks whether an agent
     runs, and this module is the light one (a fast path imports neither logging nor
     the link's connection code)."""
-    from fetchsync.link.transport import robot_id
+    return runtime_paths("agent", _agent_identity(target))
 
-    return runtime_paths(
-        "agent",
-        f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape"),
-    )
+
+def agent_socket(target: Target) -> Path:
+    """Where the agent's (or resident's) socket for this target is, if there is one: the
+    path of :func:`agent_paths`, found without making or checking a directory (asking
+    trusts an answer only from a process of our uid: :func:`ask`)."""
+    return _placed("agent", _agent_identity(target), made=False)[1]
+
+
+def _agent_identity(target: Target) -> bytes:
+    return f"{robot_id(target)}\0{target.remote_workspace}".encode("utf-8", "surrogateescape")
 
 
 def runtime_paths(kind: str, identity: bytes) -> tuple[Path, Path]:
     """``KIND-KEY.lock`` and ``KIND-KEY.sock`` in the private runtime directory, KEY from
     ``identity``; in the short one when the socket's path would be too long for a socket."""
-    from fetchsync.link.mux import MAX_SOCKET_PATH, runtime_dir
+    return _placed(kind, identity, made=True)
 
-    key = hashlib.sha256(identity).hexdigest()[:20]
-    base = runtime_dir()
+
+def _placed(kind: str, identity: bytes, *, made: bool) -> tuple[Path, Path]:
+    place: Callable[..., Path] = runtime_path
+    if made:
+        from fetchsync.link.mux import runtime_dir as place
+    key = sha256(identity).hexdigest()[:20]
+    base = place(short=False)
     sock = base / f"{kind}-{key}.sock"
     if len(os.fsencode(sock)) > MAX_SOCKET_PATH:
-        base = runtime_dir(short=True)
+        base = place(short=True)
         sock = base / f"{kind}-{key}.sock"
     return base / f"{kind}-{key}.lock", sock
 
@@ -433,6 +453,18 @@ def plain_push(argv: list[str]) -> dict[str, Any] | None:
     return out
 
 
+def _as_logged_in(target: Target, reply: dict[str, Any]) -> Target:
+    """``target`` with the login the resident found for it (it read the ssh config
+    for this push, in this push's environment), so that printing it reads nothing."""
+    login = reply.get("login")
+    if target.user is not None or not isinstance(login, str) or not login:
+        return target  # given, the local robot, or an agent that does not say
+    from fetchsync.config import Target
+
+    fields = dict(target_fields(target), user=login, workspace=target.workspace)
+    return Target(**fields)
+
+
 def fast_main(argv: list[str]) -> int | None:
     """A plain ``push`` answered by a resident, without click or the engine: the exit
     code, or None (nothing printed) when the CLI must make it (no resident, another
@@ -453,7 +485,7 @@ def fast_main(argv: list[str]) -> int | None:
             remote_workspace=None,
             defer_ssh_user=True,
         )
-        sock = agent_paths(target)[1]
+        sock = agent_socket(target)
     except FetchsyncError:
         return None  # the CLI says it in its words
     if not sock.exists():
@@ -471,7 +503,7 @@ def fast_main(argv: list[str]) -> int | None:
 
     src = target.workspace / "src"
     remote = target.remote_workspace + "/src"
-    _out(where_line("push", target, local=src, remote=remote), err=True)
+    _out(where_line("push", _as_logged_in(target, reply), local=src, remote=remote), err=True)
     try:
         data = answered_report(reply)
         assert data is not None

@@ -206,7 +206,11 @@ class Resident:
                     self._abandon()
                     done.wait()
             self.last_used = time.monotonic()
-            return answer[0] if answer else {"resident": True, "fallback": "no answer"}
+            if not answer:
+                return {"resident": True, "fallback": "no answer"}
+            if "ok" in answer[0]:  # printed: its where-line names the login
+                answer[0]["login"] = self._login()
+            return answer[0]
         finally:
             self._busy.release()
 
@@ -218,6 +222,17 @@ class Resident:
         if req.get("env") != self.env:
             return "another environment"
         return ""
+
+    def _login(self) -> str | None:
+        """The login the push's first line names (``push SRC -> USER@ROBOT:DEST``), as the
+        asking process would find it now (the ssh config read again): it then needs
+        neither hashlib nor the ssh config's note."""
+        from fetchsync.config import login_name
+
+        try:
+            return login_name(self.target)
+        except FetchsyncError:
+            return None  # the asking process finds it, and says what is wrong
 
     def status(self) -> dict[str, Any]:
         return {

@@ -54,6 +54,8 @@ from typing import TYPE_CHECKING, Any, Callable
 from fetchsync.environ import inheritable
 from fetchsync.errors import ConnectError, LinkLostError
 from fetchsync.link.transport import Capabilities
+from fetchsync.places import MAX_SOCKET_PATH
+from fetchsync.places import runtime_path as _runtime_path
 from fetchsync.trace import mark
 
 if TYPE_CHECKING:
@@ -79,9 +81,6 @@ def persist_seconds() -> float:
         return DEFAULT_PERSIST
 
 
-MAX_SOCKET_PATH = 100  # AF_UNIX paths are limited to 108 bytes on Linux
-
-
 def runtime_dir(*, short: bool = False) -> Path:
     """The directory of our local sockets (connection masters, the watch agent's control).
 
@@ -94,15 +93,6 @@ def runtime_dir(*, short: bool = False) -> Path:
     without them.
     """
     return private_dir(_runtime_path(short=short))
-
-
-def _runtime_path(*, short: bool) -> Path:
-    base = os.environ.get("XDG_RUNTIME_DIR")
-    if base and not short:
-        return Path(base) / "fetchsync"
-    import tempfile  # ~3-7 ms of a push's start when site has not imported it: only here
-
-    return Path(tempfile.gettempdir()) / f"fetchsync-{os.getuid()}"
 
 
 def private_dir(path: Path) -> Path:

@@ -19,11 +19,12 @@ from typing import TYPE_CHECKING, Protocol, cast
 
 from fetchsync.config import LOCAL_ROBOT
 from fetchsync.errors import ConnectError, LinkLostError
+from fetchsync.places import local_robot_home as local_robot_home  # callers import it here too
+from fetchsync.places import robot_id as robot_id  # its old home: callers import it here
 
 if TYPE_CHECKING:
     import subprocess
 
-    from fetchsync.config import Target
 
 # subprocess, signal and shlex are imported where the local robot uses them: a push
 # through SSH or a connection master needs none (subprocess is ~3-5 ms of its start)
@@ -84,28 +85,6 @@ class Transport(Protocol):
 
     def close(self) -> None:
         """Drop the connection."""
-
-
-def robot_id(target: Target) -> str:
-    """Which robot (and login) a target's state and agent belong to."""
-    if target.is_local:
-        return f"local:{local_robot_home()}"
-    return f"{target.user or ''}@{target.host}"
-
-
-def local_robot_home() -> Path:
-    """The home directory of the built-in ``local`` robot.
-
-    The ``local`` robot is a directory on this machine that stands in for a
-    robot's home: ``~`` in a remote path means this directory.
-    """
-    env = os.environ.get("FETCHSYNC_LOCAL_ROBOT_HOME")
-    if env:
-        return Path(env).expanduser()
-    base = os.environ.get("XDG_DATA_HOME") or os.path.join(
-        os.path.expanduser("~"), ".local", "share"
-    )
-    return Path(base) / "fetchsync" / "local-robot"
 
 
 class _ProcessChannel:
