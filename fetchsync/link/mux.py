@@ -724,21 +724,32 @@ class Master:
     @staticmethod
     def _upstream(conn: socket.socket, f: Any, channel: Any, ended: threading.Event) -> None:
         """The caller's bytes to the robot; the end of them is the command's EOF. A caller
-        that hangs up entirely (it gave up, or Ctrl-C) closes the command's channel, so
-        the robot's endpoint ends even when it has nothing to say (stopped, or stalled)."""
+        that hangs up entirely (it gave up, Ctrl-C, killed) closes the command's channel at
+        once, so the robot's endpoint ends even when it has nothing to say (stopped, or
+        stalled), also while its bytes wait for the robot's window; what it wrote that is
+        not sent yet is dropped: carried on after it has gone, a whole request in it would
+        be applied late (after a later push; tests/test_killed_push_late.py)."""
+        gone = threading.Event()
+
+        def watch() -> None:
+            hangup = select.poll()
+            hangup.register(conn.fileno(), 0)  # POLLHUP and POLLERR are always reported
+            while not ended.is_set():
+                if hangup.poll(500) and not ended.is_set():
+                    gone.set()
+                    channel.close()  # also wakes a send_all waiting for the window
+                    return
+
+        threading.Thread(target=watch, daemon=True).start()
         try:
-            while True:
+            while not gone.is_set():
                 data = f.read1(1 << 16)
+                if gone.is_set():
+                    break
                 if not data:
                     channel.shutdown_write()
                     break
                 channel.send_all(data)
-            watch = select.poll()
-            watch.register(conn.fileno(), 0)  # POLLHUP and POLLERR are always reported
-            while not ended.is_set():
-                if watch.poll(500) and not ended.is_set():
-                    channel.close()
-                    return
         except Exception:
             try:
                 channel.close()
