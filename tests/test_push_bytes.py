@@ -73,6 +73,8 @@ class _Answered:
 class _FastEndpoint:
     """An endpoint whose answers are all in at once: a link faster than zlib 6."""
 
+    stl = False  # takes no split meshes (Endpoint.stl)
+
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0

@@ -13,11 +13,14 @@ import zlib
 import pytest
 
 from fetchsync.protocol import messages as M
+from fetchsync.protocol import stl
 from fetchsync.protocol.store import unpack_zpart
 from fetchsync.sync import engine as sync
 
 
 class _Endpoint:
+    stl = True  # takes split meshes (Endpoint.stl): those come back joined
+
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0
@@ -40,8 +43,13 @@ def _part(rng: random.Random) -> bytes:
     if kind == 4:
         return rng.randbytes(n).replace(b"\0", b"\1")  # no NUL: text by the test, incompressible
     if kind == 5:
-        return b"\0"
+        return b"\0" if rng.random() < 0.5 else _mesh(rng, n // 50)
     return b"line\n" * (n // 5 + 1)
+
+
+def _mesh(rng: random.Random, n: int) -> bytes:
+    """A binary STL of ``n`` triangles (sent split when the batch's level is 6)."""
+    return b"solid".ljust(80, b"\0") + n.to_bytes(4, "little") + rng.randbytes(50 * n)
 
 
 @pytest.mark.parametrize("compressor", ["isal", "zlib"])
@@ -64,6 +72,7 @@ def test_every_mix_of_text_and_binary_comes_back_whole_through_the_robots_unpack
         total=0,
     )
     kinds = set()
+    split = 0
     for round_ in range(120):
         datas = [_part(rng) for _ in range(rng.randrange(1, 7))]
         kinds.add(tuple(sorted({sync._binary(d) for d in datas})))
@@ -80,9 +89,14 @@ def test_every_mix_of_text_and_binary_comes_back_whole_through_the_robots_unpack
             assert len(rest) == sum(len(r) for r in packed.raw)
             for op, data in zip(packed.ops, datas):
                 where = stream if op.z else rest
-                assert bytes(where[op.blob[0] : op.blob[0] + op.blob[1]]) == data, (
+                got = bytes(where[op.blob[0] : op.blob[0] + op.blob[1]])
+                if op.source == M.SRC_STL:
+                    split += 1
+                    got = bytes(stl.join(got) or b"")
+                assert got == data, (
                     round_,
                     level6,
                     [(len(d), sync._binary(d)) for d in datas],
                 )
     assert kinds == {(False,), (True,), (False, True)}  # text only, binary only, both
+    assert split

@@ -15,6 +15,8 @@ from fetchsync.sync import engine as sync
 class _Link:
     """An endpoint whose every send blocks until the test lets it through."""
 
+    stl = False  # takes no split meshes (Endpoint.stl)
+
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0

@@ -335,6 +335,11 @@ class Endpoint:
         """Whether the endpoint takes writes of source ``zdict`` (its hello says so)."""
         return bool(self.conn.hello.get("zdict"))
 
+    @property
+    def stl(self) -> bool:
+        """Whether the endpoint takes writes of source ``stl`` (its hello says so)."""
+        return bool(self.conn.hello.get("stl"))
+
     def _send(self, request: Any, parse: Callable[[wire.Frame], T], **kw: Any) -> Pending[T]:
         return Pending(self.conn, self.conn.send(dict(request), **kw), parse)
 

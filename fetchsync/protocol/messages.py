@@ -38,7 +38,10 @@ SRC_UPLOAD = "upload"  # content sent before in UPLOAD ops with id ``upload``
 # ``base``, at most ZDICT_BASE_MAX bytes) as its preset dictionary; only to an endpoint
 # whose hello offers "zdict" (an older one refuses an unknown source)
 SRC_ZDICT = "zdict"
-SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD, SRC_ZDICT)
+# the blob holds the whole content of a binary STL with its records split (stl.split: ~10-26%
+# fewer bytes of real meshes on the wire); only to an endpoint whose hello offers "stl"
+SRC_STL = "stl"
+SOURCES = (SRC_DATA, SRC_DELTA, SRC_COPY, SRC_UPLOAD, SRC_ZDICT, SRC_STL)
 ZDICT_BASE_MAX = 32 * 1024  # zlib's window: a longer dictionary would not be seen whole
 ZDICT_SIZE_MAX = 1024 * 1024  # the content such a write may inflate to
 

@@ -102,6 +102,7 @@ class Server:
             "home": os.path.expanduser("~"),
             "progress": PROGRESS_MAX,  # T_PROGRESS frames, to a client that asks
             "zdict": 1,  # writes of source "zdict" (messages.SRC_ZDICT)
+            "stl": 1,  # writes of source "stl" (messages.SRC_STL)
         }
 
     def serve(self) -> None:

@@ -52,7 +52,7 @@ import time
 import zlib
 from typing import Any, BinaryIO, Dict, List, Optional, Set, Tuple, cast
 
-from fetchsync.protocol import hashing, paths, wire
+from fetchsync.protocol import hashing, paths, stl, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.errors import DeltaError, PathError, ProtocolError
 from fetchsync.protocol.paths import O_FILE, lstat_at, mkdir_open, open_dir
@@ -1462,15 +1462,20 @@ class _Batch:
         if op.source == M.SRC_UPLOAD:
             self._from_upload(op, dir_fd, tmp, mode)
             return
-        if op.source == M.SRC_DATA:
+        if op.source in (M.SRC_DATA, M.SRC_STL):
             data = self._view(op)
+            if op.source == M.SRC_STL:
+                joined = stl.join(data)
+                if joined is None:
+                    raise DeltaError("the split mesh is not shaped as one")
+                data = memoryview(joined)
             # checked before anything is written: most writes are whole data
             if len(data) != op.size or hashing.digest(s.algorithm, data).hex() != op.hash:
                 raise DeltaError("reconstructed content does not match its hash")
         fd = os.open(tmp, O_NEW, mode, dir_fd=dir_fd)
         try:
             out = _Out(fd, s.algorithm)
-            if op.source == M.SRC_DATA:
+            if op.source in (M.SRC_DATA, M.SRC_STL):
                 out.write(data)
             elif op.source == M.SRC_DELTA:
                 self._patch(op, dir_fd, name, out)
