@@ -21,6 +21,7 @@ from fetchsync.protocol import store as store_mod
 
 def test_a_deletion_larger_than_the_trash_bound_is_kept_until_a_later_one(store, monkeypatch):  # noqa: F811
     monkeypatch.setattr(store_mod, "TRASH_KEEP_BYTES", 4096)
+    monkeypatch.setattr(store_mod, "TRASH_CHAIN", 0.0)  # each deletion its own (test_trash_chain)
     big = b"x" * 10000
     store.apply([write("big.bin", big)], big)
     store.apply([M.Op(M.DELETE, "big.bin", expect=M.expect_file(h(big)))], b"")

@@ -62,6 +62,9 @@ META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
 TRASH_KEEP_BATCHES = 50
 TRASH_KEEP_BYTES = 512 * 1024 * 1024
+# seconds between two deletions of one store (one endpoint: a push, a watch agent's
+# connection) that make them one deletion, whose trash batches are all kept until it ends
+TRASH_CHAIN = 10.0
 INDEX_VERSION = 3
 INDEX = "index"
 JOURNAL = "index.log"
@@ -306,6 +309,9 @@ class Store:
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: Set[str]
+        # the trash batches of this store's current deletion (see _prune_trash)
+        self._chain = []  # type: List[str]
+        self._chain_at = 0.0
         self._open()
         self._load_index()
 
@@ -1177,6 +1183,12 @@ class Store:
             if not self.trash_log or self.trash_log[-1][0] != top:
                 self.trash_log.append([top, 0])
             self.trash_log[-1][1] += size
+            now = time.monotonic()
+            if now - self._chain_at > TRASH_CHAIN:
+                self._chain = []
+            if top not in self._chain:
+                self._chain.append(top)
+            self._chain_at = now
         return shown
 
     def _put_back(self, dir_fd: int, name: str, path: str, where: str) -> None:
@@ -1232,13 +1244,21 @@ class Store:
             os.close(dest_fd)
 
     def _prune_trash(self) -> None:
+        """The trash within its bounds, oldest batches first, but never a batch of the
+        deletion under way: the batch just made (its files were renamed there, not
+        copied: no disk it did not use already; they are the way back from this very
+        push) and the earlier ones of the same deletion (one push's deletions in several
+        batches, the watch agent's ``rm -rf`` seen in bursts: TRASH_CHAIN)."""
         total = sum(n for _d, n in self.trash_log)
-        # never the batch just made: its files were renamed there, not copied (no disk
-        # it did not use already), and they are the way back from this very push
-        while len(self.trash_log) > 1 and (
+        i = 0
+        while i < len(self.trash_log) - 1 and (
             len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES
         ):
-            top, n = self.trash_log.pop(0)
+            top, n = self.trash_log[i]
+            if top in self._chain:
+                i += 1
+                continue
+            del self.trash_log[i]
             try:
                 trash = self._meta_dir("trash")
                 try:
