@@ -100,6 +100,7 @@ class Resident:
         self._state_id: tuple[int, int] | None = None
         self._socket_id: tuple[int, int] | None = None
         self._release = False  # hand memory back after answering (a large push)
+        self._kept: Any = None  # the scan of src/ kept by inotify (fetchsync.agent.keptscan)
 
     # ------------------------------------------------------------------ lifecycle
     def acquire(self) -> bool:
@@ -264,6 +265,7 @@ class Resident:
                 if req["cmd"] == "connect":
                     try:
                         self._connect()
+                        self._keep_scan()  # the first push finds it ready
                     except Exception as exc:  # noqa: BLE001 - no master, no robot: not needed
                         log.info("could not connect: %s", exc)
                         self._drop()
@@ -274,6 +276,8 @@ class Resident:
                 answer.append({"resident": True, "fallback": f"{type(exc).__name__}: {exc}"})
             finally:
                 done.set()
+            if not self.stop_event.is_set():
+                self._keep_scan()  # answered: the next push's scan made ready meanwhile
             if self._release:
                 from fetchsync.agent.service import release_memory
 
@@ -308,6 +312,24 @@ class Resident:
             raise
         self._transport, self._conn = transport, conn
         mark("resident: connected")
+
+    def _keep_scan(self) -> None:
+        """Make the kept scan ready for the next push when it is not (a full scan and a
+        watch on each directory: ~35 ms of CPU for 2,547 paths), once the client has
+        its answer. The next push then lists only where something happened."""
+        from fetchsync.agent.keptscan import KeptScan
+        from fetchsync.protocol.ignore import build_rules
+        from fetchsync.protocol.store import is_temp
+
+        if self._kept is None:
+            self._kept = KeptScan(self.src, build_rules(()), is_temp=is_temp)
+        if not self._kept.warm:
+            try:
+                self._kept.scan()
+            except Exception as exc:  # noqa: BLE001 - only a cache: the push scans itself
+                log.info("no kept scan: %s", exc)  # src/ cannot be listed, no inotify
+                self._kept.close()
+            mark("resident: scan kept")
 
     def _abandon(self) -> None:
         """End the push under way from another thread: its connection closed at once,
@@ -373,6 +395,7 @@ class Resident:
         except FetchsyncError as exc:
             return {"resident": True, "fallback": str(exc)}
         mark("resident: connected, state open")
+        kept = self._kept
         syncer = Syncer(
             self._conn,
             state,
@@ -382,7 +405,11 @@ class Resident:
             policy="preserve",
         )
         try:
-            report = syncer.push()
+            # the tree as a fresh scan finds it, from the kept scan when it can say
+            # (else the engine scans, while the robot works out its changes)
+            scanned = kept.scan() if kept is not None and kept.warm else None
+            mark("resident: scanned" if scanned is not None else "resident: scan not kept")
+            report = syncer.push(scanned=scanned)
         except (TransportError, ProtocolError, EOFError, OSError) as exc:
             # the link (or the robot's answers) failed: the client pushes again itself,
             # the way a push after a killed one does
@@ -414,6 +441,8 @@ class Resident:
 
     def _close(self) -> None:
         self._drop()
+        if self._kept is not None:
+            self._kept.close()
         if self._state is not None:
             try:
                 self._state.close()
