@@ -1248,14 +1248,15 @@ class Store:
         deletion under way: the batch just made (its files were renamed there, not
         copied: no disk it did not use already; they are the way back from this very
         push) and the earlier ones of the same deletion (one push's deletions in several
-        batches, the watch agent's ``rm -rf`` seen in bursts: TRASH_CHAIN)."""
+        batches, the watch agent's ``rm -rf`` seen in bursts: TRASH_CHAIN) as long as
+        they are not more than TRASH_KEEP_BATCHES (a deletion of ~200,000 files)."""
         total = sum(n for _d, n in self.trash_log)
         i = 0
         while i < len(self.trash_log) - 1 and (
             len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES
         ):
             top, n = self.trash_log[i]
-            if top in self._chain:
+            if top in self._chain and len(self.trash_log) <= TRASH_KEEP_BATCHES:
                 i += 1
                 continue
             del self.trash_log[i]
