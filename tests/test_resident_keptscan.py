@@ -190,3 +190,45 @@ def test_an_overflow_or_a_replaced_root_steps_aside(tmp_path: Path) -> None:
     make_tree(root, random.Random(3))
     assert kept_now(kept) == fresh(root)
     kept.close()
+
+
+class _Limited:
+    """libc's inotify whose watches run out after ``left`` (ENOSPC), counting the tries."""
+
+    def __init__(self, real: object, left: int) -> None:
+        self.real = real
+        self.left = left
+        self.tries = 0
+
+    def inotify_init1(self, flags: int) -> int:
+        return self.real.inotify_init1(flags)  # type: ignore[attr-defined,no-any-return]
+
+    def inotify_add_watch(self, fd: int, path: bytes, mask: int) -> int:
+        import ctypes
+        import errno
+
+        self.tries += 1
+        if self.left <= 0:
+            ctypes.set_errno(errno.ENOSPC)
+            return -1
+        self.left -= 1
+        return self.real.inotify_add_watch(fd, path, mask)  # type: ignore[attr-defined,no-any-return]
+
+
+def test_used_up_watches_are_given_back_and_not_taken_again(tmp_path, monkeypatch):
+    """The user's inotify watches used up (an IDE holds most): the kept scan gives its own
+    back at once, scans in full (still exactly), and does not try again."""
+    from fetchsync.agent import keptscan
+
+    root = tmp_path / "src"
+    make_tree(root, random.Random(4))
+    limited = _Limited(keptscan._inotify(), left=5)
+    monkeypatch.setattr(keptscan, "_libc", limited)
+    kept = KeptScan(str(root), build_rules(()), is_temp=is_temp)
+    assert kept_now(kept) == fresh(root)
+    assert kept.gave_up and not kept.warm and kept._fd < 0  # its 5 watches given back
+    tries = limited.tries
+    for n in range(3):
+        (root / "pkg1" / "src" / f"more{n}.cpp").write_text("more\n")
+        assert kept_now(kept) == fresh(root)
+    assert limited.tries == tries and kept.full_scans == 4

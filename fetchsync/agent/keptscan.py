@@ -22,6 +22,7 @@ resident's next start), not at the next push.
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import stat
 import struct
@@ -90,12 +91,15 @@ class KeptScan:
         self._skipped: list[tuple[str, str]] = []
         self._root_id: tuple[int, int] | None = None
         self._watching = True  # False while a watch could not be added
+        # the user's inotify watches (or instances) are used up: the scans are full ones
+        # for this process's life, holding none (an editor, an IDE, a watch agent need them)
+        self.gave_up = False
         self.full_scans = 0  # how often it scanned the whole tree (tests, traces)
 
     @property
     def warm(self) -> bool:
         """Whether the next :meth:`scan` may be answered without a full scan."""
-        return self._entries is not None and self._fd >= 0 and self._watching
+        return self._entries is not None and self._fd >= 0 and self._watching and not self.gave_up
 
     def close(self) -> None:
         if self._fd >= 0:
@@ -118,10 +122,13 @@ class KeptScan:
     def _full(self) -> ScanResult:
         self.close()
         self.full_scans += 1
-        self._watching = True
-        fd = _inotify().inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
-        if fd < 0:
-            self._watching = False  # no inotify: every scan a full one
+        self._watching = not self.gave_up
+        fd = -1
+        if self._watching:
+            fd = _inotify().inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+            if fd < 0:  # no inotify instance left (EMFILE), or none at all
+                self.gave_up = True
+                self._watching = False
         self._fd = fd
         try:
             st = os.stat(self.root)
@@ -143,7 +150,9 @@ class KeptScan:
         if self._fd >= 0 and self._watching:
             wd = _inotify().inotify_add_watch(self._fd, os.fsencode(full), WATCHED)
             if wd < 0:
-                self._watching = False  # ENOSPC (the watch limit), or it changed meanwhile
+                self._watching = False  # it changed meanwhile: watched again next time
+                if ctypes.get_errno() == errno.ENOSPC:  # the watch limit: not again
+                    self.gave_up = True
             else:
                 self._wds[wd] = rel
         # its entries must be looked up: else it is reported as one it cannot list

@@ -323,7 +323,7 @@ class Resident:
 
         if self._kept is None:
             self._kept = KeptScan(self.src, build_rules(()), is_temp=is_temp)
-        if not self._kept.warm:
+        if not self._kept.warm and not self._kept.gave_up:  # gave up: the engine scans
             try:
                 self._kept.scan()
             except Exception as exc:  # noqa: BLE001 - only a cache: the push scans itself
