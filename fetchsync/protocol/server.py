@@ -12,6 +12,7 @@ import collections
 import gc
 import os
 import queue
+import select
 import sys
 import threading
 import time
@@ -144,12 +145,26 @@ class Server:
                 return
             if frame.type != wire.T_REQUEST:
                 raise ProtocolError("expected a request frame")
+            if frame.header.get("op") in ("sync", "adopt") and self._client_gone():
+                return  # a killed push's batch read ahead: never applied after it has gone
             with self._out_lock:
                 self._working = frame.req_id
                 self._quiet_since = time.monotonic()
             self._send(self.dispatch(frame))
             if frame.header.get("op") == "bye":
                 return
+
+    def _client_gone(self) -> bool:
+        """Whether nobody reads our answers any more: the read end of our output closed
+        (sshd closed the channel: the client, its connection or its master's call gone).
+        One poll, before each write request (tests/test_endpoint_client_gone.py)."""
+        try:
+            fd = self.out.fileno()
+        except (AttributeError, OSError, ValueError):
+            return False
+        watch = select.poll()
+        watch.register(fd, 0)  # POLLERR and POLLHUP are always reported
+        return bool(watch.poll(0))
 
     def _read_ahead(self, frames: "_ReadAhead") -> None:
         try:
