@@ -153,6 +153,9 @@ class KeptScan:
                 self._watching = False  # it changed meanwhile: watched again next time
                 if ctypes.get_errno() == errno.ENOSPC:  # the watch limit: not again
                     self.gave_up = True
+            elif self._wds.get(wd, rel) != rel:
+                # one directory at two paths (a bind mount): its events cannot say which
+                self._watching = False
             else:
                 self._wds[wd] = rel
         # its entries must be looked up: else it is reported as one it cannot list
