@@ -29,7 +29,7 @@ import struct
 from typing import Any, Callable
 
 from fetchsync.errors import SyncError
-from fetchsync.protocol.tree import DIR, IGNORE_FILE, Entry, ScanResult, scan
+from fetchsync.protocol.tree import DIR, FILE, IGNORE_FILE, Entry, ScanResult, scan
 
 IN_MODIFY = 0x2
 IN_ATTRIB = 0x4
@@ -113,6 +113,7 @@ class KeptScan:
         if self.warm:
             try:
                 self._refresh(self._drain())
+                self._restat_linked()
                 return ScanResult(dict(self._entries or {}), list(self._skipped))
             except (_StepAside, OSError):
                 pass
@@ -223,6 +224,28 @@ class KeptScan:
                 raise _StepAside("a watch could not be added")
             entries.update(result.entries)
             self._skipped.extend(result.skipped)
+
+    def _restat_linked(self) -> None:
+        """Stat again the files whose inode another path of the tree shares (hard links):
+        a write through one path is reported to that path's directory only, so the
+        others would keep their old stat (tests/test_keptscan_hard_links.py)."""
+        entries = self._entries
+        if entries is None:
+            return
+        seen: dict[int, str] = {}
+        linked: set[str] = set()
+        for path, entry in entries.items():
+            if entry.kind == FILE:
+                other = seen.setdefault(entry.ino, path)
+                if other != path:
+                    linked.update((other, path))
+        for path in linked:
+            st = os.lstat(os.path.join(self.root, path))
+            if not stat.S_ISREG(st.st_mode):
+                raise _StepAside("a linked file is no longer one")
+            entries[path] = Entry(
+                FILE, st.st_mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
+            )
 
 
 def _within(path: str, top: str) -> bool:
