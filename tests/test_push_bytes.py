@@ -78,6 +78,7 @@ class _FastEndpoint:
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0
+        last_arrival = 0.0  # when the latest answer came
 
     def __init__(self) -> None:
         self.levels: list[bool] = []

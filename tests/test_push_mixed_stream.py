@@ -24,6 +24,7 @@ class _Endpoint:
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0
+        last_arrival = 0.0  # when the latest answer came
 
 
 def _part(rng: random.Random) -> bytes:

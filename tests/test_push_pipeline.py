@@ -20,6 +20,7 @@ class _Link:
     class conn:  # noqa: N801 - stands for the Connection attribute
         compress = True
         bytes_in = bytes_out = 0
+        last_arrival = 0.0  # when the latest answer came
 
         @staticmethod
         def check_link() -> None:

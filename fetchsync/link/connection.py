@@ -129,6 +129,10 @@ class Connection:
         self._arrived = threading.Condition()
         self._failure: BaseException | None = None
         self._owed: set[int] = set()  # requests sent (or being sent) and not answered yet
+        # when the latest answer arrived (time.monotonic()): any answered request's came
+        # at or before it (a push's sender tells how long the link sat idle by it, with
+        # every batch answered, without polling: engine._Batcher._next_packed)
+        self.last_arrival = 0.0
         self._watchdog = watchdog
         if watchdog is not None:
             watchdog.progress = lambda: (self.reader.bytes_in, self.bytes_out)
@@ -155,6 +159,7 @@ class Connection:
                 with self._arrived:
                     self._pending[frame.req_id] = frame
                     self._owed.discard(frame.req_id)
+                    self.last_arrival = time.monotonic()
                     self._arrived.notify_all()
         except EOFError:
             failure = LinkLostError(f"the connection to {self.transport.name} ended mid-request")

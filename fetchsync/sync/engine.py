@@ -600,7 +600,6 @@ SMALL_BATCH = 64 * 1024
 SLOW_WORTH = 0.97
 FAST_IDLE = 0.3  # the share of the time since the first batch the link sat idle: fast
 FAST_AFTER = 2  # ... judged once this many batches were answered
-IDLE_TICK = 0.003  # how often the sender looks whether the link went idle, while it waits
 
 
 def _text_order(items: list[tuple[M.Op, bytes, bool]], text: list[int]) -> list[int]:
@@ -846,6 +845,8 @@ class _Batcher:
         self._early: list[Pending[Applied]] = []  # the first FAST_AFTER batches' answers
         self._last_sent: Pending[Applied] | None = None
         self.idle = 0.0  # seconds the link sat idle, every batch sent answered
+        # while the sender waits for a batch: since when, and the last batch sent then
+        self._waiting: tuple[float, Pending[Applied] | None] | None = None
         self.packs = packs
 
     def add(self, op: M.Op, data: bytes = b"", tag: Any = None, *, packed: bool = False) -> None:
@@ -948,21 +949,28 @@ class _Batcher:
 
     def _next_packed(self) -> _Packed | None:
         """The next batch to send, once packed. While the sender waits for it, the time
-        the link sits idle with every batch sent answered adds to ``idle``."""
+        the link sits idle with every batch sent answered adds to ``idle``: from when
+        the wait began or the last batch's answer arrived (the connection's
+        ``last_arrival``), whichever was later, to the batch. Waited for without
+        waking up meanwhile: a fleet's senders polled every 3 ms (20 robots on Wi-Fi:
+        ~330 wakeups a second each, ~23 us of laptop CPU apiece)."""
         try:
             return self._to_send.get_nowait()
         except queue.Empty:
             pass
-        last = self._last_sent
-        t = time.monotonic()
-        while True:
-            try:
-                return self._to_send.get(timeout=IDLE_TICK)
-            except queue.Empty:
-                now = time.monotonic()
-                if last is not None and last.answered():
-                    self.idle += now - t
-                t = now
+        self._waiting = (time.monotonic(), self._last_sent)
+        packed = self._to_send.get()
+        idle = self._idle_waiting(time.monotonic())
+        self._waiting = None  # then counted: the packer may add less, never twice
+        self.idle += idle
+        return packed
+
+    def _idle_waiting(self, now: float) -> float:
+        """How long the link has sat idle in the sender's wait going on (0 if none)."""
+        waiting = self._waiting
+        if waiting is None or waiting[1] is None or not waiting[1].answered():
+            return 0.0
+        return max(0.0, now - max(waiting[0], self.conn.last_arrival))
 
     def _pack(self, gen: int, items: list[tuple[M.Op, bytes, bool]], tags: list[Any]) -> _Packed:
         ops = [op for op, _, _ in items]
@@ -1081,7 +1089,8 @@ class _Batcher:
         keeps ahead, the link does not sit idle any more, and the reason is gone."""
         if not self.slow or len(self._early) < FAST_AFTER or not self._early[-1].answered():
             return
-        if self.idle >= FAST_IDLE * (time.monotonic() - self._first_sent):
+        now = time.monotonic()
+        if self.idle + self._idle_waiting(now) >= FAST_IDLE * (now - self._first_sent):
             self.slow = False
             log.debug("fast link: idle %.3f s since the first batch", self.idle)
 
