@@ -24,7 +24,7 @@ import time
 import types
 import zlib
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Callable, Iterable, Iterator, Mapping
+from typing import Any, Callable, Iterable, Iterator, Mapping, TypeVar
 
 from fetchsync.errors import ConflictError, MassDeletionError, RemoteError, SyncError
 from fetchsync.link.client import Applied, Content, Endpoint, Failed, Listing, Opened, Pending
@@ -45,6 +45,8 @@ from fetchsync.sync.plan import COPY, DELTA, WHOLE, Planned, catkin_toplevel, pl
 from fetchsync.sync.state import State, Synced
 
 log = logging.getLogger(__name__)
+
+V = TypeVar("V")
 
 _deflate: types.ModuleType | None = None  # see _fast
 
@@ -668,8 +670,10 @@ class SharedPacks:
             collections.OrderedDict()
         )
         self._read_size = 0
-        self._by_id: dict[int, tuple[bytes, dict[str, bytes]]] = {}
+        self._by_id: dict[int, tuple[bytes, dict[str, Any]]] = {}
         self._reading: dict[str, threading.Event] = {}
+        self._once_making: set[tuple[int, str]] = set()  # (content's id, name) being made
+        self._once_made = threading.Condition(self._lock)
 
     def read(self, full: str) -> tuple[bytes, Entry]:
         """:func:`read_stable` of ``full``, the same bytes for every robot of the fleet: a
@@ -707,7 +711,7 @@ class SharedPacks:
             data, entry = read_stable(full)
             if time.time_ns() - max(entry.mtime_ns, entry.ctime_ns) >= RACY_NS:
                 with self._lock:
-                    hashes: dict[str, bytes] = {}
+                    hashes: dict[str, Any] = {}
                     self._reads[full] = (data, entry, hashes)
                     self._by_id[id(data)] = (data, hashes)
                     self._read_size += len(data)
@@ -733,9 +737,42 @@ class SharedPacks:
             held = self._by_id.get(id(data))
         if held is None or held[0] is not data:
             return make(data)
-        value = held[1].get(name)
+        value: bytes | None = held[1].get(name)
         if value is None:  # two robots at once may both make it: the same bytes
             value = held[1][name] = make(data)
+        return value
+
+    def once(
+        self, name: str, data: bytes, make: Callable[[bytes], V], otherwise: Callable[[], V]
+    ) -> V:
+        """``make(data)`` made once for content a shared :meth:`read` handed out, kept with
+        it (by identity, as :meth:`hashed`); one another robot is making is waited for.
+        Other content: ``otherwise()``. Issue 27: a file's digest, kept record and
+        compressibility each took a BLAKE2b-keyed lookup per robot (3 locks, a key
+        built, an LRU moved on); now one lookup each, by the content's id."""
+        making = (id(data), name)
+        with self._lock:
+            held = self._by_id.get(id(data))
+            if held is None or held[0] is not data:
+                memo = None
+            else:
+                memo = held[1]
+                while name not in memo and making in self._once_making:
+                    self._once_made.wait()
+                if name in memo:
+                    value: V = memo[name]
+                    return value
+                self._once_making.add(making)
+        if memo is None:
+            return otherwise()
+        try:
+            value = make(data)
+            with self._lock:
+                memo[name] = value
+        finally:
+            with self._lock:
+                self._once_making.discard(making)
+                self._once_made.notify_all()
         return value
 
     def pack_key(self, packed: list[bytes], *, level6: bool) -> bytes:
@@ -874,9 +911,16 @@ class _Batcher:
         worth = SLOW_WORTH if self.slow else wire.WORTH_COMPRESSING
         if self.packs is None:
             return wire.compressible(data, worth=worth)
-        key = b"sample %r\0" % worth + self.packs.hashed("blake2b-512", data, _blake2b)
-        said = self.packs.get(key, lambda: [b"y" if wire.compressible(data, worth=worth) else b""])
-        return said == [b"y"]
+        packs = self.packs
+
+        def by_content() -> bool:  # not a shared read (a file written just now)
+            key = b"sample %r\0" % worth + packs.hashed("blake2b-512", data, _blake2b)
+            said = packs.get(key, lambda: [b"y" if wire.compressible(data, worth=worth) else b""])
+            return said == [b"y"]
+
+        return packs.once(
+            f"sample {worth!r}", data, lambda d: wire.compressible(d, worth=worth), by_content
+        )
 
     def flush(self) -> None:
         if self._failure is not None:
@@ -1681,10 +1725,10 @@ class Syncer:
         smaller, else whole (also if it changed since the scan: sent as it is now)."""
         op = p.op
         digest = (
-            hashing.digest(self.algorithm, data)
+            self._hex(data)
             if self.packs is None
-            else self.packs.hashed(self.algorithm, data, hashing.digester(self.algorithm))
-        ).hex()
+            else self.packs.once("hex " + self.algorithm, data, self._hex, lambda: self._hex(data))
+        )
         # a large text file's new signature comes from its delta's pass when it goes as one
         by_delta = p.how == DELTA and len(data) > M.ZDICT_BASE_MAX and b"\0" not in data[:8192]
         sig = None if by_delta else self._kept_of(data)
@@ -1740,16 +1784,20 @@ class Syncer:
         each robot's ~0.15 s of laptop CPU after its connection opened."""
         if not data or _binary(data):
             return None
-        if self.packs is None:
+        packs = self.packs
+        if packs is None:
             return self._make_kept(data)
-        key = (
-            b"kept\0"
-            + self.algorithm.encode()
-            + b"\0"
-            + self.packs.hashed("blake2b-512", data, _blake2b)
-        )
-        parts = self.packs.get(key, lambda: [k] if (k := self._make_kept(data)) else [])
-        return parts[0] if parts else None
+
+        def by_content() -> bytes | None:  # not a shared read (a file written just now)
+            key = b"kept\0" + self.algorithm.encode() + b"\0"
+            key += packs.hashed("blake2b-512", data, _blake2b)
+            parts = packs.get(key, lambda: [k] if (k := self._make_kept(data)) else [])
+            return parts[0] if parts else None
+
+        return packs.once("kept " + self.algorithm, data, self._make_kept, by_content)
+
+    def _hex(self, data: bytes) -> str:
+        return hashing.digest(self.algorithm, data).hex()
 
     def _make_kept(self, data: bytes) -> bytes | None:
         if len(data) <= M.ZDICT_BASE_MAX:
