@@ -162,7 +162,9 @@ def send_eof(chan: paramiko.Channel) -> None:
 def send_data(chan: paramiko.Channel, data: bytes | memoryview) -> int:
     """``chan.send(data)`` without paramiko's race: the data goes out before our CLOSE,
     or not at all once a CLOSE of ours is on its way (the command has ended: sshd would
-    have dropped it, and the connection with it). Returns how much of ``data`` was taken."""
+    have dropped it, and the connection with it). Returns how much of ``data`` was taken:
+    with our :class:`Packetizer`, up to RUN packets' worth as far as the channel's
+    window allows (sealed and written in one go), else one packet's."""
     transport: Any = chan.transport
     if not _ours(transport) or not hasattr(chan, "_wait_for_send_window"):
         return int(chan.send(data))
@@ -172,11 +174,25 @@ def send_data(chan: paramiko.Channel, data: bytes | memoryview) -> int:
         size = int(chan._wait_for_send_window(len(data)))
         if size == 0:
             return 0
-        m = _Data(cMSG_CHANNEL_DATA + _HEAD.pack(chan.remote_chanid, size), data[:size])
+        m: Any = _Data(cMSG_CHANNEL_DATA + _HEAD.pack(chan.remote_chanid, size), data[:size])
+        taken = size
+        if taken < len(data) and type(transport.packetizer) is Packetizer:
+            run = [m]
+            # more packets only while the window has room: never waits with one in hand
+            while taken < len(data) and len(run) < RUN and chan.out_window_size > 0:
+                size = int(chan._wait_for_send_window(len(data) - taken))
+                if size == 0:
+                    break
+                head = cMSG_CHANNEL_DATA + _HEAD.pack(chan.remote_chanid, size)
+                run.append(_Data(head, data[taken : taken + size]))
+                taken += size
+            if len(run) > 1:
+                m = _DataRun(run)
     _send_while_open(transport, chan, m)
-    return size
+    return taken
 
 
+RUN = 8  # channel DATA packets sealed and written at once at most (8 x 32 KiB)
 _HEAD = struct.Struct(">II")  # a DATA message's channel and its string's length
 _LENGTH = struct.Struct(">I")
 
@@ -195,6 +211,17 @@ class _Data:
         return self.header + bytes(self.body)
 
 
+class _DataRun:
+    """Channel DATA messages that go out one after the other, sealed and written in one
+    go by :class:`Packetizer` (one lock, one random read for their padding, one socket
+    write): issue 27, a fleet push's sender threads spent ~55 us of Python per packet."""
+
+    __slots__ = ("parts",)
+
+    def __init__(self, parts: list[_Data]) -> None:
+        self.parts = parts
+
+
 class Packetizer(_PacketizerBase):  # type: ignore[misc]  # paramiko ships no types
     """paramiko's Packetizer, sealing channel data (:class:`_Data`) under AES-GCM in one
     copy: the packet is built once and encrypted as paramiko does it (RFC 5647: the
@@ -204,13 +231,14 @@ class Packetizer(_PacketizerBase):  # type: ignore[misc]  # paramiko ships no ty
     compression, packet dumps) goes paramiko's way."""
 
     fast_packets = 0  # sent this way (tests)
+    runs = 0  # runs of more than one packet written in one go (tests)
 
     def send_message(self, data: Any) -> None:
-        if type(data) is not _Data:
+        kind = type(data)
+        if kind is not _Data and kind is not _DataRun:
             return super().send_message(data)  # type: ignore[no-any-return]
+        parts: list[_Data] | tuple[_Data] = data.parts if kind is _DataRun else (data,)
         me: Any = self  # paramiko's private state, by its mangled names
-        header, body = data.header, data.body
-        n = len(header) + len(body)
         with me._Packetizer__write_lock:  # the nonce sequence is the wire's order
             engine = me._Packetizer__block_engine_out
             if (
@@ -219,27 +247,41 @@ class Packetizer(_PacketizerBase):  # type: ignore[misc]  # paramiko ships no ty
                 or me._Packetizer__compress_engine_out is not None
                 or me._Packetizer__dump_packets
             ):
-                return super().send_message(data)  # type: ignore[no-any-return]
+                for part in parts:
+                    super().send_message(part)
+                return None
             bsize = me._Packetizer__block_size_out
-            padding = 3 + bsize - ((n + 4) % bsize)  # as paramiko's _build_packet (AEAD)
-            plain = bytearray(1 + n + padding)
-            plain[0] = padding
-            at = 1 + len(header)
-            plain[1:at] = header
-            plain[at : at + len(body)] = body
-            plain[at + len(body) :] = os.urandom(padding)
-            length = _LENGTH.pack(len(plain))
+            # as paramiko's _build_packet (AEAD): padding to the block, at least 4
+            sizes = [len(part.header) + len(part.body) for part in parts]
+            paddings = [3 + bsize - ((n + 4) % bsize) for n in sizes]
+            noise = os.urandom(sum(paddings))
             iv = me._Packetizer__iv_out
-            out = length + engine.encrypt(iv, plain, length)
-            me._Packetizer__iv_out = self._inc_iv_counter(iv)
-            seq = (me._Packetizer__sequence_number_out + 1) & 0xFFFFFFFF
-            if seq == 0 and not self._initial_kex_done:
-                raise SSHException("Sequence number rolled over during initial kex!")
+            seq = me._Packetizer__sequence_number_out
+            sealed: list[bytes] = []
+            at_noise = 0
+            for part, n, padding in zip(parts, sizes, paddings):
+                header, body = part.header, part.body
+                plain = bytearray(1 + n + padding)
+                plain[0] = padding
+                at = 1 + len(header)
+                plain[1:at] = header
+                plain[at : at + len(body)] = body
+                plain[at + len(body) :] = noise[at_noise : at_noise + padding]
+                at_noise += padding
+                length = _LENGTH.pack(len(plain))
+                sealed += (length, engine.encrypt(iv, plain, length))
+                iv = self._inc_iv_counter(iv)
+                seq = (seq + 1) & 0xFFFFFFFF
+                if seq == 0 and not self._initial_kex_done:
+                    raise SSHException("Sequence number rolled over during initial kex!")
+            me._Packetizer__iv_out = iv
             me._Packetizer__sequence_number_out = seq
-            self.write_all(out)
+            out = b"".join(sealed)
+            self.write_all(memoryview(out))  # a partial send's rest is not copied
             me._Packetizer__sent_bytes += len(out)
-            me._Packetizer__sent_packets += 1
-            self.fast_packets += 1
+            me._Packetizer__sent_packets += len(parts)
+            self.fast_packets += len(parts)
+            self.runs += len(parts) > 1
             if (
                 me._Packetizer__sent_packets >= self.REKEY_PACKETS
                 or me._Packetizer__sent_bytes >= self.REKEY_BYTES
