@@ -78,3 +78,39 @@ def test_a_push_deleting_beyond_the_bound_in_several_batches_keeps_them_all(
     trash = remote_dir / ".fetchsync/trash"
     assert sorted(p.name for p in trash.rglob("*.bag")) == ["bag0.bag", "bag1.bag"]
     assert len(list(trash.rglob("f*.txt"))) == 4000
+
+
+@pytest.mark.ssh
+def test_the_watch_agents_deletions_in_quick_succession_stay_in_the_trash(
+    ssh_home, remote_dir, tmp_path
+):
+    """The watch agent: two 300 MiB bags (sparse) removed a few seconds apart, each its
+    own push on the agent's one connection: the first is still in the trash after the
+    second (the old bound pruned it: 600 MiB > 512)."""
+    import shutil
+    import tempfile
+
+    from test_watch import Watch, same, wait_for
+
+    runtime = Path(tempfile.mkdtemp(prefix="fsw", dir="/tmp"))
+    runtime.chmod(0o700)
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path, XDG_RUNTIME_DIR=str(runtime))
+    src = tmp_path / "ws/src"
+    (src / "bags").mkdir()
+    for i in range(2):
+        with open(src / f"bags/bag{i}.bag", "wb") as f:
+            f.truncate(300 * 1024 * 1024)
+    for i in range(20):
+        (src / f"bags/note{i}.txt").write_text(f"{i}\n")
+    fetchsync("push", env=env)
+    trash = remote_dir / ".fetchsync/trash"
+    w = Watch(env, tmp_path / "watch.log")
+    try:
+        wait_for(lambda: w.status().get("state") == "live", what="the agent to be live")
+        for i in range(2):
+            (src / f"bags/bag{i}.bag").unlink()
+            wait_for(lambda: same(src, remote_dir / "src"), what=f"bag{i}'s deletion")
+        assert sorted(p.name for p in trash.rglob("*.bag")) == ["bag0.bag", "bag1.bag"]
+    finally:
+        w.stop()
+        shutil.rmtree(runtime, ignore_errors=True)
