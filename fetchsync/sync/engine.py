@@ -43,6 +43,7 @@ from fetchsync.protocol.store import Store, is_temp
 from fetchsync.protocol.tree import Entry, ScanResult, entry_from_stat, scan, stat_path
 from fetchsync.sync.plan import COPY, DELTA, WHOLE, Planned, catkin_toplevel, plan
 from fetchsync.sync.state import State, Synced
+from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
 
@@ -943,6 +944,8 @@ class _Batcher:
             ]
             for thread in self._threads:
                 thread.start()
+        if gen == self.gen:
+            mark("push: the first batch read")
         while self._failure is None:
             if self._room.acquire(timeout=LIVENESS_INTERVAL):
                 self._to_pack.put((gen, self.items, self.tags))
@@ -1088,6 +1091,8 @@ class _Batcher:
             sent=sent,
         )
         self.sent.append((pending, b.tags))
+        if self._last_sent is None:
+            mark("push: the first batch sent")
         self._last_sent = pending
         if len(self._early) < FAST_AFTER:
             self._early.append(pending)
@@ -1302,6 +1307,7 @@ class Syncer:
         if open_req is not None and self.opened is None:  # not waited for ahead
             self.opened = open_req.wait()
         listing = list_req.wait() if list_req is not None else Listing(epoch="", gen=-1)
+        mark("push: the robot's listing in")
         if ahead is not None:
             report, stale = ahead
             if stale or listing.drifted or (listing.epoch, listing.gen) != (epoch, gen):
@@ -2019,6 +2025,7 @@ class Round:
         it: a base mismatch (it goes whole next time), a file that vanished (its
         delete), content the robot holds unseen. A lasting failure (no space,
         permission) is reported once. ``stale`` says if another writer was met."""
+        mark("push: planned")
         syncer = self.syncer
         self.report.rounds += 1
         planned = syncer._robot_signatures(planned, self.remote, self.robot_sigs, self.whole_only)
