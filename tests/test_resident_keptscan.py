@@ -232,3 +232,21 @@ def test_used_up_watches_are_given_back_and_not_taken_again(tmp_path, monkeypatc
         (root / "pkg1" / "src" / f"more{n}.cpp").write_text("more\n")
         assert kept_now(kept) == fresh(root)
     assert limited.tries == tries and kept.full_scans == 4
+
+
+def test_a_root_reached_through_a_symlink_is_kept(tmp_path: Path) -> None:
+    """src/ a symlink to the real tree (as the engine's scan, listed through it)."""
+    real = tmp_path / "real"
+    make_tree(real, random.Random(5))
+    root = tmp_path / "src"
+    root.symlink_to(real)
+    kept = KeptScan(str(root), build_rules(()), is_temp=is_temp)
+    assert kept_now(kept) == fresh(root) and kept.warm
+    (real / "pkg3" / "src" / "late.cpp").write_text("late\n")
+    assert kept_now(kept) == fresh(root) and kept.full_scans == 1
+    root.unlink()
+    other = tmp_path / "other"
+    make_tree(other, random.Random(6))
+    root.symlink_to(other)  # pointed elsewhere: another tree
+    assert kept_now(kept) == fresh(root) and kept.full_scans == 2
+    kept.close()

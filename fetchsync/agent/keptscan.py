@@ -149,7 +149,10 @@ class KeptScan:
         """Before a directory is listed: watch it (so that nothing after its listing is
         missed), then check it can be searched, as the engine's scan does."""
         if self._fd >= 0 and self._watching:
-            wd = _inotify().inotify_add_watch(self._fd, os.fsencode(full), WATCHED)
+            # the root is listed through a symlink, as the engine's scan lists it; below
+            # it none is followed
+            mask = WATCHED & ~IN_DONT_FOLLOW if rel == "" else WATCHED
+            wd = _inotify().inotify_add_watch(self._fd, os.fsencode(full), mask)
             if wd < 0:
                 self._watching = False  # it changed meanwhile: watched again next time
                 if ctypes.get_errno() == errno.ENOSPC:  # the watch limit: not again
