@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Iterator
 
 import pytest
-from helpers import fetchsync, local_env, make_workspace, tree_of
+from helpers import fetchsync, local_env, make_workspace, report, tree_of
 
 from fetchsync.link.client import Endpoint
 from fetchsync.link.connection import Connection
@@ -207,6 +207,7 @@ def ssh_push(ssh_home, remote_dir: Path, tmp_path: Path) -> Iterator:
         before = conn.bytes_out
         report = s.push()
         assert report.errors == [] and report.conflicts == []
+        assert report.rounds == 1  # nothing the robot could not apply, sent again
         return conn.bytes_out - before, src, remote_dir / name / "src"
 
     yield push
@@ -238,7 +239,36 @@ def test_a_python_36_endpoint_joins_the_meshes(tmp_path: Path) -> None:
         FETCHSYNC_REMOTE_WORKSPACE="~/rws",
         FETCHSYNC_REMOTE_PYTHON=PY36,
     )
-    fetchsync("push", env=env)
+    out = report(fetchsync("push", "--json", env=env))
+    assert out["rounds"] == 1 and out["ok"], out  # every split mesh joined the first time
     assert tree_of(src) == tree_of(tmp_path / "rh/rws/src")
     built = [p.name for p in (tmp_path / "rh/.cache/fetchsync").iterdir()]
     assert any(name.endswith("-cpython-36") for name in built), built
+
+
+class _Endpoint:
+    stl = True
+
+    class conn:  # noqa: N801 - stands for the Connection attribute
+        compress = True
+        bytes_in = bytes_out = 0
+
+
+def test_a_mesh_the_robot_could_not_apply_goes_as_it_is_next_round() -> None:
+    """A base mismatch puts the path in the round's whole_only: its next write is plain
+    data, not split again (a robot that cannot join would otherwise refuse it again)."""
+    data = sphere(20, 24)
+    op = M.Op(M.WRITE, "m.stl", expect=M.ABSENT, hash="00", size=len(data), source=M.SRC_DATA)
+    sources = []
+    for unsplit in (set(), {"m.stl"}):
+        batcher = sync._Batcher(
+            _Endpoint(),  # type: ignore[arg-type]
+            policy="preserve",
+            epoch="e",
+            gen=0,
+            progress=None,
+            total=0,
+            unsplit=unsplit,
+        )
+        sources.append(batcher._pack(0, [(op, data, True)], [None]).ops[0].source)
+    assert sources == [M.SRC_STL, M.SRC_DATA]

@@ -854,8 +854,10 @@ class _Batcher:
         progress: Progress | None,
         total: int,
         packs: SharedPacks | None = None,
+        unsplit: set[str] | frozenset[str] = frozenset(),
     ) -> None:
         self.endpoint = endpoint
+        self.unsplit = unsplit  # paths the robot could not apply: sent as they are
         self.conn = endpoint.conn
         self.policy, self.epoch, self.gen = policy, epoch, gen
         self.items: list[tuple[M.Op, bytes, bool]] = []
@@ -1068,7 +1070,7 @@ class _Batcher:
         Its count in the header always holds a NUL (SIZE_MAX): _deflate still sees it
         as binary."""
         for k, i in enumerate(binary, start=len(text)):
-            if ops[i].source == M.SRC_DATA:
+            if ops[i].source == M.SRC_DATA and ops[i].path not in self.unsplit:
                 split = stl.split(packed[k])
                 if split is not None:
                     ops[i] = ops[i].but(source=M.SRC_STL)
@@ -2037,6 +2039,7 @@ class Round:
             progress=progress,
             total=sum(p.op.size for p in planned if p.how in (WHOLE, DELTA)),
             packs=syncer.packs,
+            unsplit=self.whole_only,
         )
         again = False
         # settled as the robot answers, so a large push never holds every
