@@ -556,8 +556,7 @@ def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path, p
     every ``pace`` seconds, a fast laptop's to a loaded one's, with a 20 ms stall (the
     scheduler, the disk) every 500. The burst is coalesced: cut only by the cap, so a
     checkout that lasts T seconds comes as about T / cap batches, every path in one, no
-    rescan; besides, at most one slice per cap (coalescer.py: the files closed so far
-    leave early; the sync loop merges what comes while it pushes)."""
+    rescan."""
     expected = _two_branches(src / "repo")
     events: list[Item] = []
     lock = threading.Lock()
@@ -593,13 +592,11 @@ def test_a_git_checkout_of_2000_files_comes_as_a_handful_of_batches(src: Path, p
         got = _replay(events, gaps=gaps, cap=cap)
         paths, dirs_seen, rescans = union(got)
         assert paths == expected and not dirs_seen and not rescans
-        cuts = [b for b in got if not b.sliced]
-        assert len(cuts) <= span / cap + 2, (cap, len(cuts), [len(b.paths) for b in cuts])
-        assert len(got) - len(cuts) <= span / cap + 1
+        assert len(got) <= span / cap + 2, (cap, len(got), [len(b.paths) for b in got])
         # cut by the cap only, never by a stall or the pace: each batch but the last
         # holds (nearly) cap seconds of the burst
-        assert all(b.last_at - b.first_at >= cap - 0.021 - pace for b in cuts[:-1]), [
-            round(b.last_at - b.first_at, 4) for b in cuts
+        assert all(b.last_at - b.first_at >= cap - 0.021 - pace for b in got[:-1]), [
+            round(b.last_at - b.first_at, 4) for b in got
         ]
 
 

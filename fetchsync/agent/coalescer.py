@@ -22,23 +22,6 @@ stream into batches, each one request to the robot:
   not its end, and ending the batch there would only add a round trip. The
   batch after a burst is one from its first item if that item came within
   ``burst_quiet`` of the burst's last (the burst goes on past the cap);
-- **settled files leave a burst early**: in a burst, a file written and closed
-  (``closed`` its newest item) is complete, so it goes in a *slice*, due
-  ``quiet`` after the slice's first such file but not within ``slice_every``
-  (default ``cap``) of the last slice, while the burst goes on (the rest of the batch keeps its
-  windows; a long burst is then cut twice per ``cap``, and the sync loop merges
-  what comes while it pushes). The robot then writes the burst's first files
-  while the later ones are still being written here, instead of after the
-  burst's end (bench/watch.py's 500-file burst: the first batch left ~100 ms
-  after the first write, at the cap, and the robot's file creation, most of
-  the burst's time, began only then). A file not closed yet (still being
-  written) is never in a slice; one touched again after its close leaves the
-  slice for the batch. Slices hold no deletion and no directory: those stay in
-  the batch (the mass-deletion guard sees them there), and a directory to
-  rescan (a new one: its files are reported below it) is rescanned with the
-  batch, which finds the sliced files already on the robot. A directory created
-  in the batch that holds a sliced file is no longer new: deleted before the
-  batch ends, it is removed from the robot too;
 - **cap**: a batch is due at most ``cap`` seconds after its first item, even
   while items keep coming, so a long burst is synced in slices as it goes;
 - **size**: a batch is due at once when it holds ``max_paths`` paths;
@@ -62,7 +45,6 @@ a :class:`Batch`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Final, Literal, Union
 
@@ -155,8 +137,6 @@ class Batch:
     When ``rescan`` is set (its reason), the whole tree is to be rescanned
     and both sets are empty. ``first_at`` and ``last_at`` are the times of
     the first and last item merged into the batch, ``items`` their number.
-    ``sliced``: a burst's closed files, sent ahead of the rest of its batch (the
-    consumer syncs it as any other).
     """
 
     paths: frozenset[str]
@@ -165,7 +145,6 @@ class Batch:
     first_at: float
     last_at: float
     items: int = 0
-    sliced: bool = False
 
 
 class _Entry:
@@ -213,12 +192,9 @@ class Coalescer:
         max_paths: int = MAX_PATHS,
         burst: int = BURST,
         burst_quiet: float = BURST_QUIET,
-        slice_every: float | None = None,
     ) -> None:
-        """``slice_every``: the least time between two slices (default ``cap``)."""
-        slice_every = cap if slice_every is None else slice_every
-        if min(quiet, cap, burst_quiet, slice_every) < 0:
-            raise ValueError("quiet, cap, burst_quiet and slice_every must not be negative")
+        if min(quiet, cap, burst_quiet) < 0:
+            raise ValueError("quiet, cap and burst_quiet must not be negative")
         if max_paths < 1 or burst < 1:
             raise ValueError("max_paths and burst must be at least 1")
         self.quiet = quiet
@@ -226,11 +202,9 @@ class Coalescer:
         self.max_paths = max_paths
         self.burst = burst
         self.burst_quiet = max(quiet, burst_quiet)
-        self.slice_every = slice_every
         self._reset()
         self._ended_at: float | None = None  # when the last batch taken ended, if a burst
         self._taken_at: float | None = None  # when the last batch taken ended
-        self._sliced_at = -math.inf  # when the last slice was taken (its newest item)
 
     def _reset(self) -> None:
         self._entries: dict[str, _Entry] = {}
@@ -239,8 +213,6 @@ class Coalescer:
         self._first_at: float | None = None
         self._last_at = 0.0
         self._items = 0
-        self._settled: dict[str, None] = {}  # closed files for the next slice, in order
-        self._settled_at = 0.0  # when the slice's first file was closed
         self._bursting = False
         self._saved = False  # the newest item completed the save of an existing file
         self._fresh = True  # the batch began after a pause of burst_quiet or more
@@ -266,12 +238,10 @@ class Coalescer:
                 self._rescan = item.reason
                 self._entries.clear()
                 self._dirs.clear()
-                self._settled.clear()
             return
         if self._rescan is not None:
             return
         path = item.path
-        self._settle(item, now)
         if self._dirs and _under(path, self._dirs):
             return
         entry = self._entries.get(path)
@@ -289,21 +259,6 @@ class Coalescer:
             # Changes recorded below it before it are dropped in take().
             self._dirs.add(path)
 
-    def _settle(self, item: Change, now: float) -> None:
-        """Keep the slice's files current: a file just closed joins it, one touched again
-        (or a directory gone with what it held) leaves it."""
-        path, settled = item.path, self._settled
-        if item.kind == CLOSED and not item.is_dir:
-            if not settled:
-                self._settled_at = now
-            settled.pop(path, None)  # to the end: the order of the closes
-            settled[path] = None
-        elif path in settled:
-            del settled[path]
-        elif item.is_dir and item.kind in _GONE and settled:
-            for p in [p for p in settled if _under(p, {path})]:
-                del settled[p]
-
     @property
     def pending(self) -> bool:
         """Whether any item is waiting to be taken."""
@@ -318,46 +273,14 @@ class Coalescer:
         """Seconds from ``now`` until the pending batch is due; 0.0 if it is, None if none."""
         if self._first_at is None:
             return None
-        at = self._batch_at(self._first_at)
-        if self._settled and (self._bursting or self._items >= self.burst):
-            # a slice: quiet after its first close, and not within cap of the last one
-            at = min(at, max(self._settled_at + self.quiet, self._sliced_at + self.slice_every))
-        return max(0.0, at - now)
-
-    def _batch_at(self, first_at: float) -> float:
-        """When the pending batch itself is due (-inf: at once), slices aside."""
         if self.full:
-            return -math.inf
+            return 0.0
         bursting = self._bursting or self._items >= self.burst
         if self._saved and self._fresh and not bursting:
-            return -math.inf
+            return 0.0
         quiet = self.burst_quiet if bursting else self.quiet
-        return min(self._last_at + quiet, first_at + self.cap)
-
-    def _take_slice(self, now: float) -> Batch:
-        """The settled files as a batch of their own; the pending batch goes on without
-        them (a sliced file created in the batch now exists on the robot: its later
-        deletion, or its new directory's, is no longer a temporary cancelling out)."""
-        settled, self._settled = self._settled, {}
-        self._sliced_at = now
-        entries = self._entries
-        for path in settled:
-            entries.pop(path, None)
-            j = path.rfind("/")
-            while j > 0:
-                parent = entries.get(path[:j])
-                if parent is not None and parent.first == CREATED:
-                    parent.first = MODIFIED
-                j = path.rfind("/", 0, j)
-        return Batch(
-            frozenset(settled),
-            frozenset(),
-            None,
-            self._settled_at,
-            self._last_at,
-            len(settled),
-            sliced=True,
-        )
+        at = min(self._last_at + quiet, self._first_at + self.cap)
+        return max(0.0, at - now)
 
     def take(self, now: float, *, force: bool = False) -> Batch | None:
         """The pending batch if it is due at ``now`` (or ``force``), and start a new one.
@@ -369,8 +292,6 @@ class Coalescer:
         if wait is None or (wait > 0 and not force):
             return None
         assert self._first_at is not None
-        if not force and now < self._batch_at(self._first_at):
-            return self._take_slice(now)  # due, and not the batch: its slice
         first_at, last_at, items, rescan = self._first_at, self._last_at, self._items, self._rescan
         burst = self._bursting or items >= self.burst
         self._ended_at = last_at if burst else None
