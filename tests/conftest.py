@@ -18,6 +18,7 @@ Tests that use them are marked ``@pytest.mark.ssh`` by convention.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Iterator
@@ -80,6 +81,20 @@ def proxied_home(
 @pytest.fixture(scope="session")
 def _laptop_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("laptop-cache")
+
+
+@pytest.fixture(autouse=True)
+def _sigint_not_ignored() -> Iterator[None]:
+    """A suite started as a background job of a non-interactive shell (`bash .ci/run &`,
+    nohup) starts with SIGINT ignored; the fetchsync processes the tests start inherit
+    that and Python keeps it ignored, so every Ctrl-C test (a push, the resident's push,
+    run, the fleet) would fail on how the suite was launched. Children start with the
+    default disposition when this process handles SIGINT itself."""
+    saved = signal.getsignal(signal.SIGINT)
+    if saved == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, saved)
 
 
 @pytest.fixture(autouse=True)

@@ -23,19 +23,6 @@ def env(ssh_home, remote_dir, tmp_path):
     return ssh_env(ssh_home.home, remote_dir, tmp_path, make_ws=False)
 
 
-@pytest.fixture(autouse=True)
-def _sigint_not_ignored():
-    """A suite started as a background job of a non-interactive shell starts with SIGINT
-    ignored; the fetchsync processes the tests start inherit that, and Python keeps it
-    ignored, so the Ctrl-C tests would fail on how the suite was launched. Children
-    start with the default disposition when this process handles SIGINT itself."""
-    saved = signal.getsignal(signal.SIGINT)
-    if saved == signal.SIG_IGN:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, saved)
-
-
 def _marker() -> str:
     """A sleep duration unique to one test, to find its processes with pgrep."""
     return f"0.{uuid.uuid4().int % 10**9:09d}"
