@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import os
-import threading
 from collections.abc import Iterator
 
 import pytest
 from sshd import SSHHome
-from test_channel_packets import packetizer, sha256_on_robot
+from test_channel_packets import packetizer, sent_from_threads, sha256_on_robot
 
 from fetchsync.link.ssh import SSHTransport
 
@@ -69,18 +68,7 @@ def test_a_rekey_in_the_middle_of_runs(robot_transport):
 
 
 def test_runs_from_threads_at_once(robot_transport):
-    blobs = [os.urandom(2**20 + 7 * i) for i in range(4)]
-    got: dict[int, str] = {}
-
-    def one(i: int) -> None:
-        got[i] = sha256_on_robot(robot_transport, [blobs[i]])
-
-    threads = [threading.Thread(target=one, args=(i,)) for i in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60)
-    assert got == {i: hashlib.sha256(b).hexdigest() for i, b in enumerate(blobs)}
+    sent_from_threads(robot_transport, [os.urandom(2**20 + 7 * i) for i in range(4)])
 
 
 def test_a_run_goes_through_paramikos_packets_when_the_fast_path_is_off(robot_transport):
