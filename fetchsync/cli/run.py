@@ -99,6 +99,13 @@ def _ending_signals() -> Iterator[None]:
     help="Run the command on a terminal (PTY) on the robot. Default: when stdin is a terminal.",
 )
 @fleet_options
+@click.option(
+    "--json",
+    "as_json",
+    is_flag=True,
+    help="Print a JSON list of per-robot reports on stdout; the command's output goes to "
+    "stderr, prefixed [robot].",
+)
 @click.argument("words", nargs=-1, required=True, type=click.UNPROCESSED, metavar="COMMAND...")
 @click.pass_context
 def command(
@@ -112,6 +119,7 @@ def command(
     jobs: int,
     fail_fast: bool,
     retry_failed: bool,
+    as_json: bool,
     words: tuple[str, ...],
 ) -> None:
     """Run COMMAND on the robot, with the robot's ROS environment.
@@ -124,7 +132,10 @@ def command(
     install/setup.bash, else /opt/ros/$ROS_DISTRO/setup.bash of the robot.
     Ctrl-C stops the command on the robot. Exits with the command's status,
     255 when fetchsync could not run it. On several robots (--robot a,b or
-    @group) it runs on each in parallel, its output prefixed [robot].
+    @group) it runs on each in parallel, its output prefixed [robot]. With
+    --json (one robot or several) stdout is the list of per-robot reports
+    (robot, result, exit_code, fleet_seconds, error) and the command's own
+    output goes to stderr, prefixed [robot].
     """
     from fetchsync.chores.remote import ros_environment, script, wrap
     from fetchsync.console import NO_STATUS, attach
@@ -134,6 +145,9 @@ def command(
     argv_form = ctx.meta.get(_AFTER_DASHES) == list(words)
     line = remote_command_line(words, argv_form=argv_form)
     robots = robots_for("run", robot, retry_failed=retry_failed)
+    if robots is None and as_json:
+        # one robot's report in the fleet's form: its output beside it, prefixed
+        robots = [_target(robot, user, workspace, remote_workspace)[0].robot]
     if robots is not None:
         ctx.exit(
             _fleet_run(
@@ -145,6 +159,7 @@ def command(
                 line=line,
                 jobs=jobs,
                 fail_fast=fail_fast,
+                as_json=as_json,
             )
         )
     target, remote_ws = _target(robot, user, workspace, remote_workspace)
@@ -202,9 +217,11 @@ def _fleet_run(
     line: str,
     jobs: int,
     fail_fast: bool,
+    as_json: bool = False,
 ) -> int:
     """``run`` of one command line on each robot, with an empty stdin (several robots cannot
-    share ours) and no terminal; its output prefixed per robot; the exit status."""
+    share ours) and no terminal; its output prefixed per robot (on stderr with
+    ``as_json``, stdout then being the list of reports); the exit status."""
     from fetchsync.chores.remote import ros_environment, script, wrap
     from fetchsync.cli.fleet import (
         Prefixed,
@@ -247,5 +264,5 @@ def _fleet_run(
             )
         return RobotResult(name, result="ok")
 
-    results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast)
-    return finish("run", results)
+    results = run_all(robots, work, jobs=jobs, fail_fast=fail_fast, stdout=2 if as_json else 1)
+    return finish("run", results, as_json=as_json)
