@@ -63,6 +63,18 @@ def ssh_home(sshd: SSHD, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> SSH
 
 
 @pytest.fixture
+def robot_transport(ssh_home: SSHHome) -> Iterator[object]:
+    """An SSH connection to the tests' robot (fetchsync.link.ssh.SSHTransport), closed after."""
+    from fetchsync.link.ssh import SSHTransport
+
+    transport = SSHTransport.connect("robot", connect_timeout=10.0)
+    try:
+        yield transport
+    finally:
+        transport.close()
+
+
+@pytest.fixture
 def fault_proxy(sshd: SSHD) -> Iterator[FaultProxy]:
     """A link to the robot that a test can blackhole, cut or throttle."""
     with FaultProxy(sshd.host, sshd.port) as proxy:

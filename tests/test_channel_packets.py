@@ -8,23 +8,12 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
-from collections.abc import Iterator
 
 import pytest
-from sshd import SSHHome
 
 from fetchsync.link.ssh import SSHTransport
 
 pytestmark = pytest.mark.ssh
-
-
-@pytest.fixture
-def robot_transport(ssh_home: SSHHome) -> Iterator[SSHTransport]:
-    transport = SSHTransport.connect("robot", connect_timeout=10.0)
-    try:
-        yield transport
-    finally:
-        transport.close()
 
 
 def sha256_on_robot(transport: SSHTransport, pieces: list[bytes]) -> str:

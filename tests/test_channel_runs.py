@@ -9,24 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Iterator
 
 import pytest
-from sshd import SSHHome
 from test_channel_packets import packetizer, sent_from_threads, sha256_on_robot
 
 from fetchsync.link.ssh import SSHTransport
 
 pytestmark = pytest.mark.ssh
-
-
-@pytest.fixture
-def robot_transport(ssh_home: SSHHome) -> Iterator[SSHTransport]:
-    transport = SSHTransport.connect("robot", connect_timeout=10.0)
-    try:
-        yield transport
-    finally:
-        transport.close()
 
 
 def sha256_after(transport: SSHTransport, seconds: float, data: bytes) -> str:

@@ -26,13 +26,6 @@ from fetchsync.link.ssh import SSHTransport
 pytestmark = pytest.mark.ssh
 
 
-@pytest.fixture
-def robot_transport(ssh_home: SSHHome) -> Iterator[SSHTransport]:
-    transport = SSHTransport.connect("robot", connect_timeout=10.0)
-    yield transport
-    transport.close()
-
-
 def run(transport: SSHTransport, command: str) -> tuple[int | None, bytes]:
     chan = transport.exec(command)
     chan.shutdown_write()
