@@ -25,7 +25,6 @@ from paramiko.common import (
 from paramiko.message import Message
 from sshd import SSHHome
 from test_session_channels import held_until_closed, run
-from test_session_channels import robot_transport as robot_transport  # the fixture
 
 from fetchsync.console import resizer
 from fetchsync.link.ssh import SSHTransport
