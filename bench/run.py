@@ -68,6 +68,58 @@ ALIAS = "robot-counted"
 RSYNC_FLAGS = "-phErtzl"  # fetch_tools' -phErtz plus -l: symlinks as symlinks
 KiB = 1024
 
+
+def fetchsync_python() -> str:
+    """The interpreter the bench runs fetchsync with: by default a venv of this one that
+    holds nothing but a path line to this one's site-packages (fetchsync's dependencies),
+    as ``pip install fetchsync`` in a venv gives a user; ``FETCHSYNC_BENCH_PYTHON=base``
+    runs this interpreter itself, any other value names an interpreter.
+
+    Why not this one: this machine's base interpreter runs four ``.pth`` files at every
+    start that a user's laptop does not have (the sandbox's CA injection importing
+    certifi, a coverage hook, setuptools' distutils shim, the editable install's
+    finder): ``python3 -c pass`` takes 0.06-0.07 s here against 0.01-0.02 s in the venv,
+    and a one-shot push pays it once per call (the figures before 27 Nov 2026 include
+    it). A path line in a ``.pth`` only extends ``sys.path``: the ``.pth`` files in that
+    directory are not run. fetchsync itself comes from ``PYTHONPATH`` as before."""
+    choice = os.environ.get("FETCHSYNC_BENCH_PYTHON", "venv")
+    if choice == "base":
+        return sys.executable
+    if choice != "venv":
+        return choice
+    import sysconfig
+
+    purelib = sysconfig.get_paths()["purelib"]
+    platlib = sysconfig.get_paths()["platlib"]
+    import zlib
+
+    key = f"{sys.version_info[0]}.{sys.version_info[1]}-{zlib.crc32(sys.executable.encode()):08x}"
+    root = Path(tempfile.gettempdir()) / f"fetchsync-bench-python-{os.getuid()}" / key
+    exe = root / "bin" / "python3"
+    if exe.exists():
+        return str(exe)
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=root.parent))
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", "--clear", str(tmp)], check=True)
+    site = subprocess.run(
+        [
+            str(tmp / "bin" / "python3"),
+            "-c",
+            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    lines = dict.fromkeys([purelib, platlib])
+    (Path(site) / "_fetchsync_bench_deps.pth").write_text("".join(f"{p}\n" for p in lines))
+    try:
+        tmp.rename(root)
+    except OSError:  # another bench made it meanwhile
+        shutil.rmtree(tmp, ignore_errors=True)
+    return str(exe)
+
+
 # (scenario, title) in the order they run; each leaves the tree the next starts from.
 SCENARIOS = (
     ("initial", "initial push (empty remote)"),
@@ -329,7 +381,7 @@ class FetchsyncPush(Tool):
             env["XDG_RUNTIME_DIR"] = str(runtime)
         if not self.persist:
             env["FETCHSYNC_PERSIST"] = "0"
-        return [sys.executable, "-m", "fetchsync", "push", "--json"], env
+        return [fetchsync_python(), "-m", "fetchsync", "push", "--json"], env
 
     def parse(self, stdout: str) -> dict[str, Any] | None:
         for line in reversed(stdout.splitlines()):
@@ -946,7 +998,9 @@ def machine_info() -> dict[str, str]:
         "rsync": first_line(["rsync", "--version"]),
         "ssh": first_line(["ssh", "-V"]),
         "paramiko": paramiko_version,
-        "fetchsync": first_line([sys.executable, "-m", "fetchsync", "--version"]) + f" ({commit})",
+        "fetchsync": first_line([fetchsync_python(), "-m", "fetchsync", "--version"])
+        + f" ({commit})",
+        "fetchsync_python": fetchsync_python(),
         "commit": commit.split()[0] if git.returncode == 0 else "?",
     }
 
@@ -1462,7 +1516,7 @@ def imported_from(env: dict[str, str], cwd: Path) -> Path:
     """The ``fetchsync`` package a ``python -m fetchsync`` started with ``env`` in ``cwd``
     imports: its directory."""
     proc = subprocess.run(
-        [sys.executable, "-c", "import fetchsync; print(fetchsync.__file__)"],
+        [fetchsync_python(), "-c", "import fetchsync; print(fetchsync.__file__)"],
         env=env,
         cwd=cwd,
         capture_output=True,

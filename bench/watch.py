@@ -81,6 +81,7 @@ from run import (
     baseline_checkout,
     check_source,
     differences,
+    fetchsync_python,
     link_line,
     load_average,
     machine_info,
@@ -257,11 +258,11 @@ class FetchsyncWatch(WatchTool):
         return env
 
     def argv_env(self) -> tuple[list[str], dict[str, str]]:
-        return [sys.executable, "-m", "fetchsync", "watch"], self.env()
+        return [fetchsync_python(), "-m", "fetchsync", "watch"], self.env()
 
     def status(self) -> dict[str, Any]:
         out = subprocess.run(
-            [sys.executable, "-m", "fetchsync", "status", "--json"],
+            [fetchsync_python(), "-m", "fetchsync", "status", "--json"],
             env=self.env(),
             capture_output=True,
             text=True,
