@@ -1472,7 +1472,8 @@ class _Batch:
             out = _Out(fd, s.algorithm, sparse=os.fstat(fd).st_size <= op.size)
             os.lseek(fd, op.size, os.SEEK_SET)
             out.write(view)
-            out.close()
+            if out.pending_hole:  # the piece ends in a hole: the part reaches its end
+                os.ftruncate(fd, op.size + out.size)  # (out.close() would cut it at out.size)
         finally:
             os.close(fd)
 
