@@ -50,6 +50,7 @@ class Server:
         self.out = out
         self.reader = wire.Reader(self._recv, getattr(inp, "readinto", None))
         self.store = None  # type: Optional[Store]
+        self._opened = None  # type: Any  # the open request that made ``store`` (see do_open)
         self.compress = False
         self.algorithm = ""
         self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
@@ -211,24 +212,32 @@ class Server:
 
     def do_open(self, h: "Dict[str, Any]", _blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """Open a workspace; ``readonly``: create nothing, lock nothing, write nothing
-        (``push --dry-run``, ``pull``, status reads), and refuse every change."""
+        (``push --dry-run``, ``pull``, status reads), and refuse every change.
+
+        A re-open of the workspace open in this session, with the same options, keeps
+        its Store (a long-lived endpoint's: the resident's, the watch agent's) instead
+        of reading its index again: it is what a fresh one would load, as
+        :meth:`Store.lock` reloads the index when its files are not the ones this store
+        loaded or last saved (held open, so their inodes are not reused), and a store
+        with a change of its own unsaved is not kept. The locks, the batch marker's
+        clean-up and the descriptors are taken afresh as for a new one."""
         from fetchsync.protocol.ignore import IgnoreRules
 
         self._refused = None
         workspace = expand_workspace(h.get("workspace", ""))
         readonly = h.get("readonly", False) is True
-        if self.store is not None:
+        create = bool(h.get("create", True))
+        key = (workspace, h.get("rules"), create, readonly)
+        if self.store is not None and not (key == self._opened and self.store.reopen()):
             self.store.close()
             self.store = None
-        rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
-        self.store = Store(
-            workspace,
-            algorithm=self.algorithm,
-            rules=rules,
-            create=bool(h.get("create", True)),
-            readonly=readonly,
-        )
-        store = self._store()
+        if self.store is None:
+            rules = IgnoreRules.from_wire(h.get("rules")) if h.get("rules") is not None else None
+            self.store = Store(
+                workspace, algorithm=self.algorithm, rules=rules, create=create, readonly=readonly
+            )
+            self._opened = key
+        store = self._store()  # the index read again here if another writer saved since
         store.save_index()
         return {
             "workspace": workspace,

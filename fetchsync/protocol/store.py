@@ -215,6 +215,12 @@ def _size_at(name: str, dir_fd: int) -> int:
         os.close(fd)
 
 
+def _identity(st: "os.stat_result") -> "Tuple[int, ...]":
+    """What tells one version of an index file from another: the file (device, inode) and
+    its size and times (the journal is appended to in place, the snapshot replaced)."""
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def _write_all(fd: int, data: "Any") -> None:
     view = memoryview(data)
     while view:
@@ -312,6 +318,7 @@ class Store:
         # the trash batches of this store's current deletion (see _prune_trash)
         self._chain = []  # type: List[str]
         self._chain_at = 0.0
+        self._held = []  # type: List[int]  # the index files loaded (see _hold)
         self._open()
         self._load_index()
 
@@ -376,6 +383,12 @@ class Store:
         self._meta_fd = meta_fd
 
     def close(self) -> None:
+        """The end of this store: its descriptors, lock and held index files go."""
+        self._release()
+        self._hold([])
+
+    def _release(self) -> None:
+        """The request's descriptors and lock go (the held index files stay)."""
         if self._lock_fd >= 0:
             os.close(self._lock_fd)
             self._lock_fd = -1
@@ -447,18 +460,59 @@ class Store:
 
     # ------------------------------------------------------------------ index
     def _index_stamp(self) -> "Any":
-        stamp = []  # type: List[Optional[Tuple[int, int, int]]]
+        """The identity of the index files as they stand now (by name)."""
+        stamp = []  # type: List[Optional[Tuple[int, ...]]]
         for name in (INDEX, JOURNAL):
             try:
                 st = os.stat(name, dir_fd=self._meta_fd, follow_symlinks=False)
             except (OSError, ValueError):  # ValueError: no .fetchsync (read-only)
                 stamp.append(None)
             else:
-                stamp.append((st.st_ino, st.st_size, st.st_mtime_ns))
+                stamp.append(_identity(st))
         return tuple(stamp)
 
+    def _held_stamp(self) -> "Any":
+        """The identity of the index files this store loaded or saved last: taken from the
+        descriptors it holds on them (see _hold), before they were read, so a change
+        made after it shows as a different stamp."""
+        return tuple(_identity(os.fstat(fd)) if fd >= 0 else None for fd in self._held)
+
+    def _hold(self, names: "List[str]") -> None:
+        """Hold descriptors of the index files ``names`` (in place of those held before):
+        while held, their inodes cannot be reused by a later file, so a stamp equal to
+        the held one is the same file, not a new one that got its inode number
+        (the check of :meth:`lock`, which lets a kept store skip reloading)."""
+        for fd in self._held:
+            if fd >= 0:
+                os.close(fd)
+        self._held = []
+        for name in names:
+            fd = -1
+            if self._meta_fd >= 0:
+                try:
+                    fd = os.open(name, O_FILE, dir_fd=self._meta_fd)
+                except OSError:
+                    fd = -1
+            self._held.append(fd)
+
+    def _stamp_loaded(self) -> None:
+        """Hold the index files as they stand and remember their identity (before reading
+        them, or right after writing them under the lock)."""
+        self._hold([INDEX, JOURNAL])
+        self._loaded_stamp = self._held_stamp()
+
+    def reopen(self) -> bool:
+        """Ready this store for a new ``open`` of its workspace in the same session, as
+        a fresh Store would be (the index reloaded by :meth:`lock` if another writer
+        saved meanwhile); False if it cannot be (a change of its own left unsaved)."""
+        if self._dirty:
+            return False
+        self._chain = []
+        self._chain_at = 0.0
+        return True
+
     def _load_index(self) -> None:
-        self._loaded_stamp = self._index_stamp()
+        self._stamp_loaded()
         self._touched_synced = set()  # type: Set[str]  # paths changed since the last save
         self._touched_cache = set()  # type: Set[str]
         data = None  # type: Any
@@ -601,7 +655,7 @@ class Store:
         self._touched_synced.clear()
         self._touched_cache.clear()
         self._dirty = False
-        self._loaded_stamp = self._index_stamp()
+        self._stamp_loaded()  # what we wrote, under our lock
 
     def _write_snapshot(self) -> None:
         self._serial = os.urandom(16).hex()
@@ -709,7 +763,7 @@ class Store:
 
     def unlock(self) -> None:
         """The end of a request: the lock and the descriptors go."""
-        self.close()
+        self._release()
 
     # ------------------------------------------------------------------ reading
     def _hash_fd(self, path: str, fd: int, st: "os.stat_result") -> str:
