@@ -87,6 +87,7 @@ MAX_SIGNED = 4 << 30  # the largest file signed: its signature (~40 MiB) fits an
 MAX_READ_SIG = 4 * 1024 * 1024  # the largest signature a delta is made against (400,000 chunks)
 BATCH_MARK = "batch-in-progress"  # while it exists, temporaries may lie in the tree
 TMP = "tmp"
+RACY_NS = 2_000_000_000  # a file modified within this many ns is hashed again (see _racy)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
 O_NEW = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | _CLOEXEC
 NAME_MAX = 255
@@ -820,7 +821,7 @@ class Store:
     def _racy(mtime_ns: int) -> bool:
         # a file modified within the last 2 s may change again without its
         # mtime moving on coarse-timestamp filesystems: do not trust the cache
-        return int(time.time() * 1e9) - mtime_ns < 2_000_000_000
+        return int(time.time() * 1e9) - mtime_ns < RACY_NS
 
     def listed(self, path: str, entry: "Optional[Entry]") -> "Optional[M.Listed]":
         if entry is None:
@@ -903,10 +904,33 @@ class Store:
         against the cache and nothing more.
         """
         entries = self._scan().entries
-        synced = self.synced
+        synced, cache = self.synced, self.cache
+        # what _drifted says of a file its stat cache knows (not racy) or of a directory
+        # with its synced mode, said inline: None (the bench's 2,547 paths, a one-edit
+        # push: the loop's CPU 15 -> ~4 ms)
+        settled = int(time.time() * 1e9) - RACY_NS  # not racy at or before this
         changed = []
         for path, e in entries.items():
-            item = self._drifted(path, e, synced.get(path))
+            rec = synced.get(path)
+            if rec is not None:
+                kind, mode, size, mtime_ns, ctime_ns, ino, _target = e
+                if kind == FILE:
+                    c = cache.get(path)
+                    if (
+                        c is not None
+                        and mtime_ns <= settled
+                        and c[0] == size
+                        and c[1] == mtime_ns
+                        and c[2] == ctime_ns
+                        and c[3] == ino
+                        and rec[0] == FILE
+                        and rec[1] == mode
+                        and rec[2] == c[4]
+                    ):
+                        continue
+                elif kind == DIR and rec[0] == DIR and rec[1] == mode:
+                    continue
+            item = self._drifted(path, e, rec)
             if item is not None:
                 changed.append(item)
         gone = [p for p in synced if p not in entries]
