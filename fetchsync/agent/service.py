@@ -34,6 +34,7 @@ from fetchsync.config import Target
 from fetchsync.errors import FetchsyncError, TransportError, UsageError
 from fetchsync.protocol.errors import ProtocolError
 from fetchsync.protocol.heap import libc, map_large_buffers
+from fetchsync.trace import mark
 
 log = logging.getLogger(__name__)
 
@@ -327,6 +328,7 @@ class Agent:
             kwargs["cap"] = self.cap
         try:
             for batch in batches(self.src, rules=self.rules, stop_event=self.stop_event, **kwargs):
+                mark(f"agent: batch of {len(batch.paths)} paths, {len(batch.dirs)} dirs")
                 if batch.rescan:
                     self.request(full=True)
                 else:
@@ -371,6 +373,7 @@ class Agent:
                     raise TransportError("the link to the robot was closed")
                 self._set_state("syncing")
                 t0 = time.monotonic()
+                mark("agent: push")
                 if work.full or not (work.paths or work.dirs):
                     report = syncer.push()
                 else:
@@ -378,6 +381,7 @@ class Agent:
                 if work.recheck and not work.full:
                     with self.cond:
                         self.pending.full = True  # next: everything, once these are there
+                mark(f"agent: pushed {report.files} files")
                 self._settled(work, report, time.monotonic() - t0)
                 failures = 0
             except (TransportError, ProtocolError, EOFError, OSError) as exc:
