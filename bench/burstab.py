@@ -96,6 +96,7 @@ def one_burst(
         robot_pids = bench.robot_pids()
         cpu_a0, cpu_r0 = cpu_seconds(agent_pids), cpu_seconds(robot_pids)
         log_at = tool.logfile.stat().st_size
+        t_call = time.perf_counter()  # = the first write's time, within microseconds
         b = measure_burst(tool, n, tag)
         time.sleep(0.3)  # the last answer's bookkeeping
         cpu_a1, cpu_r1 = cpu_seconds(agent_pids), cpu_seconds(robot_pids)
@@ -118,7 +119,37 @@ def one_burst(
         "pushed_files": pushes,
         "verified": not diffs,
         "load": load_average(),
+        "timeline": timeline(tool, t_call, b),
     }
+
+
+def timeline(tool: WatchTool, t0: float, b: dict[str, Any]) -> list[tuple[int, str]]:
+    """The agent's trace marks (``--trace``) during the burst: (ms after the first write,
+    what), the bench's last write and arrival among them."""
+    path = tool.env().get("FETCHSYNC_TRACE")
+    out: list[tuple[int, str]] = [(round(b["write_seconds"] * 1e3), "bench: last write")]
+    if b["after_first"] is not None:
+        out.append((round(b["after_first"] * 1e3), "bench: all on the robot"))
+    if path:
+        end = t0 + (b["after_first"] or 60) + 0.2
+        with contextlib.suppress(OSError), open(path) as fh:
+            for line in fh:
+                at, _pid, what = line.rstrip("\n").split(" ", 2)
+                if t0 - 0.01 <= float(at) <= end:
+                    out.append((round((float(at) - t0) * 1e3), what))
+    return sorted(out)
+
+
+def traced(cls: type[FetchsyncWatch], path: Path) -> type[FetchsyncWatch]:
+    """``cls`` with its trace marks written to ``path`` (fetchsync/trace.py)."""
+
+    class Traced(cls):  # type: ignore[valid-type,misc]
+        name = cls.name
+
+        def env(self) -> dict[str, str]:
+            return {**super().env(), "FETCHSYNC_TRACE": str(path)}
+
+    return Traced
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot-parent", type=Path, help="the robot's side under this directory")
     ap.add_argument("--robot-user", default=None)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--trace", action="store_true", help="print the agents' trace marks")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--workdir")
     a = ap.parse_args(argv)
@@ -147,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
             f"fetchsync@{rev}": baseline_watch(rev, checkout),
         }
         names = list(classes)
+        if a.trace:
+            classes = {
+                n: traced(c, workdir / f"trace-{i}") for i, (n, c) in enumerate(classes.items())
+            }
         with contextlib.ExitStack() as stack:
             side = RobotSide.make(a.robot_user, workdir, parent=a.robot_parent)
             stack.callback(side.close)
@@ -175,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
                         f"  ok={row['verified']}  load {row['load']}",
                         flush=True,
                     )
+                    if a.trace:
+                        print("    " + "; ".join(f"{ms} {what}" for ms, what in row["timeline"]))
     for name in names:
         mine = [x for x in rows if x["tool"] == name and x["after_first"] is not None]
         if mine:
