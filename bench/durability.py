@@ -59,7 +59,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -67,6 +67,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
+from robot import loop_disk
 from run import Edits, _workdir, differences, snapshot
 from workspace import Workspace, generate
 
@@ -145,33 +146,6 @@ def sync_time(trace: Path) -> tuple[float, int]:
             total += float(m.group(3))
             n += 1
     return total, n
-
-
-@contextlib.contextmanager
-def loop_disk(workdir: Path, size_mb: int) -> Iterator[Path]:
-    """A fresh ext4 filesystem on a loop device, mounted; yields the mount point."""
-    image, mnt = workdir / "robot-disk.img", workdir / "robot-disk"
-    with open(image, "wb") as fh:
-        fh.truncate(size_mb << 20)
-    # every table written now, so no background initialisation writes during the runs
-    subprocess.run(
-        ["mkfs.ext4", "-q", "-F", "-E", "lazy_itable_init=0,lazy_journal_init=0", str(image)],
-        check=True,
-        capture_output=True,
-    )
-    device = subprocess.run(
-        ["losetup", "-f", "--show", str(image)], check=True, capture_output=True, text=True
-    ).stdout.strip()
-    try:
-        mnt.mkdir(exist_ok=True)
-        subprocess.run(["mount", device, str(mnt)], check=True, capture_output=True)
-        try:
-            yield mnt
-        finally:
-            subprocess.run(["umount", str(mnt)], check=False, capture_output=True)
-    finally:
-        subprocess.run(["losetup", "-d", device], check=False, capture_output=True)
-        image.unlink()
 
 
 class Runner:

@@ -464,7 +464,9 @@ def main(argv: list[str] | None = None) -> int:
             link=a.link,
         )
         with contextlib.ExitStack() as stack:
-            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+            side, sshd = start_robot(
+                stack, a.robot_user, workdir, keep=a.keep, log=log, fs=a.robot_fs
+            )
             baseline = baseline_checkout(a.baseline_rev, workdir) if a.baseline_rev else None
             bench = Bench(
                 workdir=workdir,

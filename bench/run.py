@@ -60,7 +60,13 @@ for _p in (str(BENCH), str(REPO / "tests")):
         sys.path.insert(0, _p)
 
 from countproxy import LINKS, Counter, Link, proxy_command
-from robot import RobotSide, add_robot_user_option
+from robot import (
+    RobotSide,
+    add_robot_user_option,
+    default_robot_user,
+    ensure_account,
+    loop_disk,
+)
 from sshd import SSHD, make_ssh_home, running_sshd
 from workspace import Workspace, generate
 
@@ -1587,16 +1593,28 @@ def start_robot(
     keep: bool = False,
     log: Callable[[str], None],
     name: str = "sshd",
+    fs: str = "ext4",
 ) -> tuple[RobotSide, SSHD]:
     """The robot: its account (``--robot-user``; see bench/robot.py), where its side
-    lives, and the tests' sshd started for it, whose ``user`` is that account. Both
-    end with ``stack``."""
+    lives (``--robot-fs``: a journaled ext4 made for the run, or the account's home),
+    and the tests' sshd started for it, whose ``user`` is that account. All end with
+    ``stack``."""
     # a SIGTERM (timeout(1), a kill by pid) unwinds like Ctrl-C: the sshds (started in
     # sessions of their own) and the robot's side are stopped, not left behind
     signal.signal(signal.SIGTERM, _terminated)
-    side = RobotSide.make(user, workdir, keep=keep)
+    parent = None
+    where = "the account's home (this machine's root file system: ext4 without a journal)"
+    if fs == "ext4":
+        try:
+            home = Path(ensure_account(user or default_robot_user()).pw_dir)
+            parent = stack.enter_context(loop_disk(workdir, mount_in=home))
+            where = f"a fresh journaled ext4 on a loop device ({parent})"
+        except (OSError, subprocess.CalledProcessError) as exc:
+            err = getattr(exc, "stderr", b"") or b""
+            log(f"robot: no loop ext4 ({exc} {err.decode(errors='replace').strip()}): on its home")
+    side = RobotSide.make(user, workdir, keep=keep, parent=parent)
     stack.callback(side.close)
-    log(f"robot: account {side.user}, its side in {side.root}")
+    log(f"robot: account {side.user}, its side in {side.root}, on {where}")
     sshd = stack.enter_context(running_sshd(side.sshd_dir(name)))
     side.opened(sshd.workdir)
     return side, dataclasses.replace(sshd, user=side.user)
@@ -1702,7 +1720,9 @@ def main(argv: list[str] | None = None) -> int:
         }
         log(f"workspace: {ws.files} files, {ws.bytes / 2**20:.1f} MiB in {ws.seconds:.1f} s")
         with contextlib.ExitStack() as stack:
-            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+            side, sshd = start_robot(
+                stack, a.robot_user, workdir, keep=a.keep, log=log, fs=a.robot_fs
+            )
             baseline = [baseline_checkout(rev, workdir) for rev in a.baseline_rev or []]
             measured = baseline_checkout(a.rev, workdir) if a.rev else None
             if measured:

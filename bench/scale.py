@@ -598,7 +598,9 @@ def main(argv: list[str] | None = None) -> int:
             )
         with contextlib.ExitStack() as stack:
             if a.robot == "ssh":
-                side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+                side, sshd = start_robot(
+                    stack, a.robot_user, workdir, keep=a.keep, log=log, fs=a.robot_fs
+                )
                 res["params"]["robot_user"] = side.user
                 robot = Robot("ssh", sshd, side)
             else:

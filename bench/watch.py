@@ -1098,7 +1098,9 @@ def main(argv: list[str] | None = None) -> int:
                 tools.index("fetchsync") + 1 if "fetchsync" in tools else 0, f"fetchsync@{rev}"
             )
         with contextlib.ExitStack() as stack:
-            side, sshd = start_robot(stack, a.robot_user, workdir, keep=a.keep, log=log)
+            side, sshd = start_robot(
+                stack, a.robot_user, workdir, keep=a.keep, log=log, fs=a.robot_fs
+            )
             bench = WatchBench(workdir, sshd, LINKS[a.link], side)
             res["robot"] = side.probe(bench.ssh_argv())
             log(side.describe(res["robot"]))
