@@ -228,7 +228,9 @@ class Server:
         readonly = h.get("readonly", False) is True
         create = bool(h.get("create", True))
         key = (workspace, h.get("rules"), create, readonly)
-        if self.store is not None and not (key == self._opened and self.store.reopen()):
+        if self.store is not None and key == self._opened and self.store.reopen():
+            self.store.keep_listing()  # a long-lived endpoint: see fetchsync.protocol.kept
+        elif self.store is not None:
             self.store.close()
             self.store = None
         if self.store is None:

@@ -320,6 +320,7 @@ class Store:
         self._chain = []  # type: List[str]
         self._chain_at = 0.0
         self._held = []  # type: List[int]  # the index files loaded (see _hold)
+        self.kept_tree = None  # type: Any  # a KeptTree (see keep_listing)
         self._open()
         self._load_index()
 
@@ -384,9 +385,13 @@ class Store:
         self._meta_fd = meta_fd
 
     def close(self) -> None:
-        """The end of this store: its descriptors, lock and held index files go."""
+        """The end of this store: its descriptors, lock, held index files and kept
+        listing go."""
         self._release()
         self._hold([])
+        if self.kept_tree is not None:
+            self.kept_tree.close()
+            self.kept_tree = None
 
     def _release(self) -> None:
         """The request's descriptors and lock go (the held index files stay)."""
@@ -877,7 +882,17 @@ class Store:
             return self._at(path, dir_fd, name)
 
     def _scan(self) -> "Any":
+        if self.kept_tree is not None:
+            return self.kept_tree.scan(self._root().fd)
         return scan_fd(self._root().fd, self.rules, is_temp=is_temp)
+
+    def keep_listing(self) -> None:
+        """Keep the walk of the tree between requests (fetchsync.protocol.kept): for an
+        endpoint that lives across pushes (its Store re-opened)."""
+        if self.kept_tree is None:
+            from fetchsync.protocol.kept import KeptTree  # ctypes: not at every start
+
+            self.kept_tree = KeptTree(self.rules, is_temp)
 
     def listing(self) -> "Tuple[List[M.Listed], List[Tuple[str, str]]]":
         """Everything under the root, with content hashes."""
@@ -895,7 +910,7 @@ class Store:
         for path in [p for p in self.cache if p not in live]:
             self._set_cache(path, None)
         out.sort(key=lambda x: x.path)
-        return out, result.skipped
+        return out, sorted(result.skipped)
 
     def drift(self) -> "Tuple[List[M.Listed], List[str]]":
         """What differs on disk from what was last synced: (changed or new, gone).
@@ -934,6 +949,7 @@ class Store:
             if item is not None:
                 changed.append(item)
         gone = [p for p in synced if p not in entries]
+        changed.sort(key=lambda x: x.path)  # whatever order the walk (or a kept one) had
         return changed, gone
 
     def _drifted(self, path: str, e: "Entry", rec: "Optional[List[Any]]") -> "Optional[M.Listed]":

@@ -270,18 +270,26 @@ def scan_fd(
     *,
     is_temp: "Optional[Callable[[str], bool]]" = None,
     prefix: str = "",
+    on_dir: "Optional[Callable[[int, str], None]]" = None,
+    rules_out: "Optional[Dict[str, Any]]" = None,
 ) -> "ScanResult":
     """:func:`scan` of the directory held by ``root_fd``, each directory opened from its
     parent's descriptor without following symlinks (a directory swapped for a symlink
     while we look is skipped, never followed). ``prefix``: the wire path of ``root_fd``'s
     directory, which the paths returned start with. At most one descriptor per level
-    is open at a time; ``root_fd`` stays open."""
+    is open at a time; ``root_fd`` stays open. ``on_dir(fd, rel)`` is called for each
+    directory before it is listed (to watch it), and ``rules_out`` receives the rules
+    in force below each listed directory."""
     from fetchsync.protocol.paths import NOT_A_DIR, open_dir
 
     entries = {}  # type: Dict[str, Entry]
     skipped = []  # type: List[Tuple[str, str]]
 
+    if on_dir is not None:
+        on_dir(root_fd, prefix)
     names, top_rules = _list_dir(root_fd, prefix, rules, is_temp, entries, skipped)
+    if rules_out is not None:
+        rules_out[prefix] = top_rules
     stack = [(root_fd, prefix, top_rules, iter(names))]
     try:
         while stack:
@@ -302,11 +310,15 @@ def scan_fd(
                 skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
                 continue
             try:
+                if on_dir is not None:
+                    on_dir(sub, path)
                 names, sub_rules = _list_dir(sub, path, dir_rules, is_temp, entries, skipped)
             except OSError as exc:
                 os.close(sub)
                 skipped.append((path, "cannot list: %s" % (exc.strerror or exc)))
                 continue
+            if rules_out is not None:
+                rules_out[path] = sub_rules
             stack.append((sub, path, sub_rules, iter(names)))
     finally:
         for fd, _rel, _rules, _todo in stack:
