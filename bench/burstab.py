@@ -22,8 +22,9 @@ and the first tool of a run meets more of it than the second. Here:
 - load-independent figures beside the wall times: the robot's CPU seconds for the burst
   (the sshd's session tree: the endpoint), the agent's, and the pushes the agent made
   for it (its log's "pushed" lines);
-- ``--robot-parent DIR``: the robot's side of the run under DIR (e.g. a journaled ext4,
-  as a robot's Ubuntu disk is) instead of the account's home.
+- ``--robot-parent DIR``: the robot's side of the run under DIR instead of the account's
+  home; ``--journaled``: the robot's side and the laptop's workspace each on a journaled
+  ext4 of the run's own (bench/journaled.py), as a robot's and a laptop's disks are.
 
 Prints one line per burst and a summary (medians per tool, and per round A - B).
 """
@@ -34,6 +35,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import pwd
 import re
 import signal
 import statistics
@@ -50,7 +52,8 @@ for _p in (str(BENCH), str(REPO / "tests")):
 
 from countproxy import LINKS  # noqa: E402
 from createcost import probe  # noqa: E402
-from robot import RobotSide  # noqa: E402
+from journaled import journaled_fs  # noqa: E402
+from robot import RobotSide, default_robot_user  # noqa: E402
 from run import (  # noqa: E402
     _terminated,
     _workdir,
@@ -162,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--link", choices=sorted(LINKS), default="wifi")
     ap.add_argument("--settle", type=float, default=240.0, help="seconds at most (0: none)")
     ap.add_argument("--robot-parent", type=Path, help="the robot's side under this directory")
+    ap.add_argument("--journaled", action="store_true", help="both sides on a journaled ext4")
     ap.add_argument("--robot-user", default=None)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trace", action="store_true", help="print the agents' trace marks")
@@ -170,8 +174,19 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     signal.signal(signal.SIGTERM, _terminated)  # unwinds: the sshd and agents stopped
     rows: list[dict[str, Any]] = []
-    with _workdir(a.workdir, False) as workdir:
-        ws = generate(workdir / "ws", files=a.files, size_mb=a.size_mb, seed=a.seed)
+    with _workdir(a.workdir, False) as workdir, contextlib.ExitStack() as disk:
+        if a.journaled:
+            pw = pwd.getpwnam(a.robot_user or default_robot_user())
+            a.robot_parent = disk.enter_context(
+                journaled_fs(workdir / "disk.img", owner=(pw.pw_uid, pw.pw_gid))
+            )
+            # the laptop's disk is another one: the robot's syncfs does not flush its writes
+            laptop = disk.enter_context(journaled_fs(workdir / "laptop.img"))
+            log(
+                f"the robot's side on a journaled ext4 at {a.robot_parent}, the laptop's at {laptop}"
+            )
+        wsdir = laptop / "ws" if a.journaled else workdir / "ws"
+        ws = generate(wsdir, files=a.files, size_mb=a.size_mb, seed=a.seed)
         targets = pick_targets(ws)
         rev, checkout = baseline_checkout(a.baseline_rev, workdir)
         classes: dict[str, type[FetchsyncWatch]] = {
