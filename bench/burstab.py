@@ -178,7 +178,9 @@ def main(argv: list[str] | None = None) -> int:
         if a.journaled:
             pw = pwd.getpwnam(a.robot_user or default_robot_user())
             a.robot_parent = disk.enter_context(
-                journaled_fs(workdir / "disk.img", owner=(pw.pw_uid, pw.pw_gid))
+                journaled_fs(
+                    workdir / "disk.img", owner=(pw.pw_uid, pw.pw_gid), under=Path(pw.pw_dir)
+                )
             )
             # the laptop's disk is another one: the robot's syncfs does not flush its writes
             laptop = disk.enter_context(journaled_fs(workdir / "laptop.img"))

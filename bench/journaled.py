@@ -39,16 +39,21 @@ def available() -> bool:
 
 @contextlib.contextmanager
 def journaled_fs(
-    image: Path, *, size: str = "8G", owner: tuple[int, int] | None = None
+    image: Path,
+    *,
+    size: str = "8G",
+    owner: tuple[int, int] | None = None,
+    under: Path | None = None,
 ) -> Iterator[Path]:
     """A fresh ext4 (with its journal: mkfs.ext4's defaults) in the sparse file ``image``,
-    mounted on a new directory beside it, owned by ``owner`` (uid, gid); unmounted and
-    removed at exit."""
+    mounted on a new directory under ``under`` (default beside the image; the robot's
+    account must be able to reach it: its home), owned by ``owner`` (uid, gid); unmounted
+    and removed at exit."""
     image.parent.mkdir(parents=True, exist_ok=True)
     with open(image, "wb") as fh:
         fh.truncate(_bytes(size))
     subprocess.run(["mkfs.ext4", "-q", "-F", str(image)], check=True, capture_output=True)
-    mount = Path(tempfile.mkdtemp(prefix="robot-disk-", dir=image.parent))
+    mount = Path(tempfile.mkdtemp(prefix="disk-", dir=under or image.parent))
     subprocess.run(["mount", "-o", "loop", str(image), str(mount)], check=True, capture_output=True)
     try:
         mount.chmod(0o755)
