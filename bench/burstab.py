@@ -2,7 +2,7 @@
 """The watch agent's burst, A/B: this checkout's agent against REV's, in alternating order.
 
     python3 bench/burstab.py --baseline-rev main --rounds 4 --link wifi [--burst 500]
-        [--settle 240] [--robot-parent DIR] [--files 2000 --size-mb 40] [--json OUT]
+        [--settle 240] [--robot-fs ext4|home] [--laptop-fs ext4|tmp] [--files 2000 --size-mb 40] [--json OUT]
 
 Why a script of its own: bench/watch.py's A/B always runs this checkout's agent first
 and the baseline's second, each burst right after its agent's start, with nothing
@@ -22,9 +22,9 @@ and the first tool of a run meets more of it than the second. Here:
 - load-independent figures beside the wall times: the robot's CPU seconds for the burst
   (the sshd's session tree: the endpoint), the agent's, and the pushes the agent made
   for it (its log's "pushed" lines);
-- ``--robot-parent DIR``: the robot's side of the run under DIR instead of the account's
-  home; ``--journaled``: the robot's side and the laptop's workspace each on a journaled
-  ext4 of the run's own (bench/journaled.py), as a robot's and a laptop's disks are.
+- the robot's side (``--robot-fs``, bench/robot.py) and the laptop's workspace
+  (``--laptop-fs``) each on a journaled ext4 of the run's own by default, as a robot's and
+  a laptop's disks are: nobody else's deletions nearby, no skipped inodes.
 
 Prints one line per burst and a summary (medians per tool, and per round A - B).
 """
@@ -33,9 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
-import pwd
 import re
 import signal
 import statistics
@@ -52,8 +50,7 @@ for _p in (str(BENCH), str(REPO / "tests")):
 
 from countproxy import LINKS  # noqa: E402
 from createcost import probe  # noqa: E402
-from journaled import journaled_fs  # noqa: E402
-from robot import RobotSide, default_robot_user  # noqa: E402
+from robot import add_robot_user_option, loop_disk  # noqa: E402
 from run import (  # noqa: E402
     _terminated,
     _workdir,
@@ -61,8 +58,8 @@ from run import (  # noqa: E402
     check_source,
     load_average,
     settle_allocator,
+    start_robot,
 )
-from sshd import running_sshd  # noqa: E402
 from watch import (  # noqa: E402
     FetchsyncWatch,
     WatchBench,
@@ -164,9 +161,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size-mb", type=float, default=40)
     ap.add_argument("--link", choices=sorted(LINKS), default="wifi")
     ap.add_argument("--settle", type=float, default=240.0, help="seconds at most (0: none)")
-    ap.add_argument("--robot-parent", type=Path, help="the robot's side under this directory")
-    ap.add_argument("--journaled", action="store_true", help="both sides on a journaled ext4")
-    ap.add_argument("--robot-user", default=None)
+    ap.add_argument(
+        "--laptop-fs",
+        choices=("ext4", "tmp"),
+        default="ext4",
+        help="the laptop's workspace on a journaled ext4 of its own (default) or in the work dir",
+    )
+    add_robot_user_option(ap)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trace", action="store_true", help="print the agents' trace marks")
     ap.add_argument("--json", type=Path)
@@ -175,19 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, _terminated)  # unwinds: the sshd and agents stopped
     rows: list[dict[str, Any]] = []
     with _workdir(a.workdir, False) as workdir, contextlib.ExitStack() as disk:
-        if a.journaled:
-            pw = pwd.getpwnam(a.robot_user or default_robot_user())
-            a.robot_parent = disk.enter_context(
-                journaled_fs(
-                    workdir / "disk.img", owner=(pw.pw_uid, pw.pw_gid), under=Path(pw.pw_dir)
-                )
-            )
-            # the laptop's disk is another one: the robot's syncfs does not flush its writes
-            laptop = disk.enter_context(journaled_fs(workdir / "laptop.img"))
-            log(
-                f"the robot's side on a journaled ext4 at {a.robot_parent}, the laptop's at {laptop}"
-            )
-        wsdir = laptop / "ws" if a.journaled else workdir / "ws"
+        wsdir = workdir / "ws"
+        if a.laptop_fs == "ext4":
+            # the laptop's disk: a journaled ext4 of its own too (the bench's writer creates
+            # the burst's files: on this machine's root they meet others' deletions as well)
+            (workdir / "laptop").mkdir()
+            wsdir = disk.enter_context(loop_disk(workdir / "laptop", 2048)) / "ws"
         ws = generate(wsdir, files=a.files, size_mb=a.size_mb, seed=a.seed)
         targets = pick_targets(ws)
         rev, checkout = baseline_checkout(a.baseline_rev, workdir)
@@ -201,12 +195,7 @@ def main(argv: list[str] | None = None) -> int:
                 n: traced(c, workdir / f"trace-{i}") for i, (n, c) in enumerate(classes.items())
             }
         with contextlib.ExitStack() as stack:
-            side = RobotSide.make(a.robot_user, workdir, parent=a.robot_parent)
-            stack.callback(side.close)
-            log(f"robot: account {side.user}, its side in {side.root}")
-            sshd = stack.enter_context(running_sshd(side.sshd_dir("sshd")))
-            side.opened(sshd.workdir)
-            sshd = dataclasses.replace(sshd, user=side.user)
+            side, sshd = start_robot(stack, a.robot_user, workdir, log=log, fs=a.robot_fs)
             bench = WatchBench(workdir, sshd, LINKS[a.link], side)
             stack.callback(bench.close)
             for name, cls in classes.items():
