@@ -12,6 +12,7 @@ robot) alternating on one robot tree, and in-process for which Store is kept.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ from fetchsync.protocol import hashing, wire
 from fetchsync.protocol import messages as M
 from fetchsync.protocol.ignore import build_rules
 from fetchsync.protocol.server import Server
+from fetchsync.protocol.store import Store
 
 ALG = "blake2b-128"
 
@@ -156,3 +158,22 @@ def test_a_kept_store_reloads_an_index_another_endpoint_replaced(tmp_path: Path)
     ours.store.unlock()
     ours.store.close()
     theirs.store.close()
+
+
+def test_a_store_dropped_without_close_gives_its_descriptors_back(tmp_path: Path) -> None:
+    """The laptop's pull only unlocks its Store: the index files it holds (and a kept
+    listing's inotify descriptor) go with it, not at the process's end."""
+    import gc
+
+    ws = str(tmp_path / "ws")
+    fds = len(os.listdir("/proc/self/fd"))
+    for _ in range(20):
+        store = Store(ws, algorithm=ALG)
+        store.keep_listing()
+        store.lock()
+        store.drift()
+        store.save_index()
+        store.unlock()
+        del store
+    gc.collect()
+    assert len(os.listdir("/proc/self/fd")) <= fds

@@ -393,6 +393,16 @@ class Store:
             self.kept_tree.close()
             self.kept_tree = None
 
+    def __del__(self) -> None:
+        # a store dropped without close() (the laptop's pull only unlocks it) gives back
+        # the index files it holds and its kept listing's inotify descriptor
+        try:
+            self._hold([])
+            if self.kept_tree is not None:
+                self.kept_tree.close()
+        except Exception:  # a half-made store, or the interpreter's exit
+            pass
+
     def _release(self) -> None:
         """The request's descriptors and lock go (the held index files stay)."""
         if self._lock_fd >= 0:
