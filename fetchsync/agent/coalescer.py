@@ -22,6 +22,18 @@ stream into batches, each one request to the robot:
   not its end, and ending the batch there would only add a round trip. The
   batch after a burst is one from its first item if that item came within
   ``burst_quiet`` of the burst's last (the burst goes on past the cap);
+- **a new directory is a burst's start**: a batch holding a directory created or
+  moved in waits ``burst_quiet`` too. Its files follow it, but the kernel reports them
+  only once the watch on the new directory is in place, often more than ``quiet``
+  later: cut there, a burst went as a push of the directory and the few files written
+  by then, and all the rest in a second push after the first one's answer.
+  bench/burstab.py traces of 40 500-file bursts into a new directory on wifi (load
+  2-7): 17 were cut so; of the 19 whose writer was done within 80 ms, the 8 cut so took
+  301-654 ms from the first write to all on the robot (median 502, mostly 2 pushes),
+  the 11 others 270-533 (median 331, one push). Interleaved A/B, 8 rounds in alternating order, load
+  1.9-3.8: 266-440 ms (median 348), one push in 8 of 8, vs 305-582 (median 358), one
+  push in 5 of 8 (two cut so: 404, 413 ms); per round -197 -137 +28 -61 +47 +37 -106 +58.
+  A ``mkdir`` alone reaches the robot ``burst_quiet - quiet`` (20 ms) later;
 - **cap**: a batch is due at most ``cap`` seconds after its first item, even
   while items keep coming, so a long burst is synced in slices as it goes;
 - **size**: a batch is due at once when it holds ``max_paths`` paths;
@@ -216,6 +228,7 @@ class Coalescer:
         self._bursting = False
         self._saved = False  # the newest item completed the save of an existing file
         self._fresh = True  # the batch began after a pause of burst_quiet or more
+        self._new_dir = False  # it holds a directory created or moved in: a burst starts
 
     def add(self, item: Item, now: float) -> None:
         """Merge ``item``, which happened at ``now``."""
@@ -258,6 +271,7 @@ class Coalescer:
         if item.is_dir:
             # Changes recorded below it before it are dropped in take().
             self._dirs.add(path)
+            self._new_dir = self._new_dir or item.kind == CREATED
 
     @property
     def pending(self) -> bool:
@@ -275,7 +289,7 @@ class Coalescer:
             return None
         if self.full:
             return 0.0
-        bursting = self._bursting or self._items >= self.burst
+        bursting = self._bursting or self._items >= self.burst or self._new_dir
         if self._saved and self._fresh and not bursting:
             return 0.0
         quiet = self.burst_quiet if bursting else self.quiet
@@ -293,7 +307,7 @@ class Coalescer:
             return None
         assert self._first_at is not None
         first_at, last_at, items, rescan = self._first_at, self._last_at, self._items, self._rescan
-        burst = self._bursting or items >= self.burst
+        burst = self._bursting or items >= self.burst or self._new_dir
         self._ended_at = last_at if burst else None
         self._taken_at = last_at
         paths: list[str] = []
