@@ -8,7 +8,7 @@ travel as ``os.fsdecode`` strings (surrogate escapes), which JSON carries.
 import errno
 import os
 from contextlib import contextmanager
-from typing import Iterator, Optional, Tuple
+from typing import Dict, Iterator, Optional, Tuple
 
 from fetchsync.protocol.errors import PathError
 
@@ -128,6 +128,76 @@ class Root:
         try:
             yield fd, path[i + 1 :]
         finally:
+            os.close(fd)
+
+
+class Dirs:
+    """The directories one batch writes in, their descriptors kept for the batch (a burst of
+    new files in one directory walks it once, not twice per file), each CHECKED AGAIN
+    before every use: every component of its path, from the root's descriptor outwards,
+    must still name the very directory (device and inode) the kept descriptor holds, as
+    the walk of :meth:`Root.open_dir` would find it. Where one no longer does (a directory
+    moved, deleted, or swapped for a symlink since), it is opened afresh from its checked
+    parent with ``O_NOFOLLOW | O_DIRECTORY``: a symlink then fails the operation exactly as
+    a fresh walk does. A descriptor is never trusted beyond that one check: the window
+    between the check and the call that uses it is a fresh walk's own. The descriptors held
+    are bounded (:data:`Dirs.KEEP`); paths deeper than :data:`Dirs.DEPTH` are not kept
+    (the caller walks them with :meth:`Root.parent`)."""
+
+    KEEP = 64  # descriptors held at most (all closed when a walk would pass it)
+    DEPTH = 16  # directories deeper than this are walked afresh, not kept
+
+    def __init__(self, root: Root) -> None:
+        self.root = root
+        self.kept: "Dict[str, Tuple[int, int, int]]" = {}  # path: (fd, st_dev, st_ino)
+
+    def parent(self, path: str) -> "Optional[Tuple[int, str]]":
+        """``(descriptor of path's directory, last component)``, the descriptor this
+        cache's (not to be closed); None where the path is too deep to keep."""
+        i = path.rfind("/")
+        if i < 0:
+            return self.root.fd, path
+        top = path[:i]
+        parts = top.split("/")
+        if len(parts) > self.DEPTH:
+            return None
+        if len(self.kept) + len(parts) > self.KEEP:
+            self.close()
+        fd = self.root.fd
+        where = ""
+        for part in parts:
+            where = where + "/" + part if where else part
+            held = self.kept.get(where)
+            if held is not None:
+                try:
+                    st = os.stat(part, dir_fd=fd, follow_symlinks=False)
+                except OSError:
+                    st = None
+                if st is not None and st.st_ino == held[2] and st.st_dev == held[1]:
+                    fd = held[0]
+                    continue
+                del self.kept[where]
+                os.close(held[0])
+            try:
+                sub = os.open(part, O_DIR, dir_fd=fd)
+            except OSError as exc:
+                if exc.errno == errno.ENOENT:
+                    raise PathError("directory missing: %r" % where) from None
+                if exc.errno in NOT_A_DIR:
+                    raise PathError("not a directory (a symlink?): %r" % where) from None
+                raise
+            try:
+                st = os.fstat(sub)
+            except BaseException:
+                os.close(sub)
+                raise
+            self.kept[where] = (sub, st.st_dev, st.st_ino)
+            fd = sub
+        return fd, path[i + 1 :]
+
+    def close(self) -> None:
+        kept, self.kept = self.kept, {}
+        for fd, _dev, _ino in kept.values():
             os.close(fd)
 
 

@@ -112,6 +112,13 @@ def _temp_name(final_name: str) -> str:
     counter), and within NAME_MAX bytes however many bytes the name's characters take."""
     tail = "%s%s%06x" % (TEMP_MARK, _TEMP_SALT, next(_TEMP_IDS) & 0xFFFFFF)
     room = min(100, NAME_MAX - 1 - len(tail))
+    if len(final_name) <= room:
+        try:
+            final_name.encode("ascii")  # one byte a character: it fits whole
+        except UnicodeError:
+            pass
+        else:
+            return "." + final_name + tail
     raw = os.fsencode(final_name)[:room]
     head = os.fsdecode(raw.decode("utf-8", "ignore").encode("utf-8")) if raw else ""
     name = "." + head + tail
@@ -1417,6 +1424,15 @@ class _Batch:
         self.results = []  # type: List[M.Result]
         self.gen = 0  # the store's generation once this batch is applied
         self.exchanged = False  # the operation being committed has swapped its temporary in
+        self.dirs = None  # type: Optional[paths.Dirs]  # the directories written in, checked at each use
+
+    def _at_parent(self, path: str) -> "Optional[Tuple[int, str]]":
+        """``(descriptor of path's directory, last component)`` from the batch's checked
+        directory descriptors (:class:`paths.Dirs`; not to be closed), or None where the
+        caller walks the path afresh (:meth:`paths.Root.parent`)."""
+        if self.dirs is None:
+            self.dirs = paths.Dirs(self.s._root())
+        return self.dirs.parent(path)
 
     def _view(self, op: "M.Op") -> memoryview:
         """The operation's data, not copied (hashed and written as it lies in the request)."""
@@ -1446,24 +1462,31 @@ class _Batch:
         if TEMP_MARK in op.path and any(is_temp(part) for part in op.path.split("/")):
             # our temporaries' names: never synced, and removed by the cleanup
             raise PathError("%r uses a name reserved for fetchsync's temporaries" % op.path)
-        with s._root().parent(op.path) as (dir_fd, name):
-            if op.kind == M.DELETE:
-                return self._delete(op, dir_fd, name)
-            if op.kind == M.MKDIR:
-                return self._mkdir(op, dir_fd, name)
-            if op.kind == M.CHMOD:
+        if op.kind in (M.DELETE, M.MKDIR, M.CHMOD):
+            with s._root().parent(op.path) as (dir_fd, name):
+                if op.kind == M.DELETE:
+                    return self._delete(op, dir_fd, name)
+                if op.kind == M.MKDIR:
+                    return self._mkdir(op, dir_fd, name)
                 return self._chmod(op, dir_fd, name)
-            # the new content goes to a temporary beside the target, renamed at commit
-            tmp = _temp_name(name)
-            if op.kind == M.SYMLINK:
-                os.symlink(op.target, tmp, dir_fd=dir_fd)
-            else:
-                try:
-                    self._write_temp(op, dir_fd, name, tmp)
-                except (DeltaError, OSError, ProtocolError):
-                    raise
-                except Exception as exc:  # say, a malformed delta: this operation's failure only
-                    return M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
+        at = self._at_parent(paths.validate(op.path))
+        if at is None:
+            with s._root().parent(op.path) as (dir_fd, name):
+                return self._content(op, idx, dir_fd, name)
+        return self._content(op, idx, at[0], at[1])
+
+    def _content(self, op: "M.Op", idx: int, dir_fd: int, name: str) -> "M.Result":
+        """The new content goes to a temporary beside the target, renamed at commit."""
+        tmp = _temp_name(name)
+        if op.kind == M.SYMLINK:
+            os.symlink(op.target, tmp, dir_fd=dir_fd)
+        else:
+            try:
+                self._write_temp(op, dir_fd, name, tmp)
+            except (DeltaError, OSError, ProtocolError):
+                raise
+            except Exception as exc:  # say, a malformed delta: this operation's failure only
+                return M.Result(M.IO_ERROR, "%s: %s" % (op.path, exc))
         self.pending.append((op, idx, tmp))
         return M.Result()
 
@@ -1722,26 +1745,32 @@ class _Batch:
         """Rename the temporary over op.path, once what stands there is what the sender
         last saw, or is kept: a version edited here is linked into the conflicts before
         the rename replaces it, and the rename is the only change to op.path."""
+        at = self._at_parent(op.path)
+        if at is None:
+            with self.s._root().parent(op.path) as (dir_fd, name):
+                return self._replace_at(op, tmp, dir_fd, name)
+        return self._replace_at(op, tmp, at[0], at[1])
+
+    def _replace_at(self, op: "M.Op", tmp: str, dir_fd: int, name: str) -> "M.Result":
         s = self.s
-        with s._root().parent(op.path) as (dir_fd, name):
-            before = lstat_at(name, dir_fd)
-            preserved, aside = self._make_room(op, dir_fd, name)
-            self.exchanged = False
-            try:
-                if aside or not self._swap_in(op, dir_fd, name, tmp, before, preserved):
-                    os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
-                elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
-                    # what the exchange took out changed after it was checked: kept
-                    preserved = s._set_aside(dir_fd, tmp, op.path, "conflicts")
-            except BaseException:
-                if aside:
-                    s._put_back(dir_fd, name, op.path, aside)
-                elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
-                    _renameat2(dir_fd, tmp, name, RENAME_EXCHANGE)  # the robot's version back
-                elif preserved:
-                    s._drop_copy(op.path, "conflicts")
-                raise
-            item = s._written_at(op.path, dir_fd, name, op.hash if op.kind == M.WRITE else "")
+        before = lstat_at(name, dir_fd)
+        preserved, aside = self._make_room(op, dir_fd, name)
+        self.exchanged = False
+        try:
+            if aside or not self._swap_in(op, dir_fd, name, tmp, before, preserved):
+                os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+            elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
+                # what the exchange took out changed after it was checked: kept
+                preserved = s._set_aside(dir_fd, tmp, op.path, "conflicts")
+        except BaseException:
+            if aside:
+                s._put_back(dir_fd, name, op.path, aside)
+            elif self.exchanged and lstat_at(tmp, dir_fd) is not None:
+                _renameat2(dir_fd, tmp, name, RENAME_EXCHANGE)  # the robot's version back
+            elif preserved:
+                s._drop_copy(op.path, "conflicts")
+            raise
+        item = s._written_at(op.path, dir_fd, name, op.hash if op.kind == M.WRITE else "")
         s._record(op.path, item)
         return M.Result(preserved=preserved, written=item.to_wire() if item else None)
 
@@ -1803,6 +1832,9 @@ class _Batch:
         for op, _idx, tmp in self.pending:
             self._unlink(op.path, tmp)
         self.pending = []
+        if self.dirs is not None:
+            self.dirs.close()
+            self.dirs = None
 
 
 RENAME_NOREPLACE = 1
