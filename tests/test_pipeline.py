@@ -74,11 +74,14 @@ def test_frames_are_read_ahead_up_to_a_count_and_a_size():
     # by size: one frame holding most of the bound leaves no room for the next
     q.put("large", server_mod.READ_AHEAD_BYTES - 10)
     waiting = _blocked(q.put, "more", 20)
-    assert q.get() == "large"
-    waiting.join(5)
+    assert q.get() == "large"  # served: held until the next is asked for
+    assert waiting.is_alive()
     assert q.get() == "more"
-    # a frame larger than the bound is taken when nothing waits before it
-    q.put("huge", 3 * server_mod.READ_AHEAD_BYTES)
+    waiting.join(5)
+    # a frame larger than the bound is taken when nothing is held before it (the one
+    # served lets go when the next is asked for)
+    waiting = _blocked(q.put, "huge", 3 * server_mod.READ_AHEAD_BYTES)
     assert q.get() == "huge"
+    waiting.join(5)
     with pytest.raises(queue.Empty):
         q.get(timeout=0.01)

@@ -53,7 +53,7 @@ class Server:
         self._opened = None  # type: Any  # the open request that made ``store`` (see do_open)
         self.compress = False
         self.algorithm = ""
-        self.unpacked = None  # type: Optional[Tuple[bytes, Any]]  # the request's, see _unpacked
+        self.unpacked = None  # type: Optional[Tuple[bytearray, Any]]  # the request's, see _unpacked
         # after a sync refused as stale: (epoch, the generation the store was at), until
         # this client lists or opens again (see _chained)
         self._refused = None  # type: Optional[Tuple[str, int]]
@@ -137,7 +137,9 @@ class Server:
         threading.Thread(
             target=self._read_ahead, args=(frames,), name="fetchsync-read", daemon=True
         ).start()
+        item = frame = None
         while True:
+            item = frame = None  # the last frame's data goes before the next is waited for
             item = frames.get()
             if isinstance(item, BaseException):
                 raise item
@@ -170,12 +172,14 @@ class Server:
     def _read_ahead(self, frames: "_ReadAhead") -> None:
         try:
             while True:
+                frames.wait_below(READ_AHEAD_START)
                 frame = self.reader.read_frame()
-                unpacked = _unpacked(frame)
-                size = len(frame.blob) if frame is not None else 0
-                frames.put((frame, unpacked), size + (len(unpacked[0]) if unpacked else 0))
+                size = _frame_size(frame)
+                frames.reserve(size)  # before inflating: a large frame waits as it came
+                frames.add((frame, _unpacked(frame)), size)
                 if frame is None:
                     return
+                frame = None  # served: its data goes when the serving thread is done with it
         except BaseException as exc:  # EOF mid-frame, garbage: raised by the serving thread
             frames.put(exc)
 
@@ -446,45 +450,78 @@ def _error_frame(req_id: int, exc: "Exception") -> "wire.Frame":
 class _ReadAhead:
     """The request frames read ahead of the serving thread, their compressed parts
     inflated: up to READ_AHEAD of them holding up to READ_AHEAD_BYTES (a frame's data
-    and its inflated part), or a single frame of any size.
+    and its inflated part) with the frame being served, or a single frame of any size.
 
     Four frames keep the laptop reading and compressing while a batch of large files
     is written here; the bound in bytes keeps a queue of large-file frames within the
-    memory of one of small-file frames. The reading thread holds one frame more while
-    it waits for room.
+    memory of one of small-file frames. The frame being served counts until the next is
+    asked for, and the reading thread reads no further frame while READ_AHEAD_START is
+    held, and inflates one only once there is room: a push of 32 MiB meshes peaked the
+    endpoint at 270 MiB (three such frames and the third's inflating), now one frame's
+    (tests/test_endpoint_memory_big.py).
     """
 
     def __init__(self) -> None:
         self._items: "Deque[Tuple[Any, int]]" = collections.deque()
-        self._bytes = 0
+        self._bytes = 0  # queued, being made, and being served
+        self._served = 0
         self._cond = threading.Condition()
 
-    def put(self, item: "Any", size: int = 0) -> None:
-        """Queue ``item``, once there is room for ``size`` more bytes."""
+    def wait_below(self, size: int) -> None:
+        """Return once less than ``size`` bytes are held."""
         with self._cond:
-            while self._items and (
+            while self._bytes >= size:
+                self._cond.wait()
+
+    def reserve(self, size: int) -> None:
+        """Count ``size`` bytes more, once there is room for them (or nothing is held)."""
+        with self._cond:
+            while self._bytes and (
                 len(self._items) >= READ_AHEAD or self._bytes + size > READ_AHEAD_BYTES
             ):
                 self._cond.wait()
-            self._items.append((item, size))
             self._bytes += size
+
+    def add(self, item: "Any", size: int = 0) -> None:
+        """Queue ``item``, its ``size`` bytes reserved before."""
+        with self._cond:
+            self._items.append((item, size))
             self._cond.notify_all()
 
+    def put(self, item: "Any", size: int = 0) -> None:
+        """Queue ``item``, once there is room for ``size`` more bytes."""
+        self.reserve(size)
+        self.add(item, size)
+
     def get(self, timeout: "Optional[float]" = None) -> "Any":
-        """The next item; queue.Empty if none came within ``timeout`` seconds."""
+        """The next item (the one before is done with); queue.Empty if none came within
+        ``timeout`` seconds."""
         with self._cond:
+            self._bytes -= self._served
+            self._served = 0
+            self._cond.notify_all()
             if not self._cond.wait_for(lambda: self._items, timeout):
                 raise queue.Empty
-            item, size = self._items.popleft()
-            self._bytes -= size
-            self._cond.notify_all()
+            item, self._served = self._items.popleft()
             return item
 
     def empty(self) -> bool:
         return not self._items
 
 
-def _unpacked(frame: "Optional[wire.Frame]") -> "Optional[Tuple[bytes, Any]]":
+def _frame_size(frame: "Optional[wire.Frame]") -> int:
+    """The bytes a frame read ahead holds: its data, and its compressed part inflated
+    (the size its header announces, checked when it is inflated)."""
+    if frame is None:
+        return 0
+    zpart = frame.header.get("zpart") if frame.type == wire.T_REQUEST else None
+    inflated = zpart[1] if isinstance(zpart, list) and len(zpart) == 2 else 0
+    if not isinstance(inflated, int) or not 0 <= inflated <= wire.MAX_BODY:
+        inflated = 0
+    return len(frame.blob) + inflated
+
+
+def _unpacked(frame: "Optional[wire.Frame]") -> "Optional[Tuple[bytearray, Any]]":
     """A sync request's compressed part, inflated by the reading thread (zlib lets go of
     the GIL) while the serving one applies the request before; None if it has none, or
     if it is bad: applying the request then says why."""
@@ -505,6 +542,7 @@ def _unpacked(frame: "Optional[wire.Frame]") -> "Optional[Tuple[bytes, Any]]":
 # frames (of up to 8 MiB of a push each) measured 2-5% slower on an initial push
 READ_AHEAD = 4
 READ_AHEAD_BYTES = 48 * 1024 * 1024
+READ_AHEAD_START = 32 * 1024 * 1024  # no further frame is read while this much is held
 
 
 def main() -> None:

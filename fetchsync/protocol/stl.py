@@ -41,7 +41,7 @@ HEADER = 84
 RECORD = 50
 NORMAL = 12  # bytes of a record that go as planes before the rows ...
 ATTR = 48  # ... and those from here on, after them
-SIZE_MAX = 32 * 1024 * 1024  # the largest file split (a push's batches carry files up to it)
+SIZE_MAX = 8 * 1024 * 1024  # the largest file split: its join holds one more copy on the robot
 
 _COUNT = struct.Struct("<I")
 

@@ -149,7 +149,7 @@ def _umask() -> int:
     return _UMASK
 
 
-def unpack_zpart(blob: bytes, zpart: "Any") -> "Tuple[bytes, Any]":
+def unpack_zpart(blob: bytes, zpart: "Any") -> "Tuple[bytearray, Any]":
     """A sync request's blob as (its compressed part inflated, the raw rest, not copied)."""
     if not (
         isinstance(zpart, list)
@@ -160,10 +160,7 @@ def unpack_zpart(blob: bytes, zpart: "Any") -> "Tuple[bytes, Any]":
     ):
         raise ProtocolError("bad compressed-part reference")
     view = memoryview(blob)
-    packed = wire.inflate(view[: zpart[0]], zpart[1])
-    if len(packed) != zpart[1]:
-        raise ProtocolError("compressed part has the wrong length")
-    return packed, view[zpart[0] :]
+    return wire.inflate_exact(view[: zpart[0]], zpart[1]), view[zpart[0] :]
 
 
 def syncfs(fd: int) -> None:
@@ -1212,7 +1209,7 @@ class Store:
         *,
         policy: str = "preserve",
         zpart: "Optional[List[int]]" = None,
-        unpacked: "Optional[Tuple[bytes, Any]]" = None,
+        unpacked: "Optional[Tuple[bytearray, Any]]" = None,
     ) -> "List[M.Result]":
         """Apply ``ops`` in order; one result each. Per-file failures are results.
 
@@ -1228,7 +1225,7 @@ class Store:
         elif zpart is not None:
             packed, blob = unpack_zpart(blob, zpart)
         else:
-            packed = b""
+            packed = bytearray()
         batch = _Batch(self, blob, packed, policy)
         meta = self._meta()
         fd = os.open(
@@ -1249,8 +1246,7 @@ class Store:
         batch.gen = self.gen
         self._dirty = True
         self._prune_trash()
-        self.last_batch = batch
-        return batch.results
+        return batch.results  # the batch, its request's data with it, not kept
 
     def sync(self) -> None:
         """Make everything written so far durable."""
