@@ -40,7 +40,7 @@ def test_the_batches_of_one_deletion_stay_in_the_trash_until_it_ends(store, monk
     old = b"o" * 100
     store.apply([write("old.bag", old)], old)
     _delete(store, "old.bag", old)
-    time.sleep(2.5)  # a deletion long before: the bound applies to it
+    time.sleep(3.5)  # a deletion long before: the bound applies to it (names: to the second)
     for name, data in bags.items():  # one deletion, three batches: 30,000 bytes
         _delete(store, name, data)
         assert (
@@ -49,7 +49,7 @@ def test_the_batches_of_one_deletion_stay_in_the_trash_until_it_ends(store, monk
         )
     assert _trashed(store) == sorted(bags)
     # a later deletion: the bound applies again, the newest batch kept
-    time.sleep(2.5)
+    time.sleep(3.5)
     small = b"s" * 10
     store.apply([write("small.bag", small)], small)
     _delete(store, "small.bag", small)

@@ -62,8 +62,8 @@ META = ".fetchsync"
 TEMP_MARK = ".fetchsync-tmp-"
 TRASH_KEEP_BATCHES = 50
 TRASH_KEEP_BYTES = 512 * 1024 * 1024
-# seconds between two deletions of one store (one endpoint: a push, a watch agent's
-# connection) that make them one deletion, whose trash batches are all kept until it ends
+# seconds between two trash batches (by the time in their names, to the second; any
+# endpoint's) that make them one deletion, whose batches are all kept until it ends
 TRASH_CHAIN = 10.0
 INDEX_VERSION = 3
 INDEX = "index"
@@ -320,9 +320,6 @@ class Store:
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: Set[str]
-        # the trash batches of this store's current deletion (see _prune_trash)
-        self._chain = []  # type: List[str]
-        self._chain_at = 0.0
         self._held = []  # type: List[int]  # the index files loaded (see _hold)
         self.kept_tree = None  # type: Any  # a KeptTree (see keep_listing)
         self._open()
@@ -527,8 +524,6 @@ class Store:
         saved meanwhile); False if it cannot be (a change of its own left unsaved)."""
         if self._dirty:
             return False
-        self._chain = []
-        self._chain_at = 0.0
         return True
 
     def _load_index(self) -> None:
@@ -1290,12 +1285,6 @@ class Store:
             if not self.trash_log or self.trash_log[-1][0] != top:
                 self.trash_log.append([top, 0])
             self.trash_log[-1][1] += size
-            now = time.monotonic()
-            if now - self._chain_at > TRASH_CHAIN:
-                self._chain = []
-            if top not in self._chain:
-                self._chain.append(top)
-            self._chain_at = now
         return shown
 
     def _put_back(self, dir_fd: int, name: str, path: str, where: str) -> None:
@@ -1358,12 +1347,13 @@ class Store:
         batches, the watch agent's ``rm -rf`` seen in bursts: TRASH_CHAIN) as long as
         they are not more than TRASH_KEEP_BATCHES (a deletion of ~200,000 files)."""
         total = sum(n for _d, n in self.trash_log)
+        chain = self._deletion_under_way()
         i = 0
         while i < len(self.trash_log) - 1 and (
             len(self.trash_log) > TRASH_KEEP_BATCHES or total > TRASH_KEEP_BYTES
         ):
             top, n = self.trash_log[i]
-            if top in self._chain and len(self.trash_log) <= TRASH_KEEP_BATCHES:
+            if top in chain and len(self.trash_log) <= TRASH_KEEP_BATCHES:
                 i += 1
                 continue
             del self.trash_log[i]
@@ -1377,6 +1367,24 @@ class Store:
                 pass
             total -= n
             self._dirty = True
+
+    def _deletion_under_way(self) -> "Set[str]":
+        """The newest trash batches each made within TRASH_CHAIN seconds of the next, by
+        the time in their names (stamp): by any endpoint, so a deletion that goes on in
+        a new session (the watch agent reconnected in the middle of an ``rm -rf``) is
+        still one (tests/test_trash_chain_reconnect.py)."""
+        chain = set()  # type: Set[str]
+        later = None  # type: Optional[float]
+        for top, _n in reversed(self.trash_log):
+            try:
+                at = time.mktime(time.strptime(os.path.basename(top)[:15], "%Y%m%d-%H%M%S"))
+            except (ValueError, OverflowError):
+                break
+            if later is not None and not 0 <= later - at < TRASH_CHAIN:
+                break
+            chain.add(top)
+            later = at
+        return chain
 
     def unsynced_below(self, path: str, dir_fd: int, name: str) -> "List[str]":
         """Files and links under directory ``path`` (``name`` in ``dir_fd``) that differ from
