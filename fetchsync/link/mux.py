@@ -630,6 +630,7 @@ class Master:
 
     def _client(self, conn: socket.socket) -> None:
         refill: threading.Timer | None = None
+        channel: Any = None
         try:
             f = conn.makefile("rb")
             line = f.readline(1 << 16)
@@ -655,6 +656,8 @@ class Master:
             except OSError:
                 pass
             conn.close()
+            if channel is not None:  # the caller went before its answer: nobody would end it
+                channel.close()
             if refill is not None:
                 refill.cancel()
                 self._start_refill()
