@@ -253,6 +253,8 @@ class KeptTree:
                 )
             ):
                 continue  # the entry a fresh walk would record (a symlink's target: its inode's)
+            if path.rpartition("/")[2] == IGNORE_FILE:  # written with no event (a hard link)
+                raise _StepAside("an ignore file changed")
             if entry.kind == FILE and stat_mod.S_ISREG(mode):
                 entries[path] = Entry(
                     FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
