@@ -72,3 +72,32 @@ def test_new_files_cost_no_uname_and_three_looks_each_at_their_rename(store, mon
     # per new file: what stands at its path (the swap's and the conflict check's looks)
     # and what was written there after the rename; the mkdir's two looks
     assert calls["lstat_at"] <= 3 * FILES + 2, calls
+
+
+def test_whole_contents_are_hashed_once_each(store, monkeypatch):
+    """A new file sent whole is hashed once, as it lies in the request, before anything is
+    written; the writer does not hash the same bytes again (a 40 MB file: a second pass)."""
+    calls = {"digest": 0, "new": 0}
+    real_digest, real_new = hashing.digest, hashing.new
+
+    def digest(algorithm, data):  # type: ignore[no-untyped-def]
+        calls["digest"] += 1
+        return real_digest(algorithm, data)
+
+    def new(algorithm):  # type: ignore[no-untyped-def]
+        calls["new"] += 1
+        return real_new(algorithm)
+
+    datas = [b"whole %d\n" % i * (i + 1) for i in range(FILES)]
+    ops, at = [], 0
+    for i, data in enumerate(datas):
+        ops.append(write("w%d.txt" % i, data, at))
+        at += len(data)
+    monkeypatch.setattr(hashing, "digest", digest)
+    monkeypatch.setattr(hashing, "new", new)
+    results = store.apply(ops, b"".join(datas))
+    monkeypatch.undo()
+    assert all(r.ok for r in results), results
+    for i, data in enumerate(datas):
+        assert (Path(store.root) / ("w%d.txt" % i)).read_bytes() == data
+    assert calls == {"digest": FILES, "new": 0}, calls

@@ -237,9 +237,10 @@ class _Out:
     """A new file's content, written in order to ``fd`` and hashed as it goes; aligned
     pieces of zeros are skipped (left holes), and :meth:`close` sets the final size."""
 
-    def __init__(self, fd: int, algorithm: str, sparse: bool = True) -> None:
+    def __init__(self, fd: int, algorithm: str, sparse: bool = True, hashed: bool = True) -> None:
         self.fd = fd
-        self.hasher = hashing.new(algorithm)
+        # not hashed: content whose hash was checked as it lies in the request
+        self.hasher = hashing.new(algorithm) if hashed else None
         self.size = 0
         self.sparse = sparse
         self.pending_hole = False
@@ -247,7 +248,8 @@ class _Out:
     def write(self, data: "Any") -> int:
         view = memoryview(data).cast("B") if not isinstance(data, memoryview) else data
         n = len(view)
-        self.hasher.update(view)
+        if self.hasher is not None:
+            self.hasher.update(view)
         pos = 0
         while pos < n:
             # up to the next HOLE boundary of the file, so holes are aligned
@@ -265,10 +267,11 @@ class _Out:
         return n
 
     def close(self) -> str:
-        """The hex digest of everything written; the file's size set (a hole at its end)."""
+        """The hex digest of everything written ("" if not hashed); the file's size set (a
+        hole at its end)."""
         if self.pending_hole:
             os.ftruncate(self.fd, self.size)
-        return self.hasher.digest().hex()
+        return self.hasher.digest().hex() if self.hasher is not None else ""
 
 
 def _copy_fd(src: int, out: "_Out", length: int = -1) -> None:
@@ -1615,7 +1618,8 @@ class _Batch:
         if op.source == M.SRC_UPLOAD:
             self._from_upload(op, dir_fd, tmp, mode)
             return
-        if op.source in (M.SRC_DATA, M.SRC_STL):
+        verified = op.source in (M.SRC_DATA, M.SRC_STL)
+        if verified:
             data = self._view(op)
             if op.source == M.SRC_STL:
                 joined = stl.join(data)
@@ -1627,8 +1631,8 @@ class _Batch:
                 raise DeltaError("reconstructed content does not match its hash")
         fd = os.open(tmp, O_NEW, mode, dir_fd=dir_fd)
         try:
-            out = _Out(fd, s.algorithm)
-            if op.source in (M.SRC_DATA, M.SRC_STL):
+            out = _Out(fd, s.algorithm, hashed=not verified)  # (verified: not hashed twice)
+            if verified:
                 out.write(data)
             elif op.source == M.SRC_DELTA:
                 self._patch(op, dir_fd, name, out)
@@ -1643,7 +1647,8 @@ class _Batch:
                     _copy_fd(src, out)
                 finally:
                     os.close(src)
-            if out.size != op.size or out.close() != op.hash:
+            digest = out.close()
+            if out.size != op.size or (not verified and digest != op.hash):
                 raise DeltaError("reconstructed content does not match its hash")
             if fix is not None:
                 os.fchmod(fd, fix)
