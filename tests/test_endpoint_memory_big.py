@@ -152,3 +152,75 @@ def test_inflate_exact_refuses_what_is_not_its_size() -> None:
         wire.inflate_exact(packed[:-10], len(data))
     with pytest.raises(wire.ProtocolError):
         wire.inflate_exact(b"garbage" * 100, 64 * MiB)
+
+
+@pytest.mark.ssh
+@pytest.mark.slow
+def test_the_endpoint_stays_within_100_mb_answering_a_pull_of_large_files(
+    sshd: Any, ssh_home: Any, remote_dir: Path, tmp_path: Path
+) -> None:
+    """A pull of the largest files a read answers whole, one after 7 MiB of smaller ones
+    in the same read: the answer's frame was the files, their joined data, the body, the
+    compressed body and the frame at once (133 MiB)."""
+    desc = remote_dir / "src/desc"
+    desc.mkdir(parents=True)
+    for i in range(3):
+        (desc / f"whole{i}.stl").write_bytes(big_mesh(sync.BIG, i))
+    (desc / "map.img").write_bytes(os.urandom(sync.BIG) + bytes(sync.PIECE + 64 * 1024))
+    for i in range(7):  # read in one request with the first 32 MiB file after them
+        (desc / f"a{i}.bin").write_bytes(os.urandom(MiB))
+    (desc / "b.bin").write_bytes(os.urandom(sync.BIG))
+    (tmp_path / "ws/src").mkdir(parents=True)
+    conn = Connection.open(SSHTransport.connect("robot", connect_timeout=10.0))
+    state = State(tmp_path / "state.sqlite")
+    try:
+        report = sync.pull(
+            conn,
+            state,
+            local_workspace=str(tmp_path / "ws"),
+            remote_workspace=str(remote_dir),
+            rules=sync.build_rules(),
+            confirm=lambda _report: True,
+        )
+        assert report.errors == []
+        [endpoint] = _endpoints_under(sshd.workdir)
+        peak = _peak(endpoint)
+    finally:
+        conn.close()
+        state.close()
+    assert tree_of(tmp_path / "ws/src") == tree_of(remote_dir / "src")
+    assert peak <= LIMIT, f"the endpoint peaked at {peak / MiB:.1f} MiB"
+
+
+def test_a_frame_in_chunks_is_the_frame() -> None:
+    """encode_frame_chunks writes what encode_frame does (read back the same), compressed
+    or not, and refuses a frame over the cap."""
+    blobs = [b"", b"x" * 10, os.urandom(3 * MiB), bytes(5 * MiB) + os.urandom(1000)]
+    for blob in blobs:
+        for compress in (False, True):
+            frame = wire.Frame(wire.T_RESPONSE, 7, {"items": [1, 2]}, blob)
+            data = b"".join(bytes(c) for c in wire.encode_frame_chunks(frame, compress=compress))
+            got = wire.Reader(_chunks_of(data)).read_frame()
+            assert got is not None and (got.type, got.req_id, got.header) == (
+                wire.T_RESPONSE,
+                7,
+                {"items": [1, 2]},
+            )
+            assert bytes(got.blob) == blob
+            if compress and len(blob) > MiB and blob.count(0) > len(blob) // 2:
+                assert len(data) < len(blob) // 2  # compressed
+    with pytest.raises(wire.ProtocolError):
+        wire.encode_frame_chunks(wire.Frame(wire.T_RESPONSE, 1, {}, os.urandom(wire.MAX_FRAME)))
+
+
+def _chunks_of(data: bytes) -> Any:
+    view = memoryview(data)
+    pos = 0
+
+    def recv(n: int) -> bytes:
+        nonlocal pos
+        out = bytes(view[pos : pos + n])
+        pos += len(out)
+        return out
+
+    return recv

@@ -68,9 +68,10 @@ class Server:
         return read1(n) if read1 is not None else self.inp.read(n)
 
     def _send(self, frame: "wire.Frame") -> None:
-        data = wire.encode_frame(frame, compress=self.compress)
+        chunks = wire.encode_frame_chunks(frame, compress=self.compress)
         with self._out_lock:
-            self.out.write(data)
+            for chunk in chunks:
+                self.out.write(chunk)
             self.out.flush()
             self._working = None
             self._quiet_since = time.monotonic()
@@ -321,12 +322,14 @@ class Server:
         return out, b""
 
     @staticmethod
-    def _per_item(h: "Dict[str, Any]", serve: "Any") -> "Tuple[List[Dict[str, Any]], bytes]":
+    def _per_item(h: "Dict[str, Any]", serve: "Any") -> "Tuple[List[Dict[str, Any]], Any]":
         """Run ``serve(item) -> (answer, data)`` for each item; a failure is that item's answer."""
         items = h.get("items")
         if not isinstance(items, list):
             raise ProtocolError("request without items")
-        parts = []  # type: List[bytes]
+        # one buffer grown as each item's data comes (freed after): a list joined at the
+        # end held every file's data twice (tests/test_endpoint_memory_big.py)
+        out = bytearray()
         pos = 0
         answers = []
         for item in items:
@@ -344,9 +347,10 @@ class Server:
                 continue
             answer["bl"] = [pos, len(data)]
             answers.append(answer)
-            parts.append(data)
+            out += data
             pos += len(data)
-        return answers, b"".join(parts)
+            data = b""
+        return answers, out
 
     def do_read(self, h: "Dict[str, Any]", blob: bytes) -> "Tuple[Dict[str, Any], bytes]":
         """File contents, whole or as a delta against a signature the client sent."""

@@ -28,7 +28,7 @@ import fcntl
 import json
 import struct
 import zlib
-from typing import Any, Callable, Dict, NamedTuple, Optional
+from typing import Any, Callable, Dict, List, NamedTuple, Optional
 
 from fetchsync.protocol.errors import ProtocolError
 
@@ -87,6 +87,47 @@ def encode_frame(
     if len(body) > MAX_FRAME:
         raise ProtocolError("frame of %d bytes is over the cap of %d" % (len(body), MAX_FRAME))
     return _FRAME.pack(len(body), frame.type, flags, frame.req_id) + body
+
+
+def encode_frame_chunks(frame: "Frame", *, compress: bool = False, level: int = 1) -> "List[Any]":
+    """:func:`encode_frame`'s frame (its whole body compressed when that is smaller), as
+    byte strings to write in order, made without joining the blob into one body or the
+    compressed body into one string: the endpoint's answer to a read of a 32 MiB file
+    held the file, the body, its compressed form and the frame at once (a pull peaked
+    it at 132 MiB; tests/test_endpoint_memory_big.py)."""
+    head = json.dumps(frame.header, separators=(",", ":"), default=_json_default).encode("utf-8")
+    prefix = _U32.pack(len(head)) + head
+    body_len = len(prefix) + len(frame.blob)
+    if compress and body_len >= COMPRESS_MIN:
+        c = zlib.compressobj(level)
+        out = [c.compress(prefix)]
+        view = memoryview(frame.blob)
+        size = len(out[0])
+        shrinks = True
+        for start in range(0, len(view), COMPRESS_PIECE):
+            if start >= 4 * COMPRESS_PIECE and size >= start:
+                shrinks = False  # 4 MiB in and not shrinking (a recording): as it is
+                break
+            out.append(c.compress(view[start : start + COMPRESS_PIECE]))
+            size += len(out[-1])
+        if shrinks:
+            out.append(c.flush())
+            size += len(out[-1])
+            if size < body_len:
+                if size > MAX_FRAME:
+                    raise ProtocolError(
+                        "frame of %d bytes is over the cap of %d" % (size, MAX_FRAME)
+                    )
+                return [_FRAME.pack(size, frame.type, FLAG_ZLIB, frame.req_id)] + [
+                    x for x in out if x
+                ]
+        del out
+    if body_len > MAX_FRAME:
+        raise ProtocolError("frame of %d bytes is over the cap of %d" % (body_len, MAX_FRAME))
+    return [_FRAME.pack(body_len, frame.type, 0, frame.req_id) + prefix, frame.blob]
+
+
+COMPRESS_PIECE = 1 << 20  # the blob given to one compress() call (its output is joined)
 
 
 def encode_frame_parts(
