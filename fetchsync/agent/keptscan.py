@@ -32,25 +32,31 @@ import ctypes
 import errno
 import os
 import stat
-import struct
 from typing import Any, Callable
 
 from fetchsync.errors import SyncError
+from fetchsync.protocol.kept import (  # the robot's kept listing: the same inotify
+    _EVENT,
+    IN_ATTRIB,
+    IN_CREATE,
+    IN_DELETE,
+    IN_DELETE_SELF,
+    IN_IGNORED,
+    IN_ISDIR,
+    IN_MODIFY,
+    IN_MOVE_SELF,
+    IN_MOVED_FROM,
+    IN_MOVED_TO,
+    IN_ONLYDIR,
+    IN_Q_OVERFLOW,
+    _parent,
+    _StepAside,
+)
+from fetchsync.protocol.kept import _check_mounts as _check_mounts_at
+from fetchsync.protocol.kept import _inotify as _kept_inotify
 from fetchsync.protocol.tree import DIR, FILE, IGNORE_FILE, Entry, ScanResult, scan
 
-IN_MODIFY = 0x2
-IN_ATTRIB = 0x4
-IN_MOVED_FROM = 0x40
-IN_MOVED_TO = 0x80
-IN_CREATE = 0x100
-IN_DELETE = 0x200
-IN_DELETE_SELF = 0x400
-IN_MOVE_SELF = 0x800
-IN_Q_OVERFLOW = 0x4000
-IN_IGNORED = 0x8000
-IN_ONLYDIR = 0x01000000
 IN_DONT_FOLLOW = 0x02000000
-IN_ISDIR = 0x40000000
 WATCHED = (
     IN_MODIFY
     | IN_ATTRIB
@@ -63,23 +69,17 @@ WATCHED = (
     | IN_ONLYDIR
     | IN_DONT_FOLLOW
 )
-_EVENT = struct.Struct("iIII")
+
 
 _libc: Any = None
 
 
 def _inotify() -> Any:
+    """The C library's inotify calls (the robot's kept listing's), held here too."""
     global _libc
     if _libc is None:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.inotify_init1.argtypes = [ctypes.c_int]
-        libc.inotify_add_watch.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_uint32]
-        _libc = libc
+        _libc = _kept_inotify()
     return _libc
-
-
-class _StepAside(Exception):
-    """The kept scan cannot say what changed: scan the whole tree."""
 
 
 class KeptScan:
@@ -275,56 +275,11 @@ class KeptScan:
 # sees every name created or removed in a watched directory. Any other (NFS, CIFS/SMB,
 # FUSE, 9p, ceph, ...: another machine or a userspace daemon writes there) makes the
 # kept scan step aside.
-LOCAL_FILE_SYSTEMS = frozenset(
-    {"ext2", "ext3", "ext4", "xfs", "btrfs", "tmpfs", "f2fs", "zfs", "jfs", "reiserfs"}
-    | {"bcachefs", "overlay", "ramfs", "hfsplus", "apfs"}
-)
-
-
 def _check_mounts(root: str, mountinfo: str = "/proc/self/mountinfo") -> None:
-    """Step aside unless ``root`` lies on a local file system with no mount point below
-    it (a mount inside the tree can change under a watch without an event: one
-    ``/proc/self/mountinfo`` read a push, ~0.1 ms)."""
-    real = os.path.realpath(root)
-    try:
-        with open(mountinfo, "rb") as fh:
-            lines = fh.read().decode("utf-8", "surrogateescape").splitlines()
-    except OSError as exc:
-        raise _StepAside("the mounts cannot be read") from exc
-    best, fstype = "", ""
-    for line in lines:
-        fields = line.split(" ")
-        try:
-            point = _unescape(fields[4])
-            fs = fields[fields.index("-", 6) + 1]
-        except (IndexError, ValueError):
-            raise _StepAside("a mount line cannot be read") from None
-        if point == real or real.startswith(point.rstrip("/") + "/"):
-            if len(point) >= len(best):
-                best, fstype = point, fs
-        elif point.startswith(real + "/"):
-            raise _StepAside("a mount point inside the tree")
-    if fstype not in LOCAL_FILE_SYSTEMS:
-        raise _StepAside("the tree is not on a local file system")
-
-
-def _unescape(field: str) -> str:
-    """A mountinfo path: space, tab, newline and backslash come as octal escapes."""
-    if "\\" not in field:
-        return field
-    out, i = [], 0
-    while i < len(field):
-        if field[i] == "\\" and field[i + 1 : i + 4].isdigit():
-            out.append(chr(int(field[i + 1 : i + 4], 8)))
-            i += 4
-        else:
-            out.append(field[i])
-            i += 1
-    return "".join(out)
-
-
-def _parent(path: str) -> str:
-    return path.rpartition("/")[0]
+    """:func:`fetchsync.protocol.kept._check_mounts` for ``root`` as named (symlinks in
+    it resolved: the mount table names real paths); one ``/proc/self/mountinfo`` read a
+    push, ~0.1 ms."""
+    _check_mounts_at(os.path.realpath(root), mountinfo)
 
 
 def _within(path: str, top: str) -> bool:

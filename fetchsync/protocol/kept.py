@@ -78,10 +78,12 @@ WATCHED = (
     | IN_ONLYDIR
 )
 _EVENT = struct.Struct("iIII")
-# File systems whose changes all go through this machine's kernel (as the laptop's
-# fetchsync.agent.keptscan.LOCAL_FILE_SYSTEMS): any other makes the kept listing step aside
+# File systems whose changes all go through this machine's kernel (the laptop's
+# fetchsync.agent.keptscan uses these too): any other makes the kept listing step aside
 LOCAL_FILE_SYSTEMS = frozenset(
-    ("ext2 ext3 ext4 xfs btrfs tmpfs f2fs zfs jfs reiserfs bcachefs overlay ramfs hfsplus").split()
+    (
+        "ext2 ext3 ext4 xfs btrfs tmpfs f2fs zfs jfs reiserfs bcachefs overlay ramfs hfsplus apfs"
+    ).split()
 )
 
 _libc: "Any" = None
