@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import re
 import signal
 import statistics
@@ -77,58 +76,6 @@ from watch import (  # noqa: E402
 from workspace import generate  # noqa: E402
 
 
-def lean_burst(tool: WatchTool, n: int, tag: str) -> dict[str, Any]:
-    """bench/watch.py's measure_burst, waiting with one ``stat`` a millisecond instead of one
-    per file still missing (500 every millisecond: about half a CPU of this 2-CPU machine
-    taken from the agent and the robot while the burst is on its way). The files are
-    looked at in order and the look stops at the first one not there yet; the burst is on
-    the robot at the first look that finds every file present, if their contents are
-    then all the written ones (else it waits on)."""
-    d = tool.ws.src / f"bench_burst_{tag}"
-    d.mkdir()
-    files: dict[str, bytes] = {}
-    t_first = time.perf_counter()
-    for i in range(n):
-        data = (f"// burst {tag} file {i} {time.time_ns()}\n" * (20 + i % 50)).encode()
-        name = f"gen_{i:04d}.cpp"
-        with open(d / name, "wb") as fh:
-            fh.write(data)
-        files[name] = data
-    t_last = time.perf_counter()
-    rdir = tool.remote_src / d.name
-    names = list(files)
-    deadline = t_last + 60
-    t_done: float | None = None
-    seen = 0  # names[:seen] were there
-    while time.perf_counter() < deadline:
-        while seen < len(names) and os.path.exists(rdir / names[seen]):
-            seen += 1
-        if seen == len(names):
-            t = time.perf_counter()
-            wrong = [x for x in names if _content(rdir / x) != files[x]]
-            if not wrong:
-                t_done = t
-                break
-            names, seen = wrong, 0
-        time.sleep(0.001)
-    missing = sum(1 for x in files if _content(rdir / x) != files[x])
-    return {
-        "files": n,
-        "bytes": sum(len(v) for v in files.values()),
-        "write_seconds": t_last - t_first,
-        "after_last": None if t_done is None else t_done - t_last,
-        "after_first": None if t_done is None else t_done - t_first,
-        "missing": missing,
-    }
-
-
-def _content(path: Path) -> bytes | None:
-    try:
-        return path.read_bytes()
-    except OSError:
-        return None
-
-
 def one_burst(
     tool: WatchTool,
     bench: WatchBench,
@@ -136,8 +83,6 @@ def one_burst(
     tag: str,
     settle: float,
     targets: list[Path],
-    *,
-    lean: bool = False,
 ) -> dict[str, Any]:
     """Start ``tool`` into a fresh tree, a few saves, settle, the burst; its figures."""
     tool.start()
@@ -158,7 +103,7 @@ def one_burst(
         log_at = tool.logfile.stat().st_size
         t_call = time.perf_counter()  # = the first write's time, within microseconds
         c_call = time.process_time()
-        b = (lean_burst if lean else measure_burst)(tool, n, tag)
+        b = measure_burst(tool, n, tag)  # watch.py's wait: one stat a millisecond
         bench_cpu = time.process_time() - c_call
         time.sleep(0.3)  # the last answer's bookkeeping
         cpu_a1, cpu_r1 = cpu_seconds(agent_pids), cpu_seconds(robot_pids)
@@ -178,7 +123,6 @@ def one_burst(
         "agent_cpu_s": round(cpu_a1 - cpu_a0, 2),
         "robot_cpu_s": round(cpu_r1 - cpu_r0, 2),
         "bench_cpu_s": round(bench_cpu, 3),
-        "lean": lean,
         "pushes": len(pushes),
         "pushed_files": pushes,
         "verified": not diffs,
@@ -232,13 +176,6 @@ def main(argv: list[str] | None = None) -> int:
         help="the laptop's workspace on a journaled ext4 of its own (default) or in the work dir",
     )
     add_robot_user_option(ap)
-    ap.add_argument(
-        "--poll",
-        choices=("full", "lean", "alternate"),
-        default="full",
-        help="wait for the burst as watch.py does (full: every missing file each ms) or lean "
-        "(alternate: rounds 0-1 full, 2-3 lean, ...)",
-    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--trace", action="store_true", help="print the agents' trace marks")
     ap.add_argument("--json", type=Path)
@@ -283,9 +220,8 @@ def main(argv: list[str] | None = None) -> int:
                         f"r{r}{name[-7:]}",
                         a.settle,
                         targets,
-                        lean=a.poll == "lean" or (a.poll == "alternate" and r // 2 % 2 == 1),
                     )
-                    row.update(tool=name, round=r, poll="lean" if row["lean"] else "full")
+                    row.update(tool=name, round=r)
                     rows.append(row)
                     print(
                         f"round {r} {name:22} first->all {row['after_first'] * 1e3:6.0f} ms"
