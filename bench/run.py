@@ -1434,13 +1434,19 @@ def _profile_one(
     lines = ["", f"Profile of a no-op `{tool.name} push` (cProfile; seconds)", ""]
     prof = bench.workdir / f"noop-{tool.name}.prof"
     t0 = time.perf_counter()
-    # `-m cProfile` writes its file after the module returns; fetchsync's main ends the
-    # process with os._exit once the exit handlers ran, so the profile is dumped by one
+    # `-m cProfile` writes its file after the module returns; fetchsync ends the process
+    # with os._exit (the CLI once the exit handlers ran, the resident's fast path without
+    # them), so the profile is dumped by an exit handler and by os._exit itself
     profiled = (
-        "import atexit, cProfile, runpy, sys\n"
+        "import atexit, cProfile, os, runpy, sys\n"
         "out = sys.argv.pop(1)\n"
         "p = cProfile.Profile()\n"
-        "atexit.register(lambda: (p.disable(), p.dump_stats(out)))\n"
+        "def dump():\n"
+        "    p.disable()\n"
+        "    p.dump_stats(out)\n"
+        "atexit.register(dump)\n"
+        "real_exit = os._exit\n"
+        "os._exit = lambda code: (dump(), real_exit(code))\n"
         "p.enable()\n"
         "runpy.run_module('fetchsync', run_name='__main__', alter_sys=True)\n"
     )
