@@ -2324,7 +2324,7 @@ def pull(
     report.skipped += [{"path": p, "reason": r} for p, r in listing.skipped]
     # a local path we could not read is left as it is, not replaced
     guarded = local.guarded()
-    planned = _plan_pull(remote, local, synced, guarded)
+    planned = _copies_kept(_plan_pull(remote, local, synced, guarded))
     for p in planned:
         report.planned.append({"op": p.op.kind, "path": p.op.path, "how": p.how})
     if dry_run or not planned:
@@ -2367,6 +2367,22 @@ def _plan_pull(
         return s.expectation() if s is not None else M.ABSENT
 
     return reconcile(remote, local.items, expect, guarded=guarded, pulling=True)
+
+
+def _copies_kept(planned: list[Planned]) -> list[Planned]:
+    """``planned`` with each copy of a local file that the pull itself replaces (the file,
+    or a directory above it: a write, a link or a directory made there, which first moves
+    the local one aside) read from the robot instead: the copy would find its source gone
+    (the robot copied a file and then edited it, swapped two files). A plain delete of
+    the source comes after every write (the plan's order): a rename still copies."""
+    replaced = {p.op.path for p in planned if p.op.kind in (M.WRITE, M.SYMLINK, M.MKDIR)}
+    out: list[Planned] = []
+    for p in planned:
+        src = p.op.from_path
+        if p.how == COPY and (src in replaced or any(a in replaced for a in ancestors(src))):
+            p = Planned(p.op.but(source=M.SRC_DATA, base="", from_path=""), WHOLE, p.item)
+        out.append(p)
+    return out
 
 
 def _confirm_pull(planned: list[Planned], confirm: Callable[[Report], bool]) -> None:
