@@ -24,7 +24,7 @@ import time
 import types
 import zlib
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Callable, Iterable, Iterator, Mapping, TypeVar
+from typing import Any, Callable, Generator, Iterable, Iterator, Mapping, TypeVar
 
 from fetchsync.errors import ConflictError, MassDeletionError, RemoteError, SyncError
 from fetchsync.link.client import Applied, Content, Endpoint, Failed, Listing, Opened, Pending
@@ -2422,17 +2422,29 @@ def _apply_pulled(
     endpoint: Endpoint, planned: list[Planned], local_workspace: str, report: Report
 ) -> set[str]:
     """Fetch what ``planned`` needs from the robot and apply it to the local workspace,
-    by the same endpoint code the robot runs; report each answer. Returns the paths
-    that failed."""
+    by the same endpoint code the robot runs, a part at a time (:func:`_fetch`); report
+    each answer. Returns the paths that failed."""
     store = Store(local_workspace, algorithm=endpoint.algorithm, create=True)
     store.lock()
-    try:
-        ops, blobs, tags = _fetch(endpoint, planned, report)
-        results = store.apply(ops, b"".join(blobs))
-        store.save_index()
-    finally:
-        store.unlock()
     failed: set[str] = set()
+    try:
+        for ops, blobs, tags in _fetch(endpoint, planned, report):
+            results = store.apply(ops, b"".join(blobs))
+            store.save_index()
+            _report_pulled(tags, results, local_workspace, report, failed)
+    finally:
+        store.discard_uploads()  # a large file's pieces whose file was not written
+        store.unlock()
+    return failed
+
+
+def _report_pulled(
+    tags: list[Planned | None],
+    results: list[M.Result],
+    local_workspace: str,
+    report: Report,
+    failed: set[str],
+) -> None:
     for tag, res in zip(tags, results):
         if tag is None:
             continue
@@ -2451,7 +2463,6 @@ def _apply_pulled(
             continue
         if tag.how != ASIDE:
             report.count(tag)
-    return failed
 
 
 ASIDE = "aside"  # a pull's delete that keeps a local file before its replacement is written
@@ -2483,74 +2494,93 @@ def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list
     return out
 
 
-def _fetch(
-    endpoint: Endpoint, planned: list[Planned], report: Report
-) -> tuple[list[M.Op], list[bytes], list[Planned | None]]:
-    """Read what the plan needs from the robot; return local operations with their blob."""
-    ops: list[M.Op] = []
-    blobs: list[bytes] = []
-    tags: list[Planned | None] = []
-    pos = 0
-    fetched = _read_small(endpoint, planned, report)
+Part = tuple[list[M.Op], list[bytes], list[Planned | None]]
+
+
+def _fetch(endpoint: Endpoint, planned: list[Planned], report: Report) -> Iterator[Part]:
+    """What the plan needs from the robot, as local operations with their blob, in parts
+    of about BATCH_BYTES of content, the next part's reads asked for while one is
+    applied; a large file's pieces a part each. The laptop holds a part or two, never
+    the whole pull (a pull of 80 MiB peaked at 221 MiB; a robot's sizes are its word)."""
+    parts = _pull_parts(planned)
+    asked = [_ask_small(endpoint, part) for part in parts[:1]]
+    for i, part in enumerate(parts):
+        if i + 1 < len(parts):
+            asked.append(_ask_small(endpoint, parts[i + 1]))
+        fetched = _take_small(asked[i], report)
+        asked[i] = []
+        ops: list[M.Op] = []
+        blobs: list[bytes] = []
+        tags: list[Planned | None] = []
+        pos = 0
+        for p in part:
+            op = p.op
+            if op.kind == M.WRITE and p.how != COPY:
+                if op.size > BIG:
+                    if ops:  # what comes before it is applied first, in the plan's order
+                        yield ops, blobs, tags
+                        ops, blobs, tags, pos = [], [], [], 0
+                    whole = yield from _fetch_big(endpoint, p, report)
+                    if whole is None:
+                        continue
+                    op = whole
+                else:
+                    got = fetched.pop(op.path, None)
+                    if got is None:
+                        continue
+                    listed, data = got.listed, got.data
+                    # whole content: pull asks for no delta (see _set_aside_first)
+                    op = op.but(
+                        hash=listed.hash,
+                        size=listed.size,
+                        mode=_no_setid(listed).mode,
+                        source=M.SRC_DATA,
+                        base="",
+                        blob=(pos, len(data)),
+                    )
+                    blobs.append(data)
+                    pos += len(data)
+            ops.append(op)
+            tags.append(p)
+        if ops:
+            yield ops, blobs, tags
+
+
+def _small(p: Planned) -> bool:
+    """Whether ``p`` writes a file read whole from the robot (up to BIG)."""
+    return p.op.kind == M.WRITE and p.how != COPY and p.op.size <= BIG
+
+
+def _pull_parts(planned: list[Planned]) -> list[list[Planned]]:
+    """``planned`` cut, in its order, into parts of about BATCH_BYTES of whole files read
+    from the robot (or BATCH_OPS of them); a large file's pieces count apart."""
+    parts: list[list[Planned]] = [[]]
+    size = count = 0
     for p in planned:
-        op = p.op
-        if op.kind == M.WRITE and p.how != COPY:
-            if op.size > BIG:
-                up = _fetch_big(endpoint, p, report)
-                if up is None:
-                    continue
-                for piece_op, piece in up[0]:
-                    ops.append(piece_op.but(blob=(pos, len(piece))))
-                    blobs.append(piece)
-                    tags.append(None)
-                    pos += len(piece)
-                op = up[1]
-            else:
-                got = fetched.get(op.path)
-                if got is None:
-                    continue
-                listed, data = got.listed, got.data
-                # whole content: pull asks for no delta (see _set_aside_first)
-                op = op.but(
-                    hash=listed.hash,
-                    size=listed.size,
-                    mode=_no_setid(listed).mode,
-                    source=M.SRC_DATA,
-                    base="",
-                    blob=(pos, len(data)),
-                )
-                blobs.append(data)
-                pos += len(data)
-        ops.append(op)
-        tags.append(p)
-    return ops, blobs, tags
+        if size >= BATCH_BYTES or count >= BATCH_OPS:
+            parts.append([])
+            size = count = 0
+        parts[-1].append(p)
+        if _small(p):
+            size += p.op.size
+            count += 1
+    return parts if parts[0] else []
 
 
-def _read_small(endpoint: Endpoint, planned: list[Planned], report: Report) -> dict[str, Content]:
-    """The robot's answers and content for the whole files of ``planned`` (those up to BIG),
-    asked for in pipelined requests of about BATCH_BYTES."""
-    pending: list[tuple[Pending[list[Content | Failed]], list[Planned]]] = []
-    items: list[str] = []
-    group: list[Planned] = []
-    queued = 0
+def _ask_small(
+    endpoint: Endpoint, part: list[Planned]
+) -> list[tuple[Pending[list[Content | Failed]], list[Planned]]]:
+    """The read of the whole files of ``part`` (those up to BIG), sent."""
+    group = [p for p in part if _small(p)]
+    return [(endpoint.send_read([p.op.path for p in group]), group)] if group else []
 
-    def flush() -> None:
-        nonlocal items, group, queued
-        if items:
-            pending.append((endpoint.send_read(items), group))
-        items, group, queued = [], [], 0
 
-    for p in planned:
-        if p.op.kind != M.WRITE or p.how == COPY or p.op.size > BIG:
-            continue  # a large file is fetched piece by piece (_fetch_big)
-        items.append(p.op.path)
-        group.append(p)
-        queued += p.op.size
-        if queued >= BATCH_BYTES or len(items) >= BATCH_OPS:
-            flush()
-    flush()
+def _take_small(
+    asked: list[tuple[Pending[list[Content | Failed]], list[Planned]]], report: Report
+) -> dict[str, Content]:
+    """The robot's answers and content for a read :func:`_ask_small` sent."""
     fetched: dict[str, Content] = {}
-    for answers, group in pending:
+    for answers, group in asked:
         for p, ans in zip(group, answers.wait()):
             if isinstance(ans, Failed):
                 report.errors.append({"path": p.op.path, "error": ans.message})
@@ -2561,9 +2591,10 @@ def _read_small(endpoint: Endpoint, planned: list[Planned], report: Report) -> d
 
 def _fetch_big(
     endpoint: Endpoint, p: Planned, report: Report
-) -> tuple[list[tuple[M.Op, bytes]], M.Op] | None:
+) -> Generator[Part, None, M.Op | None]:
+    """A large file read piece by piece, each piece a part of its own (an upload piece);
+    returns the operation that writes the file from them, or None (reported)."""
     upload = os.urandom(8).hex()
-    pieces: list[tuple[M.Op, bytes]] = []
     offset = 0
     listed = None
     while offset < p.op.size:
@@ -2574,12 +2605,13 @@ def _fetch_big(
         listed = ans.listed
         if not ans.data:
             break
-        pieces.append((M.Op(M.UPLOAD, "", upload=upload, size=offset), ans.data))
+        piece = M.Op(M.UPLOAD, "", upload=upload, size=offset, blob=(0, len(ans.data)))
+        yield [piece], [ans.data], [None]
         offset += len(ans.data)
     if listed is None or listed.hash != p.op.hash or offset != listed.size:
         report.errors.append({"path": p.op.path, "error": "changed on the robot while it was read"})
         return None
-    return pieces, p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
+    return p.op.but(source=M.SRC_UPLOAD, upload=upload, base="")
 
 
 def _conflicts_ahead(
