@@ -325,6 +325,9 @@ class Store:
         self._uploads = set()  # type: Set[str]
         self._held = []  # type: List[int]  # the index files loaded (see _hold)
         self.kept_tree = None  # type: Any  # a KeptTree (see keep_listing)
+        # the laptop's pull: a file replaced goes to the trash, as a deleted one (set
+        # aside only once its replacement is whole: a full disk leaves it in place)
+        self.keep_replaced = False
         self._open()
         self._load_index()
 
@@ -1798,6 +1801,9 @@ class _Batch:
             return preserved, "conflicts"
         if cur is not None and not _same(op, cur) and self._conflict(op, cur):
             return s._keep_copy(dir_fd, name, op.path, "conflicts"), ""
+        if cur is not None and not _same(op, cur) and s.keep_replaced:
+            s._set_aside(dir_fd, name, op.path, "trash")
+            return "", "trash"
         return "", ""
 
     def _swap_in(

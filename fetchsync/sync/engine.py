@@ -2335,9 +2335,7 @@ def pull(
         return report
     if planned and confirm is not None:
         _confirm_pull(planned, confirm)
-    failed = _apply_pulled(
-        endpoint, _set_aside_first(planned, local.items), local_workspace, report
-    )
+    failed = _apply_pulled(endpoint, planned, local_workspace, report)
     final = scan_local(local_root, rules, {}, algorithm) if planned else local
     upserts = _pulled_rows(final, remote, synced, guarded, failed)
     # the robot's index is left as it was: the next push finds the paths pulled as
@@ -2425,6 +2423,9 @@ def _apply_pulled(
     by the same endpoint code the robot runs, a part at a time (:func:`_fetch`); report
     each answer. Returns the paths that failed."""
     store = Store(local_workspace, algorithm=endpoint.algorithm, create=True)
+    # a local file replaced goes to the trash (or, edited since the last sync, to the
+    # conflicts) once its replacement is whole: a write that fails leaves it in place
+    store.keep_replaced = True
     store.lock()
     failed: set[str] = set()
     try:
@@ -2461,11 +2462,9 @@ def _report_pulled(
             failed.add(tag.op.path)
             report.errors.append({"path": tag.op.path, "error": res.message or res.code})
             continue
-        if tag.how != ASIDE:
-            report.count(tag)
+        report.count(tag)
 
 
-ASIDE = "aside"  # a pull's delete that keeps a local file before its replacement is written
 SETID = stat_mod.S_ISUID | stat_mod.S_ISGID
 
 
@@ -2474,24 +2473,6 @@ def _no_setid(item: M.Listed) -> M.Listed:
     return (
         item._replace(mode=item.mode & ~SETID) if item.kind == "f" and item.mode & SETID else item
     )
-
-
-def _set_aside_first(planned: list[Planned], local: dict[str, M.Listed]) -> list[Planned]:
-    """``planned`` with each write over a local file or link preceded by its delete.
-
-    The endpoint replaces a file that holds the last-synced version without keeping
-    it (the robot's case: the laptop has it); a pull must keep the local one, so it
-    is deleted first, which moves it to the trash (or to conflicts/ if it was edited
-    since), and the write then expects nothing there.
-    """
-    out: list[Planned] = []
-    for p in planned:
-        here = local.get(p.op.path)
-        if p.op.kind in (M.WRITE, M.SYMLINK) and here is not None and here.kind != "d":
-            out.append(Planned(M.Op(M.DELETE, p.op.path, expect=p.op.expect), ASIDE))
-            p = Planned(p.op.but(expect=M.ABSENT), p.how, p.item)
-        out.append(p)
-    return out
 
 
 Part = tuple[list[M.Op], list[bytes], list[Planned | None]]
@@ -2529,7 +2510,7 @@ def _fetch(endpoint: Endpoint, planned: list[Planned], report: Report) -> Iterat
                     if got is None:
                         continue
                     listed, data = got.listed, got.data
-                    # whole content: pull asks for no delta (see _set_aside_first)
+                    # whole content: pull asks for no delta (the local file goes to the trash)
                     op = op.but(
                         hash=listed.hash,
                         size=listed.size,
