@@ -141,6 +141,11 @@ class State:
                 "rebuilt from the robot's listing"
             )
             self.db = self._open()
+        # the rows as last read or committed by this connection, and PRAGMA data_version
+        # then (see entries())
+        self._rows: dict[str, Synced] | None = None
+        self._signed: set[str] | None = None
+        self._rows_version = -1
 
     def _open(self) -> sqlite3.Connection:
         db = sqlite3.connect(str(self.path), isolation_level=None)
@@ -192,12 +197,42 @@ class State:
     def gen(self) -> int:
         return int(self.get("gen", "-1"))
 
+    def _version(self) -> int:
+        """SQLite's ``PRAGMA data_version``: it moves whenever ANOTHER connection (another
+        process's push, pull, reset) commits to the database, never for this one's."""
+        return int(self.db.execute("PRAGMA data_version").fetchone()[0])
+
+    def _still_kept(self) -> bool:
+        """Whether what this connection keeps of the rows is still what the table holds:
+        no other connection committed since it was read; else it goes."""
+        if self._rows is None and self._signed is None:
+            return False
+        if self._version() == self._rows_version:
+            return True
+        self._rows = self._signed = None
+        return False
+
     def entries(self) -> dict[str, Synced]:
+        """Every row (a new dict: the caller's to change).
+
+        A process that pushes again and again (the resident) reads them once: this
+        connection keeps the rows it read and applies its own commits to them, and
+        reads them again when ``PRAGMA data_version`` says another connection committed
+        since (the version is taken before the read: a commit between the two makes the
+        next call read again). So it answers what a read of the table would
+        (tests/test_state_kept_rows.py). The bench's 2,547 rows: ~10 ms read, ~0.3 ms
+        kept (and :meth:`signed_paths` ~4 ms -> ~0.1 ms)."""
+        if self._still_kept() and self._rows is not None:
+            return dict(self._rows)
+        version = self._version()
         out = {}
         for row in self.db.execute(
             "SELECT path, kind, mode, hash, target, size, mtime_ns, ctime_ns, ino FROM entries"
         ):
             out[_decode(row[0])] = Synced(*row[1:])
+        if self._rows_version != version:
+            self._signed = None
+        self._rows, self._rows_version = dict(out), version
         return out
 
     def has_entries(self) -> bool:
@@ -208,10 +243,17 @@ class State:
         return bytes(row[0]) if row and row[0] is not None else None
 
     def signed_paths(self) -> set[str]:
-        """Paths whose stored entry has a delta signature."""
-        return {
+        """Paths whose stored entry has a delta signature (kept as :meth:`entries`' rows)."""
+        if self._still_kept() and self._signed is not None:
+            return set(self._signed)
+        version = self._version()
+        signed = {
             _decode(r[0]) for r in self.db.execute("SELECT path FROM entries WHERE sig IS NOT NULL")
         }
+        if self._rows_version != version:
+            self._rows = None
+        self._signed, self._rows_version = set(signed), version
+        return signed
 
     def commit(
         self,
@@ -222,7 +264,19 @@ class State:
         replace_all: bool = False,
     ) -> None:
         """Apply one batch of changes atomically. A ``None`` signature keeps the stored one
-        only when the content hash is unchanged."""
+        only when the content hash is unchanged.
+
+        What :meth:`entries` and :meth:`signed_paths` keep takes the same changes once
+        the commit is done, if no other connection committed before it (else, and on
+        any failure, it goes: read again next time)."""
+        rows_kept, signed = (self._rows, self._signed) if self._still_kept() else (None, None)
+        self._rows = self._signed = None  # until committed
+        if rows_kept is None:
+            signed = None  # its changes depend on the rows' hashes
+        changed: list[tuple[str, Synced, bytes | None]] | None = (
+            [] if rows_kept is not None else None
+        )
+        deletes = list(deletes)
         with self._transaction() as cur:
             if replace_all:
                 cur.execute("DELETE FROM entries")
@@ -241,12 +295,31 @@ class State:
                     s.ino,
                     sig,
                 )
-                for path, s, sig in upserts
+                for path, s, sig in _noted(upserts, changed)
             )
             cur.executemany(_UPSERT, rows)
             cur.executemany("DELETE FROM entries WHERE path=?", [(_encode(p),) for p in deletes])
             for name, value in (meta or {}).items():
                 cur.execute("INSERT OR REPLACE INTO meta VALUES (?,?)", (name, value))
+        if rows_kept is None or changed is None:
+            return
+        if replace_all:
+            rows_kept.clear()
+            if signed is not None:
+                signed.clear()
+        for path, s, sig in changed:  # as _UPSERT does it
+            if signed is not None:
+                old = rows_kept.get(path)
+                if sig is not None:
+                    signed.add(path)
+                elif old is None or old.hash != s.hash:
+                    signed.discard(path)
+            rows_kept[path] = s if type(s) is Synced else Synced(*s)
+        for path in deletes:
+            rows_kept.pop(path, None)
+            if signed is not None:
+                signed.discard(path)
+        self._rows, self._signed = rows_kept, signed
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[sqlite3.Cursor]:
@@ -270,6 +343,16 @@ class State:
 
     def reset(self) -> None:
         self.commit(replace_all=True, meta={"epoch": "", "gen": "-1"})
+
+
+def _noted(
+    upserts: Iterable[tuple[str, Synced, bytes | None]],
+    into: list[tuple[str, Synced, bytes | None]] | None,
+) -> Iterator[tuple[str, Synced, bytes | None]]:
+    for each in upserts:
+        if into is not None:
+            into.append(each)
+        yield each
 
 
 # A NULL signature keeps the stored one only while the content hash is the same.
