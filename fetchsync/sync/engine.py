@@ -937,7 +937,8 @@ class _Batcher:
             f"sample {worth!r}", data, lambda d: wire.compressible(d, worth=worth), by_content
         )
 
-    def flush(self) -> None:
+    def flush(self, *, last: bool = False) -> None:
+        """Hand the operations added so far on as one batch; ``last``: none follow."""
         if self._failure is not None:
             # the packer or the sender failed: say so now, not after reading and
             # hashing the rest of the tree for batches that would never be sent
@@ -948,6 +949,15 @@ class _Batcher:
         # of this round may apply only if nobody else wrote in between
         gen = self.gen + self.batches
         self.batches += 1
+        if last and not self._threads:
+            # the round's only batch (a save, an edit): packed and sent on this thread.
+            # Two threads started for it and two hand-overs cost a wifi save ~0.8 ms
+            # before its bytes left, and ms more whenever the CPUs were busy
+            # (FETCHSYNC_TRACE, bench/saveab.py)
+            mark("push: the first batch read")
+            job, self.items, self.tags, self.raw_len = (gen, self.items, self.tags), [], [], 0
+            self._send(self._pack(*job))
+            return
         if not self._threads:
             self._threads = [
                 threading.Thread(target=loop, name=name, daemon=True)
@@ -2067,7 +2077,7 @@ class Round:
                     again |= self.settle(batcher.answered())
             # no post-apply scan: the robot reported its changes at the start of
             # this push, and each operation re-checks its own path there
-            batcher.flush()
+            batcher.flush(last=True)
             again |= self.settle(batcher.answered(wait=True))
         finally:
             batcher.close()
