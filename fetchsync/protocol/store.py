@@ -93,6 +93,11 @@ O_NEW = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | _CLOEXEC
 NAME_MAX = 255
 KEPT = ("conflicts", "trash")  # the places a robot keeps replaced and deleted files
 MAX_KEPT = 100000  # the most kept files one listing names
+# a batch with at most this many new contents (a save) fsyncs each temporary instead of
+# one syncfs before the renames: a journaled ext4 (bench robot's loop disk) took 1.6 vs
+# 2.5 ms (p50; p90 6.0 vs 9.2) for one 10 KB temporary, on a wifi save's critical path;
+# and a syncfs waits for whatever else the robot writes (a rosbag being recorded)
+FSYNC_EACH = 1
 
 
 class StoreError(ProtocolError):
@@ -1228,6 +1233,7 @@ class Store:
         else:
             packed = bytearray()
         batch = _Batch(self, blob, packed, policy)
+        batch.fsync_each = sum(op.kind in (M.WRITE, M.SYMLINK) for op in ops) <= FSYNC_EACH
         meta = self._meta()
         fd = os.open(
             BATCH_MARK, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | _CLOEXEC, 0o600, dir_fd=meta
@@ -1435,6 +1441,8 @@ class _Batch:
         self.gen = 0  # the store's generation once this batch is applied
         self.exchanged = False  # the operation being committed has swapped its temporary in
         self.dirs = None  # type: Optional[paths.Dirs]  # the directories written in, checked at each use
+        self.fsync_each = False  # each temporary fsynced once written (see FSYNC_EACH)
+        self.unsynced = False  # a temporary not fsynced: a syncfs before the renames
 
     def _at_parent(self, path: str) -> "Optional[Tuple[int, str]]":
         """``(descriptor of path's directory, last component)`` from the batch's checked
@@ -1490,6 +1498,7 @@ class _Batch:
         tmp = _temp_name(name)
         if op.kind == M.SYMLINK:
             os.symlink(op.target, tmp, dir_fd=dir_fd)
+            self.unsynced = True
         else:
             try:
                 self._write_temp(op, dir_fd, name, tmp)
@@ -1620,6 +1629,7 @@ class _Batch:
         fix = mode if mode & _umask() or mode & ~0o777 else None  # else open() makes it so
         if op.source == M.SRC_UPLOAD:
             self._from_upload(op, dir_fd, tmp, mode)
+            self.unsynced = True
             return
         verified = op.source in (M.SRC_DATA, M.SRC_STL)
         if verified:
@@ -1655,6 +1665,10 @@ class _Batch:
                 raise DeltaError("reconstructed content does not match its hash")
             if fix is not None:
                 os.fchmod(fd, fix)
+            if self.fsync_each:
+                os.fsync(fd)  # durable before it is renamed into place
+            else:
+                self.unsynced = True
         except BaseException:
             os.close(fd)
             os.unlink(tmp, dir_fd=dir_fd)
@@ -1733,7 +1747,7 @@ class _Batch:
         if not self.pending and not any(op.kind != M.UPLOAD for op in self.ops):
             return  # upload parts only: nothing is reported written yet
         root = self.s._root()
-        if self.pending:
+        if self.unsynced:
             syncfs(root.fd)  # the temporaries' content, before any is renamed into place
         self.pending.reverse()  # taken from the end, in order
         while self.pending:
