@@ -241,7 +241,9 @@ def start_resident(target: Target, sock: Path) -> None:
         "-c",
         # no descriptor of the caller's beyond stdio (posix_spawn closes none): a harness's
         # pipe, a jobserver's, would wait for the resident's end (tests/test_resident_detach)
-        "import os, sys, json; os.closerange(3, os.sysconf('SC_OPEN_MAX')); "
+        # nothing imported from '' (-c's working directory: where the push was typed)
+        "import sys; sys.path[:] = [p for p in sys.path if p]; "
+        "import os, json; os.closerange(3, os.sysconf('SC_OPEN_MAX')); "
         "sys.path[:] = json.loads(sys.argv[1]); "
         "from fetchsync.agent.resident import main; sys.exit(main(sys.argv[2:]))",
         json.dumps(path),

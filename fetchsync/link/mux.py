@@ -406,10 +406,16 @@ def spawn_master(host: str, user: str | None, path: Path, *, spare: bool = False
     lock = _starting(path)
     if lock is None:
         return  # another master is connecting already
+    # not ``-m``: it puts the working directory (where the push was typed: a shared
+    # checkout, /tmp) first on the master's path; this process's own path instead
+    imports = [os.path.abspath(p) for p in sys.path]
     argv = [
         sys.executable,
-        "-m",
-        "fetchsync.link.mux",
+        "-c",
+        "import sys; sys.path[:] = [p for p in sys.path if p]; import json; "
+        "sys.path[:] = json.loads(sys.argv.pop(1)); "
+        "from fetchsync.link.mux import main; sys.exit(main())",
+        json.dumps(imports),
         "--host",
         host,
         "--socket",

@@ -45,12 +45,16 @@ from fetchsync.protocol.errors import ProtocolError
 NEED = b"FSYNC-NEED\n"
 NEED_LOADER = b"FSYNC-NEED-LOADER\n"
 
-# The command line of every endpoint start: the version check, then the loader from
+# The command line of every endpoint start: '' (``-c``'s working directory, the robot
+# user's home) off the import path before anything is imported (a ~/queue.py or
+# ~/typing.py broke every start, or ran as the endpoint), the version check, then the loader from
 # the cache when the private cache directory holds it under its hash, else from the
 # client (it caches itself). Every byte of it crosses the link at every start (a push
 # through the master pays its spare's), and every user on the robot can read it in ps.
 STUB = r"""
-import sys, os, hashlib
+import sys
+sys.path[:] = [p for p in sys.path if p]
+import os, hashlib
 if sys.version_info < (3, 6):
     sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.6: install one (apt install python3) and set FETCHSYNC_REMOTE_PYTHON to it" % tuple(sys.version_info[:3]))
 h, n, u = sys.argv[1], int(sys.argv[2]), os.getuid()
@@ -82,7 +86,9 @@ exec(compile(b, "fetchsync-loader", "exec"), g)
 """.strip()
 
 LOADER = r"""
-import sys, os
+import sys
+sys.path[:] = [p for p in sys.path if p]
+import os
 if sys.version_info < (3, 6):
     sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.6: install one (apt install python3) and set FETCHSYNC_REMOTE_PYTHON to it" % tuple(sys.version_info[:3]))
 if sys.flags.no_site:
