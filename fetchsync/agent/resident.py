@@ -410,11 +410,12 @@ class Resident:
             policy="preserve",
         )
         try:
-            # the tree as a fresh scan finds it, from the kept scan when it can say
-            # (else the engine scans, while the robot works out its changes)
-            scanned = kept.scan() if kept is not None and kept.warm else None
-            mark("resident: scanned" if scanned is not None else "resident: scan not kept")
-            report = syncer.push(scanned=scanned)
+            # the tree as a fresh scan finds it, from the kept scan when it can say (else
+            # the engine's scan), made once the robot is asked for its changes: the robot
+            # works out its listing meanwhile
+            warm = kept is not None and kept.warm
+            mark("resident: pushing" if warm else "resident: pushing (scan not kept)")
+            report = syncer.push(scanner=kept.scan if warm else None)
         except (TransportError, ProtocolError, EOFError, OSError) as exc:
             # the link (or the robot's answers) failed: the client pushes again itself,
             # the way a push after a killed one does

@@ -1294,13 +1294,16 @@ class Syncer:
         dry_run: bool = False,
         progress: Progress | None = None,
         scanned: ScanResult | None = None,
+        scanner: Callable[[], ScanResult] | None = None,
         confirm_deletions: bool = False,
         ahead_ok: bool = True,
     ) -> Report:
         """Make the robot's tree identical to the local one, after asking it what changed there.
 
         ``scanned``: the local tree scanned (by :func:`scan_tree`) since the last push,
-        such as the CLI's scan made while the robot's endpoint starts.
+        such as the CLI's scan made while the robot's endpoint starts. ``scanner``: what
+        scans it instead of :func:`scan_tree` (the resident's kept scan), called once the
+        robot has been asked for its changes, so both work at once.
         ``confirm_deletions``: delete most of the robot's files if that is what the
         plan says (else :class:`MassDeletionError`, see :func:`refuse_mass_deletion`).
         ``ahead_ok``: the local changes may go before the robot's answer (see
@@ -1314,7 +1317,8 @@ class Syncer:
         open_req, list_req = self._send_open_and_list(dry_run=dry_run)
         synced = self._load_synced()  # while the robot answers
         if scanned is None:
-            scanned = scan_tree(self.local_root, self.rules)
+            scanned = scanner() if scanner is not None else scan_tree(self.local_root, self.rules)
+            mark("push: scanned")
         excluded = LocalRules(self.local_root, self.rules)
         ahead = None
         if (
