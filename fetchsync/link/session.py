@@ -138,14 +138,24 @@ def open_transport(
         mark("session: the master " + ("answered" if attached else "is not there"))
         if attached is not None:
             return attached
-    from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only when needed
+    from fetchsync.link import early
 
+    # the route this host took last time, opened before paramiko's import (~60 ms) that
+    # the fresh resolution needs: its first answer comes meanwhile (see early)
+    route = early.start(target.host, user=target.user)
+    try:
+        from fetchsync.link.ssh import SSHTransport  # paramiko is slow to import: only when needed
+    except BaseException:
+        if route is not None:
+            route.close()
+        raise
     transport = SSHTransport.connect(
         target.host,
         user=target.user,
         accept_fingerprint=accept_fingerprint,
         password_callback=terminal_prompt(),
         confirm_callback=terminal_confirm(),
+        early=route,
     )
     # a master authenticates on its own, without a terminal: after a password
     # login it would only add a failed login to the robot's log

@@ -55,6 +55,7 @@ from paramiko.ssh_exception import (
 )
 
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
+from fetchsync.link import early as early_route
 from fetchsync.link.channels import (
     Packetizer,
     SessionSlots,
@@ -66,6 +67,7 @@ from fetchsync.link.transport import Capabilities, Channel
 from fetchsync.protocol.wire import widen_pipe
 from fetchsync.trace import mark
 
+mark("ssh: paramiko imported")
 log = logging.getLogger(__name__)
 # paramiko logs a dropped link as an ERROR ("Socket exception: ...") before we
 # report it as a LinkLostError; with no handler configured Python would print
@@ -321,6 +323,7 @@ class SSHTransport:
         password_callback: PasswordCallback | None = None,
         confirm_callback: PasswordCallback | None = None,
         progress: Callable[[], None] | None = None,
+        early: early_route.EarlyLink | None = None,
     ) -> SSHTransport:
         """Connect and authenticate to ``host`` (an ssh config alias, a name or an address).
 
@@ -332,9 +335,17 @@ class SSHTransport:
         key, the login): a connection master says so to the calls waiting for it.
         ``user`` and ``port`` win over the config's User and Port (a config
         ProxyCommand's ``%p`` still stands for the config's Port).
+        ``early``: the route remembered for ``host``, opened before paramiko was imported
+        (fetchsync.link.early); used if the config resolves to it now, else closed.
         """
-        config = load_ssh_config(config_path)
-        settings = resolve_host(host, config=config, user=user, port=port)
+        identity = early_route.config_identity(early_route.config_file(config_path))
+        try:
+            config = load_ssh_config(config_path)
+            settings = resolve_host(host, config=config, user=user, port=port)
+        except BaseException:
+            if early is not None:
+                early.close()
+            raise
         opener = _Opener(
             config=config,
             timeout=connect_timeout,
@@ -343,8 +354,19 @@ class SSHTransport:
             password_callback=password_callback,
             confirm_callback=confirm_callback,
             progress=progress,
+            early=early,
         )
         transport = opener.open(settings)
+        if not settings.proxy_jump:
+            early_route.remember(
+                host,
+                _route(settings),
+                user=user,
+                port=port,
+                config_path=config_path,
+                identity=identity,
+                known=early,
+            )
         return cls(
             transport,
             settings=settings,
@@ -534,8 +556,10 @@ class _Opener:
         password_callback: PasswordCallback | None,
         confirm_callback: PasswordCallback | None = None,
         progress: Callable[[], None] | None = None,
+        early: early_route.EarlyLink | None = None,
     ) -> None:
         self.config = config
+        self.early = early  # the route opened before the config was parsed (depth 0 only)
         self.timeout = timeout
         self.keepalive = keepalive
         self.accept_fingerprint = accept_fingerprint
@@ -549,6 +573,9 @@ class _Opener:
         try:
             return self._open(settings, depth)
         except BaseException:
+            if self.early is not None:
+                self.early.close()
+                self.early = None
             for hop in reversed(self.hops):
                 hop.close()
             self.hops.clear()
@@ -590,10 +617,21 @@ class _Opener:
         return transport
 
     def _sock(self, settings: HostSettings, depth: int) -> Any:
+        early, self.early = self.early, None
+        if early is not None and (
+            depth or settings.proxy_jump or not early.matches(_route(settings))
+        ):
+            early.close()
+            early = None
         if settings.proxy_jump:
             return self._jump(settings, depth)
         if settings.proxy_command:
-            return _ProxyCommand(settings.proxy_command)
+            started = early.take_process() if early is not None else None
+            return _ProxyCommand(settings.proxy_command, started=started)
+        if early is not None:
+            sock = early.take_socket(self.timeout)
+            if sock is not None:
+                return _tune_tcp(sock, self.keepalive)
         return _tcp_connect(settings, timeout=self.timeout, keepalive=self.keepalive)
 
     def _jump(self, settings: HostSettings, depth: int) -> paramiko.Channel:
@@ -724,6 +762,11 @@ def _incompatible(
     )
 
 
+def _route(settings: HostSettings) -> early_route.Route:
+    """Where a direct connection's socket goes (what fetchsync.link.early remembers)."""
+    return (settings.hostname, settings.port, settings.proxy_command)
+
+
 def _tcp_connect(settings: HostSettings, *, timeout: float, keepalive: float) -> socket.socket:
     try:
         sock = socket.create_connection((settings.hostname, settings.port), timeout=timeout)
@@ -778,22 +821,34 @@ class _ProxyCommand(paramiko.ProxyCommand):  # type: ignore[misc]  # paramiko sh
     transport ends, and keeps the command's stderr for the error message.
     """
 
-    def __init__(self, command_line: str) -> None:
+    def __init__(
+        self,
+        command_line: str,
+        *,
+        started: tuple[subprocess.Popen[bytes], IO[bytes]] | None = None,
+    ) -> None:
+        """Run ``command_line``, or take it ``started`` already (its process and the file
+        of its stderr: fetchsync.link.early, the same command started the same way)."""
         # not the parent's __init__: the command runs with the shell, as OpenSSH runs it
         self._command_line = command_line
-        self._stderr: IO[bytes] = tempfile.TemporaryFile()  # noqa: SIM115 - close() closes it
-        try:
-            self.process = subprocess.Popen(
-                ["/bin/sh", "-c", "exec " + command_line],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=self._stderr,
-                bufsize=0,
-                start_new_session=True,
-            )
-        except OSError as exc:
-            self._stderr.close()
-            raise ConnectError(f"cannot run ProxyCommand {command_line!r}: {exc.strerror}") from exc
+        if started is not None:
+            self.process, self._stderr = started
+        else:
+            self._stderr = tempfile.TemporaryFile()  # noqa: SIM115 - close() closes it
+            try:
+                self.process = subprocess.Popen(
+                    ["/bin/sh", "-c", "exec " + command_line],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    stderr=self._stderr,
+                    bufsize=0,
+                    start_new_session=True,
+                )
+            except OSError as exc:
+                self._stderr.close()
+                raise ConnectError(
+                    f"cannot run ProxyCommand {command_line!r}: {exc.strerror}"
+                ) from exc
         for pipe in (self.process.stdin, self.process.stdout):
             if pipe is not None:
                 widen_pipe(pipe.fileno())
