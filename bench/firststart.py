@@ -31,6 +31,33 @@ import run  # noqa: E402
 from run import Bench, FetchsyncPush, Params, RsyncPush  # noqa: E402
 from workspace import generate  # noqa: E402
 
+# (from, to, what): spans of one push, each from its own marks (first occurrence)
+SPANS = [
+    (
+        "session: the master is not there",
+        "ssh: key exchange done",
+        "no master -> key exchange done",
+    ),
+    ("ssh: socket made", "ssh: key exchange done", "socket -> key exchange done"),
+    ("ssh: key exchange done", "ssh: authenticated", "key exchange -> authenticated"),
+    (
+        "ssh: authenticated",
+        "connection: the endpoint's command sent",
+        "authenticated -> command sent",
+    ),
+    (
+        "connection: the endpoint's command sent",
+        "connection: the endpoint's hello in",
+        "command -> hello",
+    ),
+    (
+        "main: the interpreter is up",
+        "push: the first batch sent",
+        "interpreter -> first batch sent",
+    ),
+    ("push: done", "exit: output flushed", "done -> exit"),
+]
+
 
 def push(
     tool: run.Tool, trace: Path, extra: dict[str, str], keep_stderr: Path | None
@@ -192,6 +219,17 @@ def main() -> int:
                 print(
                     f"  {statistics.median(at) * 1000:8.1f} ms  (min {min(at) * 1000:7.1f})  {what}"
                 )
+            for a_mark, b_mark, label in SPANS:
+                spans = []
+                for s in samples:
+                    first = {w: t for t, w in reversed(s[2])}
+                    if a_mark in first and b_mark in first:
+                        spans.append(first[b_mark] - first[a_mark])
+                if spans:
+                    print(
+                        f"  span {label}: median {statistics.median(spans) * 1000:.1f} ms "
+                        f"({', '.join(f'{x * 1000:.0f}' for x in spans)})"
+                    )
     return 0
 
 
