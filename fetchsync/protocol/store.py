@@ -330,8 +330,8 @@ class Store:
         self._uploads = set()  # type: Set[str]
         self._held = []  # type: List[int]  # the index files loaded (see _hold)
         self.kept_tree = None  # type: Any  # a KeptTree (see keep_listing)
-        # the laptop's pull: a file replaced goes to the trash, as a deleted one (set
-        # aside only once its replacement is whole: a full disk leaves it in place)
+        # the laptop's pull: a file replaced goes to the trash, as a deleted one (linked
+        # there only once its replacement is whole: a full disk leaves it in place)
         self.keep_replaced = False
         self._open()
         self._load_index()
@@ -1293,11 +1293,15 @@ class Store:
         finally:
             os.close(dest_fd)
         if where == "trash":
-            top = os.path.join(where, self.stamp())
-            if not self.trash_log or self.trash_log[-1][0] != top:
-                self.trash_log.append([top, 0])
-            self.trash_log[-1][1] += size
+            self._trashed(size)
         return shown
+
+    def _trashed(self, size: int) -> None:
+        """Count ``size`` bytes put in this batch's trash (bounded: _prune_trash)."""
+        top = os.path.join("trash", self.stamp())
+        if not self.trash_log or self.trash_log[-1][0] != top:
+            self.trash_log.append([top, 0])
+        self.trash_log[-1][1] += size
 
     def _put_back(self, dir_fd: int, name: str, path: str, where: str) -> None:
         """Undo :meth:`_set_aside` (an operation that failed after it)."""
@@ -1816,8 +1820,10 @@ class _Batch:
         if cur is not None and not _same(op, cur) and self._conflict(op, cur):
             return s._keep_copy(dir_fd, name, op.path, "conflicts"), ""
         if cur is not None and not _same(op, cur) and s.keep_replaced:
-            s._set_aside(dir_fd, name, op.path, "trash")
-            return "", "trash"
+            # linked into the trash: the swap below replaces it in place (what a save
+            # puts there meanwhile is kept as any change after the check)
+            s._keep_copy(dir_fd, name, op.path, "trash")
+            s._trashed(cur.size if cur.kind == FILE else 0)
         return "", ""
 
     def _swap_in(
