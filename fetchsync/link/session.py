@@ -238,5 +238,7 @@ def connect(
             yield conn
         finally:
             conn.close()
+            mark("session: the endpoint's channel closed")
     finally:
         transport.close()
+        mark("session: the transport closed")

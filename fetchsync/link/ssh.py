@@ -471,6 +471,7 @@ class SSHTransport:
         try:
             if on_close is not None:
                 on_close()
+                mark("ssh: on_close done")
         finally:
             self._transport.close()
             for hop in reversed(self._hops):
