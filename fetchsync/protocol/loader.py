@@ -9,7 +9,11 @@ directory (opened without following a symlink, the user's and mode 0700, the
 file the user's, regular and writable by no one else), only if its SHA-256 is
 the one on the command line; else it says ``NEED_LOADER``, reads the loader
 from stdin, checks its hash and runs it, and the loader caches itself once it
-has checked the directory as below. The loader looks
+has checked the directory as below. Both take SHA-256 from the interpreter's own
+``_sha256`` (``_sha2`` from 3.12; hashlib only where neither is built in): importing
+hashlib loads OpenSSL's ``_hashlib``, 6.9 ms of the ~50 ms from the endpoint's exec to
+its hello on the bench's robot (``python3 -X importtime``, 3.11), and nothing else the
+endpoint imports needs it (hashing.py takes ``_blake2`` the same way). The loader looks
 for the endpoint (a zip of ``fetchsync.protocol``) in the user's cache
 directory under its content hash; when it is missing it says ``NEED`` and
 reads exactly that many bytes from stdin, checks their hash and caches them.
@@ -54,7 +58,11 @@ NEED_LOADER = b"FSYNC-NEED-LOADER\n"
 STUB = r"""
 import sys
 sys.path[:] = [p for p in sys.path if p]
-import os, hashlib
+import os
+try:from _sha256 import sha256
+except ImportError:
+ try:from _sha2 import sha256
+ except ImportError:from hashlib import sha256
 if sys.version_info < (3, 6):
     sys.exit("python %d.%d.%d on the robot is too old, fetchsync needs python3 >= 3.6: install one (apt install python3) and set FETCHSYNC_REMOTE_PYTHON to it" % tuple(sys.version_info[:3]))
 h, n, u = sys.argv[1], int(sys.argv[2]), os.getuid()
@@ -75,11 +83,11 @@ try:
 except OSError:
     b = None
 g = {"__name__": "__main__", "__builtins__": __builtins__, "NEW": None, "LH": h}
-if b is None or hashlib.sha256(b).hexdigest() != h:
+if b is None or sha256(b).hexdigest() != h:
     sys.stdout.buffer.write(b"FSYNC-NEED-LOADER\n")
     sys.stdout.buffer.flush()
     b = g["NEW"] = sys.stdin.buffer.read(n)
-    if hashlib.sha256(b).hexdigest() != h:
+    if sha256(b).hexdigest() != h:
         sys.exit("fetchsync: the loader was damaged in transit")
 del sys.argv[1:3]
 exec(compile(b, "fetchsync-loader", "exec"), g)
@@ -97,7 +105,14 @@ if sys.flags.no_site:
     v = [os.path.join(v, "lib", "python%d.%d" % sys.version_info[:2], "site-packages")] if os.path.isfile(os.path.join(v, "pyvenv.cfg")) else []
     sys.path.extend(d for d in ([site.getusersitepackages()] if not sys.flags.no_user_site and not v else []) + v + site.getsitepackages() if d not in sys.path and os.path.isdir(d))
 h, n = sys.argv[1], int(sys.argv[2])
-import stat, hashlib
+import stat
+try:
+    from _sha256 import sha256
+except ImportError:
+    try:
+        from _sha2 import sha256
+    except ImportError:
+        from hashlib import sha256
 u = os.getuid()
 def bad(s):
     sys.exit("fetchsync: %s: refusing to use the endpoint cache; remove it (fetchsync recreates it)" % s)
@@ -180,7 +195,7 @@ try:
     if mine(p, False):
         with open(p, "rb") as f:
             b = f.read(n + 1)
-        if hashlib.sha256(b).hexdigest() != h:
+        if sha256(b).hexdigest() != h:
             b = None
 except OSError:
     b = None
@@ -191,7 +206,7 @@ if b is None or globals().get("NEW"):
         o.write(b"FSYNC-NEED\n")
         o.flush()
     e = sys.stdin.buffer.read(n)
-    if hashlib.sha256(e).hexdigest() != h:
+    if sha256(e).hexdigest() != h:
         sys.exit("fetchsync: the endpoint was damaged in transit")
     if b is None:
         put(p, e)
