@@ -61,9 +61,44 @@ def test_a_stall_mid_send_of_the_only_batch_ends_within_the_deadline(
         assert proc.returncode == 3 and "made no progress" in line, line
         assert took < 20, took  # a generous bound over the 3 s deadline (load)
         signal_all(stopped, signal.SIGCONT)
-        fault_proxy.pass_through()
+        fault_proxy.throttle()  # full speed again
         fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))
         assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
     finally:
         subprocess.run(["pkill", "-f", f"fetchsync.link.mux.*{runtime}"], check=False)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+# one read; a large file's pieces, stopped in its second (the first applied as an upload part)
+@pytest.mark.parametrize(
+    ("size", "rate", "after"), [(7 << 20, 400_000, 1.5), (40 << 20, 4_000_000, 3.0)]
+)
+def test_a_pull_stalled_mid_answer_ends_within_the_deadline_and_writes_nothing_torn(
+    size,
+    rate,
+    after,
+    marked_env,  # noqa: F811
+    fault_proxy,
+    remote_dir,
+):
+    """The robot's endpoint stops in the middle of answering a pull's read (the frame
+    half sent): the pull ends with one line and exit 3, the laptop holds no part of the
+    file (no temporary, no upload part), and the next pull brings it whole."""
+    env, mark = marked_env  # noqa: F811
+    fetchsync("push", env=dict(env, FETCHSYNC_DEADLINE="30"))
+    (remote_dir / "src/my_pkg/from_robot.bin").write_bytes(os.urandom(size))
+    fault_proxy.throttle(bytes_per_second=rate)
+    proc = start(["pull", "--yes", "--no-safety"], env)
+    wait_for(lambda: marked(mark), 30, "the robot's endpoint")
+    time.sleep(after)
+    stopped = marked(mark)
+    signal_all(stopped, signal.SIGSTOP)
+    line = assert_one_line_failure(finish(proc))
+    assert proc.returncode == 3 and "made no progress" in line, line
+    signal_all(stopped, signal.SIGCONT)
+    fault_proxy.throttle()  # full speed again
+    ws = local_src(env).parent
+    assert not (ws / "src/my_pkg/from_robot.bin").exists()
+    assert not [p for p in ws.rglob("*") if ".fetchsync-tmp-" in p.name or "upload-" in p.name]
+    fetchsync("pull", "--yes", "--no-safety", env=dict(env, FETCHSYNC_DEADLINE="30"))
+    assert tree_of(local_src(env)) == tree_of(remote_dir / "src")
