@@ -1321,6 +1321,9 @@ class Syncer:
             mark("push: scanned")
         excluded = LocalRules(self.local_root, self.rules)
         ahead = None
+        # the local changes if the robot reports none (what _local_changes then says
+        # again: computed once, ~2.5 ms of 2,547 paths after a no-op's listing)
+        undrifted: set[str] | None = None
         if (
             ahead_ok
             and open_req is not None
@@ -1329,8 +1332,11 @@ class Syncer:
             and synced
             and epoch
         ):
+            undrifted = _local_changes(
+                scanned, synced, Listing(epoch=epoch, gen=gen, full=False), epoch, gen, excluded
+            )
             ahead = self._push_ahead(
-                scanned, synced, open_req, epoch, gen, excluded, progress, confirm_deletions
+                undrifted, synced, open_req, epoch, gen, progress, confirm_deletions
             )
         if open_req is not None and self.opened is None:  # not waited for ahead
             self.opened = open_req.wait()
@@ -1356,9 +1362,12 @@ class Syncer:
                 report.bytes_received = self.conn.bytes_in - b_in
                 report.seconds = time.monotonic() - t0
                 return report
-        differing = (
-            None if dry_run else _local_changes(scanned, synced, listing, epoch, gen, excluded)
-        )
+        if dry_run:
+            differing = None
+        elif undrifted is not None and not listing.drifted:  # as _local_changes says
+            differing = undrifted if (listing.epoch, listing.gen) == (epoch, gen) else None
+        else:
+            differing = _local_changes(scanned, synced, listing, epoch, gen, excluded)
         if differing is None:
             self._push_listed(
                 scanned,
@@ -1401,12 +1410,11 @@ class Syncer:
 
     def _push_ahead(
         self,
-        scanned: ScanResult,
+        differing: set[str] | None,
         synced: dict[str, Synced],
         open_req: Pending[Opened],
         epoch: str,
         gen: int,
-        excluded: LocalRules,
         progress: Progress | None,
         confirm_deletions: bool,
     ) -> tuple[Report, bool] | None:
@@ -1421,18 +1429,20 @@ class Syncer:
         2,000-file tree, load 3-5, medians of 5 interleaved: the robot idle between its
         listing's answer and the sync request 51.7 -> 0.3 ms (a line inserted atop a 2
         MiB file; push in-process 167 -> 110 ms), 31.3 -> 0.2 ms (one small edit; 123 ->
-        82 ms). None (nothing sent) unless a few local changes; else (the report,
+        82 ms). ``differing``: the local changes if the robot has none (see
+        :func:`_local_changes`). None (nothing sent) unless a few; else (the report,
         whether a batch was refused as stale)."""
-        differing = _local_changes(
-            scanned, synced, Listing(epoch=epoch, gen=gen, full=False), epoch, gen, excluded
-        )
         if not differing:
             return None
         self.opened = opened = open_req.wait()
         if (opened.epoch, opened.gen) != (epoch, gen):
             return None  # another writer: the listing will say what the robot holds
         return self._push_touched(
-            differing, set(), synced, progress=progress, confirm_deletions=confirm_deletions
+            set(differing),
+            set(),
+            synced,
+            progress=progress,
+            confirm_deletions=confirm_deletions,
         )
 
     def _push_listed(
