@@ -119,6 +119,16 @@ class KeptTree:
         self._watching = False
         self.gave_up = False  # the user's watches or instances used up: full walks only
         self.full_scans = 0  # how often it walked the whole tree (tests)
+        # the paths whose entry changed or came since take_moved() (None: unknown, the
+        # whole tree was walked)
+        self._moved: "Optional[Set[str]]" = None
+
+    def take_moved(self) -> "Optional[Set[str]]":
+        """The paths whose entry is another object than at the last call (it changed or
+        came; one that went is not in the walk), or None if the whole tree was walked
+        since (any may have)."""
+        moved, self._moved = self._moved, set()
+        return moved
 
     def close(self) -> None:
         if self._fd >= 0:
@@ -145,6 +155,7 @@ class KeptTree:
     def _full(self, root_fd: int) -> "ScanResult":
         self.close()
         self.full_scans += 1
+        self._moved = None
         self._watching = not self.gave_up
         if self._watching:
             self._fd = _inotify().inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
@@ -261,6 +272,8 @@ class KeptTree:
                 entries[path] = Entry(
                     FILE, mode & 0o7777, st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
                 )
+                if self._moved is not None:
+                    self._moved.add(path)
             elif entry.kind == DIR and stat_mod.S_ISDIR(mode):
                 dirty.add(path)
             else:
@@ -273,6 +286,7 @@ class KeptTree:
         if "" in dirty:
             raise _StepAside("the top of the tree changed")
         tops = [d for d in sorted(dirty) if not any(d.startswith(o + "/") for o in dirty)]
+        moved = self._moved
         for top in tops:
             prefix = top + "/"
             for path in [p for p in entries if p.startswith(prefix)]:
@@ -306,6 +320,9 @@ class KeptTree:
             if not self._watching:
                 raise _StepAside("a watch could not be added")
             entries.update(result.entries)
+            if moved is not None:
+                moved.add(top)
+                moved.update(result.entries)
             self._skipped.extend(result.skipped)
 
 
