@@ -517,6 +517,12 @@ def workspace_around(
     and ``build/`` of its own), never a workspace; nor are ``/`` and ``home``
     (a home with ``~/src`` and ``~/build`` is common, and could never be pushed:
     the robot's workspace would be its whole home).
+
+    One that belongs to another user (it or its ``src/``; root's are trusted) is
+    refused with a ConfigError: anyone can make ``/tmp/x/src`` and ``/tmp/x/devel``,
+    and a push typed in ``/tmp/x/mine`` would send their tree to the robot (a pull
+    write the robot's into theirs), as git's safe.directory refuses such a repository.
+    A workspace given (``--workspace``) is the user's choice.
     """
     path = Path(os.path.abspath(directory))
     skip = {Path(os.path.abspath(home))} if home is not None else set()
@@ -530,8 +536,24 @@ def workspace_around(
             and not os.path.lexists(candidate / "package.xml")
             and any(os.path.lexists(candidate / mark) for mark in WORKSPACE_MARKERS)
         ):
+            _owned(candidate)
             return candidate
     return None
+
+
+def _owned(workspace: Path) -> None:
+    """ConfigError unless ``workspace`` and its ``src/`` are ours (or root's)."""
+    for each in (workspace, workspace / "src"):
+        try:
+            uid = os.stat(each).st_uid
+        except OSError:
+            continue  # gone meanwhile: the push says what it finds
+        if uid not in (os.getuid(), 0):
+            raise ConfigError(
+                f"{workspace} looks like a workspace around the current directory, but "
+                f"{each} belongs to another user (uid {uid}); refusing to push or pull it",
+                hint=f"if it is the one you mean, pass --workspace {workspace}",
+            )
 
 
 def current_directory(environ: Mapping[str, str] = os.environ) -> str | None:
