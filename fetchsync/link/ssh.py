@@ -751,6 +751,9 @@ class _PipelinedAuth(AuthHandler):  # type: ignore[misc]  # paramiko ships no ty
     algorithm (rsa-sha2-256/512) depends on the robot's server-sig-algs, which come in
     its EXT_INFO and may not have been read yet: they wait for the acceptance as
     before. Nothing else changes: the same key, the same signature, the same checks.
+    Measured (bench/firststart.py --link wifi --rclcpp --rounds 6 against the commit
+    before, interleaved, load 3.4-4.9): the key exchange to authenticated 22-23 ms
+    against 31-35 in the quieter rounds (one round trip: 8 ms).
     """
 
     _sent_early = False
