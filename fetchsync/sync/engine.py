@@ -94,6 +94,7 @@ BATCH_BYTES = 8 * 1024 * 1024  # blob bytes per request
 BATCH_OPS = 4000
 FIRST_BATCHES_SMALLER = {0: 3, 1: 2, 2: 1}  # batch index -> BATCH_BYTES shifted right by
 WINDOW = 3  # batches between the caller and the link: compressing, ready, being sent
+INLINE_BATCH = 64 * 1024  # a round's only batch up to this much data: sent by the caller
 # A large round starts with writes of large files (from LARGE up, binary mostly: packed
 # at once) up to LARGE_FIRST bytes, the rest in the plan's order: the link is busy from the
 # first batch while the text behind them is deflated at level 6, where the first batches
@@ -949,11 +950,13 @@ class _Batcher:
         # of this round may apply only if nobody else wrote in between
         gen = self.gen + self.batches
         self.batches += 1
-        if last and not self._threads:
-            # the round's only batch (a save, an edit): packed and sent on this thread.
-            # Two threads started for it and two hand-overs cost a wifi save ~0.8 ms
-            # before its bytes left, and ms more whenever the CPUs were busy
-            # (FETCHSYNC_TRACE, bench/saveab.py)
+        if last and not self._threads and self.raw_len <= INLINE_BATCH:
+            # the round's only batch, a small one (a save, an edit): packed and sent on
+            # this thread. Two threads started for it and two hand-overs cost a wifi save
+            # ~0.8 ms before its bytes left, and ms more whenever the CPUs were busy
+            # (FETCHSYNC_TRACE, bench/saveab.py). Small: its send fits the link's buffers,
+            # where a larger one could block this thread on a dead link, which the
+            # threaded path's _stalled() notices within LIVENESS_INTERVAL
             mark("push: the first batch read")
             job, self.items, self.tags, self.raw_len = (gen, self.items, self.tags), [], [], 0
             self._send(self._pack(*job))
