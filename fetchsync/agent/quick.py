@@ -138,12 +138,18 @@ class Asked:
 
 
 def ask(
-    sock: Path, target: Target, *, timeout: float = 3600.0, leave_offline: bool = False
+    sock: Path,
+    target: Target,
+    *,
+    timeout: float = 3600.0,
+    leave_offline: bool = False,
+    meanwhile: Callable[[], object] | None = None,
 ) -> dict[str, Any] | None:
     """The answer of the agent or resident at ``sock`` to a plain push of ``target``, or
     None when there is none, or it declined (another install's, busy, gone mid-request).
     ``leave_offline``: the fast path leaves a watch agent whose robot is
-    offline to the CLI's push (it asks again, and says so in its order)."""
+    offline to the CLI's push (it asks again, and says so in its order). ``meanwhile``
+    runs once the request is sent, while the push is made (the printing's imports)."""
     Asked.asked.add(str(sock))
     try:
         s = _socket.socket(_socket.AF_UNIX, _socket.SOCK_STREAM)
@@ -158,6 +164,8 @@ def ask(
         s.settimeout(timeout + 5)
         payload = dict(request(target), timeout=timeout)
         s.sendall(json.dumps(payload).encode() + b"\n")
+        if meanwhile is not None:
+            meanwhile()
         data = bytearray()
         while not data.endswith(b"\n") and len(data) < MAX_ANSWER:
             chunk = s.recv(1 << 20)
@@ -455,6 +463,10 @@ def plain_push(argv: list[str]) -> dict[str, Any] | None:
     return out
 
 
+def _printing() -> None:
+    import fetchsync.console  # noqa: F401
+
+
 def _as_logged_in(target: Target, reply: dict[str, Any]) -> Target:
     """``target`` with the login the resident found for it (it read the ssh config
     for this push, in this push's environment), so that printing it reads nothing."""
@@ -494,7 +506,8 @@ def fast_main(argv: list[str]) -> int | None:
         return None
     mark("quick: asking the resident")
     try:
-        reply = ask(sock, target, leave_offline=True)
+        # the printing's imports (~1-2 ms) while the resident pushes, not after
+        reply = ask(sock, target, leave_offline=True, meanwhile=_printing)
     except KeyboardInterrupt:
         _out("fetchsync: interrupted", err=True)
         return 130
