@@ -31,8 +31,17 @@ the master). Session 22 (issue 24): the scan kept by inotify between pushes
 (fetchsync.agent.keptscan) and the fast path's lighter imports: on the wifi bench,
 10 interleaved one-edit pushes against the revision before (load 4-9), the
 resident's CPU per push 79.5 -> 26.6 ms and the asking process's 89.7 -> 60.7 ms
-(medians; every round lower). What is left of the resident's push waits on the
-robot: the writes queue behind its drift check (a walk of the whole tree, ~22 ms).
+(medians; every round lower). Session 24: the robot asked for its changes before
+the kept scan (both ends work at once: the robot's listing starts ~4 ms after the ask,
+not ~14), the state's rows kept between pushes (fetchsync.sync.state.State.entries:
+~14 ms of reading less) and the robot's kept drift looking only at what moved
+(fetchsync.protocol.store.Store.drift). bench/edittrace.py --link wifi --files 2000
+--size-mb 40 --reps 9 --scenarios noop,edit --rev 1157ebc --baseline-rev 9a8639d
+(interleaved, load 3-5): one edit 0.110 vs 0.133 s (rsync 0.546 s: 0.20x, rounds'
+0.19x); from the ask to the answer 49 vs 73 ms (trace medians); CPU per push of the
+resident 25 vs 43 ms, of the robot's endpoint 16 vs 18 (schedstat). What is left runs
+at once on both ends: the kept scan's and the robot's listing's ~2,500 stat calls each
+(~11 and ~13 ms), then the robot's write and its journal commits.
 """
 
 from __future__ import annotations
