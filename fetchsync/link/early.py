@@ -45,6 +45,7 @@ import threading
 import time
 from typing import IO, TYPE_CHECKING, Any
 
+from fetchsync.environ import inheritable
 from fetchsync.trace import mark
 
 if TYPE_CHECKING:
@@ -170,6 +171,7 @@ class EarlyLink:
                     stderr=self.stderr,
                     bufsize=0,
                     start_new_session=True,
+                    env=inheritable(os.environ),  # as link/ssh.py's _ProxyCommand
                 )
             except OSError as exc:
                 self.stderr.close()

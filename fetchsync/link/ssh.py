@@ -56,6 +56,7 @@ from paramiko.ssh_exception import (
     SSHException,
 )
 
+from fetchsync.environ import inheritable
 from fetchsync.errors import ConfigError, ConnectError, HostKeyError, LinkLostError, TransportError
 from fetchsync.link import early as early_route
 from fetchsync.link.channels import (
@@ -898,6 +899,7 @@ class _ProxyCommand(paramiko.ProxyCommand):  # type: ignore[misc]  # paramiko sh
                     stderr=self._stderr,
                     bufsize=0,
                     start_new_session=True,
+                    env=inheritable(os.environ),  # no password of the call's (fetchsync.environ)
                 )
             except OSError as exc:
                 self._stderr.close()

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol, cast
 
 from fetchsync.config import LOCAL_ROBOT
+from fetchsync.environ import inheritable
 from fetchsync.errors import ConnectError, LinkLostError
 from fetchsync.places import local_robot_home as local_robot_home  # callers import it here too
 from fetchsync.places import robot_id as robot_id  # its old home: callers import it here
@@ -191,7 +192,7 @@ class LocalTransport:
             ) from exc
         import subprocess
 
-        full_env = dict(os.environ)
+        full_env = inheritable(os.environ)  # no password of the call's (fetchsync.environ)
         full_env["HOME"] = str(self.home)
         full_env.pop("XDG_CACHE_HOME", None)
         if env:
