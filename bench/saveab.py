@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import statistics
 import subprocess
@@ -136,16 +137,23 @@ def marks(path: Path, t0: float, t1: float) -> list[tuple[float, str]]:
 
 
 def one_save(tool: WatchTool, target: Path, i: int, tag: str) -> tuple[bytes, float, float | None]:
-    """watch.py's save: new unique bytes written in place; (data, saved, arrived)."""
+    """watch.py's save: new unique bytes written in place; (data, saved, arrived), timed
+    from just before the close."""
     rel = target.relative_to(tool.ws.src)
     body = target.read_bytes()
     marker = b"\n// fetchsync-bench "
     if marker in body:
         body = body[: body.rindex(marker)]
     data = body + marker + f"{tag} save {i} {time.time_ns()}\n".encode()
-    with open(target, "wb") as fh:
-        fh.write(data)
-    t_saved = time.perf_counter()
+    fd = os.open(target, os.O_WRONLY | os.O_TRUNC)
+    try:
+        os.write(fd, data)  # (a few KB: one write)
+        # timed before the close, whose IN_CLOSE_WRITE the agent acts on: on 2 busy CPUs
+        # the agent's threads, woken by it, often ran before this process read the clock
+        # after close() (watch.py's way: its trace marks came up to ~2 ms "before" the save)
+        t_saved = time.perf_counter()
+    finally:
+        os.close(fd)
     return data, t_saved, wait_arrival(tool.remote_src / rel, data)
 
 
