@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from fetchsync.config import resolve_workspace
+from fetchsync.environ import inheritable
 from fetchsync.errors import ConfigError, UsageError
 from fetchsync.protocol.ignore import IgnoreRules, read_ignore_file
 
@@ -581,7 +582,7 @@ def _require(module: str, package: str) -> None:
 
 
 def _run(args: Sequence[str]) -> subprocess.CompletedProcess[str]:
-    env = dict(os.environ)
+    env = inheritable(os.environ)  # no password of the call's (fetchsync.environ)
     # Paths come back as we passed them, undecodable bytes included.
     env["PYTHONIOENCODING"] = "utf-8:surrogateescape"
     log.debug("running %s", " ".join(args[:6]))

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 from fetchsync.config import ROBOT_VARS, Target, resolve_robot, resolve_target
+from fetchsync.environ import inheritable
 from fetchsync.errors import (
     ConfigError,
     FetchsyncError,
@@ -325,7 +326,7 @@ def packages_by_row(packages: Iterable[Package], rows: Iterable[str]) -> dict[st
 
 # --------------------------------------------------------------------------- git
 def _git_env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in _GIT_LOCATION_VARS}
+    env = {k: v for k, v in inheritable(os.environ).items() if k not in _GIT_LOCATION_VARS}
     # status refreshes the index opportunistically; an editor's git may hold its lock
     env["GIT_OPTIONAL_LOCKS"] = "0"
     return env
