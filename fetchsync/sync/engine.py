@@ -2829,12 +2829,31 @@ def _local_changes(
     if listing.drifted or listing.epoch != epoch or listing.gen != gen or scanned.skipped:
         return None
     out: set[str] = set()
+    get = synced.get
+    # unchanged: as the state recorded it when it synced it, a file's stat (size, times,
+    # inode), a link's target, a directory's mode (inline: a call per entry cost ~1 ms)
     for path, e in entries.items():
-        if not _unchanged(synced.get(path), e):
-            out.add(path)
-            if len(out) > QUICK_MAX:
-                return None
-    if len(entries) - len(out) != len(synced):
+        s = get(path)
+        if (
+            s is not None
+            and s.kind == e.kind
+            and s.mode == e.mode
+            and (
+                s.size == e.size
+                and s.mtime_ns == e.mtime_ns
+                and s.ctime_ns == e.ctime_ns
+                and s.ino == e.ino
+                if e.kind == "f"
+                else e.kind != "l" or s.target == e.target
+            )
+        ):
+            continue
+        out.add(path)
+        if len(out) > QUICK_MAX:
+            return None
+    # the entries the state has rows for: the unchanged ones and the changed ones it
+    # knows; as many as its rows, every row's path is here (nothing gone)
+    if len(entries) - len(out) + sum(1 for p in out if p in synced) != len(synced):
         # gone here, unless the laptop's rules now exclude it (its row is kept: left alone)
         out.update(
             p for p, s in synced.items() if p not in entries and not excluded(p, s.kind == "d")
@@ -2842,16 +2861,6 @@ def _local_changes(
         if len(out) > QUICK_MAX:
             return None
     return out
-
-
-def _unchanged(s: Synced | None, e: Entry) -> bool:
-    """Whether a scanned entry is as the state recorded it when it synced it: a file's
-    stat (size, times, inode), a link's target, a directory's mode."""
-    if s is None or s.kind != e.kind or s.mode != e.mode:
-        return False
-    if e.kind == "f":
-        return (s.size, s.mtime_ns, s.ctime_ns, s.ino) == (e.size, e.mtime_ns, e.ctime_ns, e.ino)
-    return e.kind != "l" or s.target == e.target
 
 
 def _same_tree(local: dict[str, M.Listed], remote: dict[str, M.Listed]) -> bool:
