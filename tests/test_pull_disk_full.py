@@ -72,3 +72,27 @@ def test_a_pull_onto_a_full_laptop_disk_loses_no_local_file(
     meta = small_disk / "ws/.fetchsync"
     kept = [p.read_text() for p in meta.rglob("f*.txt") if p.parts[-4] in ("trash", "conflicts")]
     assert sorted(kept) == sorted(f"laptop version {i}\n" * 10 for i in range(5))
+
+
+def test_a_large_file_filling_the_laptop_disk_is_one_line(
+    ssh_home, remote_dir, tmp_path, small_disk
+):
+    """A file over BIG comes in upload pieces: the one that fills the disk keeps what it
+    wrote until the pull ends, so the index written after it fails too: that was an
+    OSError traceback (exit 1); now one line, the laptop's files as they were, nothing
+    of the upload left, and once there is room the pull brings it."""
+    env = ssh_env(ssh_home.home, remote_dir, tmp_path, FETCHSYNC_WORKSPACE=str(small_disk / "ws"))
+    src = small_disk / "ws/src"
+    assert report(fetchsync("push", "--json", env=env))["ok"]
+    before = tree_of(src)
+    (remote_dir / "src/my_pkg/map.pgm").write_bytes(os.urandom(40 << 20))  # over BIG
+    proc = fetchsync("pull", "--json", "--yes", "--no-safety", env=env, check=False)
+    err = proc.stderr.decode()
+    assert proc.returncode != 0 and "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("fetchsync: error")]
+    assert len(lines) == 1 and "No space left on device" in lines[0], err
+    assert tree_of(src) == before
+    assert not list((small_disk / "ws/.fetchsync/tmp").glob("upload-*"))
+    (remote_dir / "src/my_pkg/map.pgm").write_bytes(os.urandom(2 << 20))  # it fits now
+    assert report(fetchsync("pull", "--json", "--yes", "--no-safety", env=env))["ok"]
+    assert tree_of(src) == tree_of(remote_dir / "src")

@@ -2453,17 +2453,33 @@ def _apply_pulled(
     # a local file replaced goes to the trash (or, edited since the last sync, to the
     # conflicts) once its replacement is whole: a write that fails leaves it in place
     store.keep_replaced = True
-    store.lock()
     failed: set[str] = set()
     try:
+        with _writing(local_workspace):
+            store.lock()
         for ops, blobs, tags in _fetch(endpoint, planned, report):
-            results = store.apply(ops, b"".join(blobs))
-            store.save_index()
+            with _writing(local_workspace):
+                results = store.apply(ops, b"".join(blobs))
+                store.save_index()
             _report_pulled(tags, results, local_workspace, report, failed)
     finally:
         store.discard_uploads()  # a large file's pieces whose file was not written
         store.unlock()
     return failed
+
+
+@contextlib.contextmanager
+def _writing(local_workspace: str) -> Iterator[None]:
+    """A failure of the laptop's own disk (full, read-only) where the pull writes its
+    bookkeeping (.fetchsync/: the lock, the batch mark, the index) as one line, not a
+    traceback; a file that cannot be written is a result of its own."""
+    try:
+        yield
+    except OSError as exc:
+        raise SyncError(
+            f"cannot write the pull into {local_workspace}: {exc.strerror or exc}",
+            hint="free some space there (or fix its permissions) and pull again",
+        ) from None
 
 
 def _report_pulled(
