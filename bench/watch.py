@@ -370,9 +370,16 @@ def measure_latency(
         if marker in body:
             body = body[: body.rindex(marker)]
         data = body + marker + f"{tag} save {i} {time.time_ns()}\n".encode()
-        with open(path, "wb") as fh:
-            fh.write(data)
-        t_saved = time.perf_counter()
+        # timed just before the close that completes the save (IN_CLOSE_WRITE): timed
+        # after it, on 2 busy CPUs the woken agent often ran before this process read the
+        # clock (its trace marks up to ~2 ms before it: save track, bench/saveab.py), so
+        # a busy machine's saves read faster than they were, the faster tool the more
+        fd = os.open(path, os.O_WRONLY | os.O_TRUNC)
+        try:
+            os.write(fd, data)
+            t_saved = time.perf_counter()
+        finally:
+            os.close(fd)
         t_arrived = wait_arrival(tool.remote_src / rel, data)
         out.append(None if t_arrived is None else t_arrived - t_saved)
         if t_arrived is None:
