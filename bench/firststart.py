@@ -55,6 +55,11 @@ SPANS = [
         "push: the first batch sent",
         "interpreter -> first batch sent",
     ),
+    ("connection: the endpoint's hello in", "push: connected", "hello -> connected"),
+    ("connection: the local work meanwhile done", "push: connected", "meanwhile -> connected"),
+    ("push: connected", "push: the robot's listing in", "connected -> listing in"),
+    ("push: the robot's listing in", "push: the first batch sent", "listing -> first batch sent"),
+    ("main: the interpreter is up", "session: the master is not there", "interpreter -> no master"),
     ("push: done", "exit: output flushed", "done -> exit"),
 ]
 

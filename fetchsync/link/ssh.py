@@ -64,6 +64,7 @@ from fetchsync.link.channels import (
     SessionSlots,
     send_data,
     send_eof,
+    send_exec,
     send_window_change,
 )
 from fetchsync.link.transport import Capabilities, Channel
@@ -414,7 +415,9 @@ class SSHTransport:
                 chan.get_pty(
                     term=os.environ.get("TERM", "vt100"), width=size.columns, height=size.lines
                 )
-            chan.exec_command(command)
+                chan.exec_command(command)
+            else:
+                send_exec(chan, command)  # the caller goes on while the robot forks it
         except (OSError, EOFError, SSHException) as exc:
             chan.close()
             raise self._failure("start a command", exc) from exc
