@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from fetchsync.chores.remote import ros_environment, script, shell_path
+from fetchsync.environ import inheritable
 from fetchsync.errors import FetchsyncError
 
 if TYPE_CHECKING:
@@ -370,13 +371,17 @@ class Runner(Protocol):
 
 @dataclass
 class LocalRunner:
-    """Runs steps here, with our terminal and streams."""
+    """Runs steps here, with our terminal and streams, and the call's environment
+    without its secrets (a build runs every package's scripts; a local rosdep's sudo asks
+    on the terminal)."""
 
     stdout: int = 1
     where: str = "this machine"
 
     def run(self, step: Step) -> int:
-        proc = subprocess.Popen(["bash", "-c", step.script], stdout=self.stdout)
+        proc = subprocess.Popen(
+            ["bash", "-c", step.script], stdout=self.stdout, env=inheritable(os.environ)
+        )
         try:
             return proc.wait()
         except KeyboardInterrupt:
