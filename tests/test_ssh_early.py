@@ -15,7 +15,7 @@ from helpers import fetchsync, ssh_env
 from sshd import SSHHome
 from test_ssh import extra_config, run
 
-from fetchsync.errors import HostKeyError
+from fetchsync.errors import ConnectError, HostKeyError
 from fetchsync.link import early
 from fetchsync.link.ssh import SSHTransport
 
@@ -240,3 +240,15 @@ def test_a_push_opens_the_remembered_route_before_importing_paramiko(
     assert "early: route opened" in marks
     assert marks.index("early: route opened") < marks.index("ssh: paramiko imported")
     assert (remote_dir / "src" / "new.txt").read_text() == "new\n"
+
+
+def test_an_early_route_that_fails_is_reported_as_the_connection_failing(
+    proxied_home: SSHHome, fault_proxy: Any, settled: None, opened: list[Any]
+) -> None:
+    """The early connect's own failure is the connection's (one attempt, one line)."""
+    opened.append(SSHTransport.connect("robot", connect_timeout=10.0))
+    fault_proxy.cut()
+    link = early.start("robot")
+    assert link is not None and link.route[1] == fault_proxy.port
+    with pytest.raises(ConnectError, match="refused"):
+        SSHTransport.connect("robot", connect_timeout=10.0, early=link)

@@ -201,14 +201,19 @@ class EarlyLink:
     def matches(self, route: Route) -> bool:
         return self.route == route
 
-    def take_socket(self, timeout: float) -> socket.socket | None:
-        """The connected socket, or None if the connect failed (the caller connects
-        again, and reports its own failure as a fresh connection would)."""
-        self._done.wait(timeout)
+    def take_socket(self, timeout: float) -> socket.socket:
+        """The connected socket; the connect's OSError if it failed, TimeoutError if it
+        is not connected within ``timeout`` (the caller reports them as its own connect's:
+        one attempt, not a second after the early one's timeout)."""
+        done = self._done.wait(timeout)
         with self._lock:
             sock, self._sock = self._sock, None
             self._closed = True
-        return sock
+        if sock is not None:
+            return sock
+        if self._error is not None:
+            raise self._error
+        raise TimeoutError("timed out")
 
     def take_process(self) -> tuple[subprocess.Popen[bytes], IO[bytes]] | None:
         """The started ProxyCommand and the file of its stderr, None if it could not start."""

@@ -636,9 +636,11 @@ class _Opener:
             started = early.take_process() if early is not None else None
             return _ProxyCommand(settings.proxy_command, started=started)
         if early is not None:
-            sock = early.take_socket(self.timeout)
-            if sock is not None:
-                return _tune_tcp(sock, self.keepalive)
+            try:
+                sock = early.take_socket(self.timeout)
+            except OSError as exc:
+                raise _tcp_error(settings, exc, self.timeout) from exc
+            return _tune_tcp(sock, self.keepalive)
         return _tcp_connect(settings, timeout=self.timeout, keepalive=self.keepalive)
 
     def _jump(self, settings: HostSettings, depth: int) -> paramiko.Channel:
