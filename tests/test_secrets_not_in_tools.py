@@ -66,3 +66,17 @@ def test_git_gets_no_password(tmp_path):
     assert dump.exists(), proc.stderr.decode()
     for name, value in SECRETS.items():
         assert value.encode() not in dump.read_bytes(), f"{name} given to git"
+
+
+def test_a_local_build_gets_no_password(tmp_path, monkeypatch):
+    """``pull --build`` builds here (chores.build.LocalRunner: bash runs each step); a
+    sudo password reaches a step on its stdin, never in its environment."""
+    from fetchsync.chores.build import LocalRunner, Step
+
+    for name, value in SECRETS.items():
+        monkeypatch.setenv(name, value)
+    dump = tmp_path / "step-environ"
+    step = Step(what="env", script=f"cat /proc/$$/environ > {dump}", program="cat")
+    assert LocalRunner(stdout=2).run(step) == 0
+    for name, value in SECRETS.items():
+        assert value.encode() not in dump.read_bytes(), f"{name} given to a build step"
