@@ -205,7 +205,7 @@ class EarlyLink:
         """The connected socket; the connect's OSError if it failed, TimeoutError if it
         is not connected within ``timeout`` (the caller reports them as its own connect's:
         one attempt, not a second after the early one's timeout)."""
-        done = self._done.wait(timeout)
+        self._done.wait(timeout)
         with self._lock:
             sock, self._sock = self._sock, None
             self._closed = True
