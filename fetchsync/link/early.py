@@ -16,8 +16,9 @@ key is checked against known_hosts, the login is the same.
 
 Remembered only where the route is a function of the config's text and of the names
 given (the host, the user, the port, ``$HOME`` and the login's name): not for a
-config with ``Match`` or ``Include`` (a command's answer, the network or another
-file can change its result) nor ``ProxyJump`` (its hops need paramiko); not while the
+config with ``Match``, ``Include`` or ``CanonicalizeHostname`` (a command's answer, the
+network, another file or the DNS can change its result; looked for in the lines as
+paramiko reads them) nor ``ProxyJump`` (its hops need paramiko); not while the
 config's stamps are younger than 2 s (a rewrite in the same clock tick keeps them).
 A memory is used only while the config has the device, inode, size, mtime and ctime
 it had when that route was resolved. It is a file in the user's cache directory
@@ -52,7 +53,8 @@ if TYPE_CHECKING:
     import subprocess
 
 SETTLED_NS = 2_000_000_000  # config stamps this old when read are past any write then
-_DYNAMIC = re.compile(rb"^[ \t]*(match|include)\b", re.IGNORECASE | re.MULTILINE)
+_DYNAMIC = frozenset({"match", "include", "canonicalizehostname"})
+_KEYWORD = re.compile(r"(\w+)")
 _MEMORY_MAX = 64 * 1024
 
 Route = tuple[str, int, "str | None"]
@@ -141,6 +143,21 @@ def _route(memory: dict[str, Any]) -> Route | None:
     if proxy is not None and not isinstance(proxy, str):
         return None
     return hostname, port, proxy
+
+
+def _dynamic(text: bytes) -> bool:
+    """Whether a line of the config, as paramiko reads it, starts with a keyword whose
+    route is not the text's alone (Match, Include, CanonicalizeHostname: a command's
+    answer, another file, the DNS). paramiko reads the file in text mode (a CR ends a
+    line) and strips any whitespace off a line (a form feed, a no-break space) before its
+    keyword: the lines are split and stripped at least as finely here, in either
+    encoding the file may be read in."""
+    for encoding in ("utf-8", "latin-1"):
+        for line in text.decode(encoding, "replace").splitlines():
+            keyword = _KEYWORD.match(line.strip())
+            if keyword is not None and keyword.group(1).lower() in _DYNAMIC:
+                return True
+    return False
 
 
 class EarlyLink:
@@ -308,7 +325,7 @@ def remember(
                 text = fh.read()
         except OSError:
             return
-        if _DYNAMIC.search(text) or config_identity(config) != identity:
+        if _dynamic(text) or config_identity(config) != identity:
             return
     if known is not None and known.matches(route):
         return  # started from this very memory: it says this already
