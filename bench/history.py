@@ -416,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workdir", help="work here (kept) instead of in a temporary directory")
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
     a = ap.parse_args(argv)
-    n_commits = a.commits or (2 if a.quick else 30)
+    n_commits = a.commits if a.commits is not None else (2 if a.quick else 30)
     n_switches = a.switches if a.switches is not None else (1 if a.quick else 4)
     noops = a.noops or (1 if a.quick else 3)
     if not a.bundle.is_file():
