@@ -88,3 +88,29 @@ def test_no_route_is_remembered_where_paramiko_reads_more_than_the_text(
     assert _starts(log) == 1  # the config was read and used as written
     assert _memories(_cache()) == []
     assert early.start("viaproxy") is None
+
+
+def test_a_same_size_edit_with_its_mtime_put_back_opens_no_remembered_route(
+    ssh_home: Any,
+    settled: None,  # noqa: F811
+    opened: list[Any],  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """The config's ctime moves with any write, and no one but root can set it back."""
+    log = tmp_path / "proxy.log"
+    extra_config(ssh_home, _via_proxy(log))
+    opened.append(SSHTransport.connect("viaproxy", connect_timeout=10.0))
+    assert len(_memories(_cache())) == 1
+    before = ssh_home.config.stat()
+    text = ssh_home.config.read_bytes()
+    with open(ssh_home.config, "r+b") as fh:  # same inode, same size, another route
+        fh.write(text.replace(b"Host viaproxy", b"Host viaproxz", 1))
+    os.utime(ssh_home.config, ns=(before.st_atime_ns, before.st_mtime_ns))
+    after = ssh_home.config.stat()
+    assert (after.st_ino, after.st_size, after.st_mtime_ns) == (
+        before.st_ino,
+        before.st_size,
+        before.st_mtime_ns,
+    )
+    assert early.start("viaproxy") is None
+    assert _starts(log) == 1
