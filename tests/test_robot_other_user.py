@@ -79,3 +79,42 @@ def test_another_robot_user_reads_nothing_kept_private(tmp_path, robot_home):
     assert found.stdout == "", found.stdout
     readable = _as_nobody("find", str(ws / ".fetchsync"), "-readable")
     assert readable.stdout.strip() in ("", str(ws / ".fetchsync")), readable.stdout
+
+
+def test_a_records_directory_another_user_made_is_refused(tmp_path):
+    """In a workspace another robot user can write (a group's shared one), they may put
+    their own ``.fetchsync`` in place of ours: the endpoint trusted its index, so a
+    stat-cache row they forged made the robot list the content they chose for a file
+    (their edit unseen by drift). It is refused, in one line."""
+    from fetchsync.protocol import store as store_mod
+    from fetchsync.protocol.hashing import BLAKE2B_128, digest
+
+    ws = tmp_path / "ws"
+    (ws / "src").mkdir(parents=True)
+    node = ws / "src/node.py"
+    node.write_text("print('theirs')\n")
+    os.utime(node, (1_600_000_000, 1_600_000_000))
+    meta = ws / ".fetchsync"
+    meta.mkdir()
+    # their index: node.py holds what the owner pushed (so drift sees no change)
+    forger = store_mod.Store(str(ws), algorithm=BLAKE2B_128)
+    forger.lock()
+    st = node.stat()
+    claimed = digest(BLAKE2B_128, b"print('mine!!')\n").hex()
+    forger._set_cache("node.py", [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, claimed])
+    forger.save_index()
+    forger.close()
+    for path in [meta, *meta.iterdir()]:
+        os.chown(path, NOBODY, NOBODY)
+    with pytest.raises(store_mod.StoreError, match="another user"):
+        store = store_mod.Store(str(ws), algorithm=BLAKE2B_128)
+        store.lock()
+        listed = {x.path: x.hash for x in store.listing()[0]}
+        store.close()
+        assert listed["node.py"] != claimed, "the forged index was trusted"
+    # nor one anyone may write into (its entries could be swapped)
+    for path in [meta, *meta.iterdir()]:
+        os.chown(path, os.getuid(), os.getgid())
+    meta.chmod(0o777)
+    with pytest.raises(store_mod.StoreError, match="writable by others"):
+        store_mod.Store(str(ws), algorithm=BLAKE2B_128).lock()

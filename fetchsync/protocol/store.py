@@ -305,6 +305,27 @@ class _Tee:
         return data
 
 
+def _own_records(fd: int, shown: str) -> None:
+    """Refuse a ``.fetchsync`` (open as ``fd``; -1: none) that another user made or may
+    write into: in a workspace others can write (a group's), one put in place of ours
+    would have its index trusted (a forged stat-cache row lists the content its maker
+    chose) and our trash and conflicts kept there (tests/test_robot_other_user.py)."""
+    if fd < 0:
+        return
+    st = os.fstat(fd)
+    why = ""
+    if st.st_uid != os.getuid():
+        why = "belongs to another user (uid %d)" % st.st_uid
+    elif st.st_mode & 0o022:
+        why = "is writable by others (mode %o)" % stat_mod.S_IMODE(st.st_mode)
+    if why:
+        os.close(fd)
+        raise StoreError(
+            "%s %s: fetchsync keeps this workspace's records there and will not trust "
+            "them; remove it (the next push rebuilds it) or use another workspace" % (shown, why)
+        )
+
+
 class Store:
     def __init__(
         self,
@@ -388,6 +409,7 @@ class Store:
                 raise StoreError("%s does not exist" % self.root)
             try:
                 meta_fd = self._open_top(ws_fd, META, self.meta, not self.readonly, 0o700)
+                _own_records(meta_fd, self.meta)
             except BaseException:
                 os.close(src_fd)
                 raise
