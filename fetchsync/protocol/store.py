@@ -306,23 +306,21 @@ class _Tee:
 
 
 def _own_records(fd: int, shown: str) -> None:
-    """Refuse a ``.fetchsync`` (open as ``fd``; -1: none) that another user made or may
-    write into: in a workspace others can write (a group's), one put in place of ours
-    would have its index trusted (a forged stat-cache row lists the content its maker
-    chose) and our trash and conflicts kept there (tests/test_robot_other_user.py)."""
+    """Refuse a ``.fetchsync`` (open as ``fd``; -1: none) that another user made: in a
+    workspace others can write (a group's), one put in place of ours would have its
+    index trusted (a forged stat-cache row lists the content its maker chose) and our
+    trash and conflicts kept there (tests/test_robot_other_user.py). Its owner only, as
+    git's safe.directory: ours is made 0700, and a file system without permissions
+    (FAT, NTFS) gives every file the mode 0777 and the owner who mounted it."""
     if fd < 0:
         return
-    st = os.fstat(fd)
-    why = ""
-    if st.st_uid != os.getuid():
-        why = "belongs to another user (uid %d)" % st.st_uid
-    elif st.st_mode & 0o022:
-        why = "is writable by others (mode %o)" % stat_mod.S_IMODE(st.st_mode)
-    if why:
+    uid = os.fstat(fd).st_uid
+    if uid != os.getuid():
         os.close(fd)
         raise StoreError(
-            "%s %s: fetchsync keeps this workspace's records there and will not trust "
-            "them; remove it (the next push rebuilds it) or use another workspace" % (shown, why)
+            "%s belongs to another user (uid %d): fetchsync keeps this workspace's "
+            "records there and will not trust them; remove it (the next push rebuilds "
+            "it) or use another workspace" % (shown, uid)
         )
 
 
