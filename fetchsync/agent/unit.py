@@ -51,7 +51,10 @@ def fetchsync_argv() -> list[str]:
     found = shutil.which("fetchsync")
     if found and "/shims/" not in found:  # a pyenv shim needs the shell's pyenv set-up
         return [os.path.abspath(found)]
-    return [os.path.abspath(sys.executable), "-m", "fetchsync"]
+    # -P (3.11+): the unit runs in the workspace, which -m would put first on the path (a
+    # json.py lying there would be imported: tests/test_unit_import_path.py)
+    safe = ["-P"] if sys.version_info >= (3, 11) else []
+    return [os.path.abspath(sys.executable), *safe, "-m", "fetchsync"]
 
 
 def exec_quote(arg: str) -> str:
