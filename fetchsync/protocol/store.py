@@ -347,6 +347,7 @@ class Store:
         # upload parts this session started: a client that goes away between
         # the batches of a large file leaves them, with no batch marker to say so
         self._uploads = set()  # type: Set[str]
+        self._stamp = None  # type: Optional[str]  # the batch under way's (stamp)
         self._held = []  # type: List[int]  # the index files loaded (see _hold)
         self.kept_tree = None  # type: Any  # a KeptTree (see keep_listing)
         # the laptop's pull: a file replaced goes to the trash, as a deleted one (linked
@@ -1273,6 +1274,7 @@ class Store:
         the renames are made durable before this returns.
         """
         self._writable()
+        self._stamp = None  # taken again by this batch's first set-aside
         if unpacked is not None:  # the blob's compressed part, inflated while it waited
             packed, blob = unpacked
         elif zpart is not None:
@@ -1307,7 +1309,15 @@ class Store:
         syncfs(self._root().fd)
 
     def stamp(self) -> str:
-        return "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
+        """The name of this batch's directory in the trash and in conflicts: the time and
+        the generation, taken once per batch. Taken at each call, a second ticking over
+        between a file's set-aside and its count in ``trash_log`` made the log name a
+        directory that does not exist (never pruned: the trash's bound did not hold; the
+        cause of a test_trash_chain.py failure under CI's load), and a batch crossing a
+        second kept its files in two directories."""
+        if self._stamp is None:
+            self._stamp = "%s-%06d" % (time.strftime("%Y%m%d-%H%M%S"), self.gen + 1)
+        return self._stamp
 
     def _aside_dir(self, path: str, where: str) -> "Tuple[int, str, str]":
         """``(descriptor, name, path to show)`` of where ``path`` goes in
