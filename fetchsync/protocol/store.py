@@ -929,7 +929,7 @@ class Store:
         if self._racy(max(st.st_mtime_ns, st.st_ctime_ns)):
             # just written, as nearly always: another program's same-size rewrite in the
             # same timestamp tick would keep every stamp, and the cache would answer our
-            # content from 2 s on (tests/test_store_racy_write.py): the next look reads
+            # content from 2 s on (tests/test_store_racy_cache.py): the next look reads
             # it once (after an initial push every file it wrote: the bench's 2,000 files /
             # 40 MiB, a listing with them uncached 130-175 ms of CPU against 27-34, once)
             self._set_cache(path, None)
